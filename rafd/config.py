@@ -1,0 +1,156 @@
+"""Typed configuration of the RaFD network (torch-free: the service reads it from ONNX metadata)."""
+from __future__ import annotations
+
+import dataclasses
+import json
+from dataclasses import dataclass, field
+from typing import Any
+
+from rafd.geometry import RADIATE_RESOLUTION
+
+ALLOWED_FRAMES = (1, 2, 4)
+
+
+@dataclass(frozen=True)
+class BackboneConfig:
+    # Basic-block ResNet: blocks per stage. (3, 4, 6, 3) is ResNet-34 as in the paper.
+    blocks: tuple[int, ...] = (3, 4, 6, 3)
+    # Channels per stage; the stem has channels[0].
+    channels: tuple[int, ...] = (64, 128, 256, 512)
+
+
+@dataclass(frozen=True)
+class NeckConfig:
+    # FPN-style top-down neck fused at stride `output_stride` into one BEV map of `channels`.
+    channels: int = 128
+
+
+@dataclass(frozen=True)
+class EnhanceConfig:
+    # Feature enhancement: blocks of (regular window, shifted window) single-head attention.
+    enabled: bool = True  # False = the "without enhancement" ablation
+    num_blocks: int = 2
+    ffn_ratio: int = 2
+
+
+@dataclass(frozen=True)
+class FlowConfig:
+    # Flow estimation: global single-head cross-attention blocks between aligned pair features.
+    num_cross_blocks: int = 2
+    ffn_ratio: int = 2
+
+
+@dataclass(frozen=True)
+class PropagationConfig:
+    # Flow-guided deformable attention blocks chained oldest -> newest.
+    num_blocks: int = 2
+    num_points: int = 4  # sampling points per query and frame
+    # False = vanilla deformable attention (reference r_t, no flow): the paper's ablation baseline.
+    flow_guided: bool = True
+    ffn_ratio: int = 2
+
+
+@dataclass(frozen=True)
+class HeadConfig:
+    num_queries: int = 64  # K: fixed number of top-K heatmap peaks -> queries (static for ONNX)
+    decoder_layers: int = 2
+    num_points: int = 4  # deformable cross-attention sampling points per query
+    ffn_ratio: int = 2
+    num_classes: int = 1  # one merged `vehicle` class (benchmark protocol)
+
+
+@dataclass(frozen=True)
+class RaFDConfig:
+    input_size: int = 256  # square centre crop of the radar scan, pixels
+    num_frames: int = 4  # 1 (single-frame baseline), 2 or 4
+    output_stride: int = 4  # feature map is input_size / output_stride (TempoRadar: 256 -> 64)
+    resolution: float = RADIATE_RESOLUTION  # metres per input pixel (RADIATE Navtech)
+    class_names: tuple[str, ...] = ("vehicle",)
+    backbone: BackboneConfig = field(default_factory=BackboneConfig)
+    neck: NeckConfig = field(default_factory=NeckConfig)
+    enhance: EnhanceConfig = field(default_factory=EnhanceConfig)
+    flow: FlowConfig = field(default_factory=FlowConfig)
+    propagation: PropagationConfig = field(default_factory=PropagationConfig)
+    head: HeadConfig = field(default_factory=HeadConfig)
+
+    def __post_init__(self) -> None:
+        if self.num_frames not in ALLOWED_FRAMES:
+            raise ValueError(f"num_frames must be one of {ALLOWED_FRAMES}, got {self.num_frames}")
+        if self.input_size % (2 * self.output_stride):
+            raise ValueError("input_size must be divisible by 2 * output_stride (two attention windows per side)")
+        if len(self.backbone.blocks) != len(self.backbone.channels):
+            raise ValueError("backbone.blocks and backbone.channels must have the same length")
+
+    @property
+    def feature_size(self) -> int:
+        """Side of the BEV feature map, Hf = Wf."""
+        return self.input_size // self.output_stride
+
+    @property
+    def cell_size(self) -> float:
+        """Metres per feature cell."""
+        return self.resolution * self.output_stride
+
+    @classmethod
+    def paper(cls) -> "RaFDConfig":
+        """The paper's setting: ResNet-34 + FPN neck, stride 4, 256x256, 4 frames."""
+        return cls()
+
+    @classmethod
+    def tiny(cls, **overrides: Any) -> "RaFDConfig":
+        """Every part of the architecture, small enough to train on a CPU (128x128, 4 frames)."""
+        base = cls(
+            input_size=128,
+            num_frames=4,
+            output_stride=4,
+            backbone=BackboneConfig(blocks=(1, 1, 1), channels=(16, 32, 64)),
+            neck=NeckConfig(channels=32),
+            head=HeadConfig(num_queries=32, decoder_layers=1, num_points=4),
+        )
+        return base.replace(**overrides) if overrides else base
+
+    def replace(self, **changes: Any) -> "RaFDConfig":
+        return dataclasses.replace(self, **changes)
+
+    def to_dict(self) -> dict[str, Any]:
+        return dataclasses.asdict(self)
+
+    def to_json(self) -> str:
+        return json.dumps(self.to_dict(), sort_keys=True)
+
+    @classmethod
+    def from_dict(cls, data: dict[str, Any]) -> "RaFDConfig":
+        """Rebuild from `to_dict()`; unknown keys are an error, not silently dropped."""
+        sub_types = {f.name: f.type for f in dataclasses.fields(cls)}
+        nested = {
+            "backbone": BackboneConfig,
+            "neck": NeckConfig,
+            "enhance": EnhanceConfig,
+            "flow": FlowConfig,
+            "propagation": PropagationConfig,
+            "head": HeadConfig,
+        }
+        kwargs: dict[str, Any] = {}
+        for key, value in data.items():
+            if key not in sub_types:
+                raise ValueError(f"unknown RaFDConfig field {key!r}")
+            if key in nested:
+                kwargs[key] = _build_dataclass(nested[key], value)
+            elif key == "class_names":
+                kwargs[key] = tuple(value)
+            else:
+                kwargs[key] = value
+        return cls(**kwargs)
+
+    @classmethod
+    def from_json(cls, text: str) -> "RaFDConfig":
+        return cls.from_dict(json.loads(text))
+
+
+def _build_dataclass(kind: type, values: dict[str, Any]) -> Any:
+    names = {f.name for f in dataclasses.fields(kind)}
+    unknown = set(values) - names
+    if unknown:
+        raise ValueError(f"unknown {kind.__name__} fields {sorted(unknown)}")
+    # JSON turns tuples into lists; the dataclasses are frozen and hashable with tuples.
+    return kind(**{k: tuple(v) if isinstance(v, list) else v for k, v in values.items()})
