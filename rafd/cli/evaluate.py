@@ -1,0 +1,142 @@
+"""rafd-eval: mAP@0.3/0.5/0.7 and flow EPE of a checkpoint on a split, overall and per sequence, with plots."""
+from __future__ import annotations
+
+import argparse
+import json
+import logging
+import math
+import sys
+from pathlib import Path
+from typing import Any, Sequence
+
+log = logging.getLogger("rafd.eval")
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(prog="rafd-eval", description=__doc__)
+    parser.add_argument("checkpoint", type=Path, help="checkpoint written by rafd-train")
+    parser.add_argument("--data", required=True, type=Path, help="data root holding sequence folders")
+    parser.add_argument("--split", required=True, help="meta.json 'set' to evaluate, e.g. test")
+    parser.add_argument("--json", type=Path, help="write the metrics here")
+    parser.add_argument("--plots", type=Path, help="folder for the precision-recall plot and example frames")
+    parser.add_argument("--examples", type=int, default=4, help="example frames drawn into --plots")
+    parser.add_argument("--batch-size", type=int, default=8)
+    parser.add_argument("--device", default="auto", help="cpu | cuda | cuda:N | auto")
+    parser.add_argument("--max-windows", type=int, help="evaluate at most N (evenly spaced) windows")
+    parser.add_argument("--threads", type=int, help="torch CPU threads")
+    parser.add_argument("--no-progress", action="store_true")
+    return parser
+
+
+def _jsonable(value: Any) -> Any:
+    """NaN -> None so the JSON is standard."""
+    if isinstance(value, float) and math.isnan(value):
+        return None
+    if isinstance(value, dict):
+        return {k: _jsonable(v) for k, v in value.items()}
+    return value
+
+
+def format_table(overall: dict[str, Any], per_sequence: dict[str, dict[str, Any]]) -> str:
+    """Plain-text table: one row per sequence plus the overall row."""
+    columns = ("mAP@0.3", "mAP@0.5", "mAP@0.7", "epe_all", "epe_foreground", "frames")
+    lines = [f"{'sequence':<28}" + "".join(f"{c:>15}" for c in columns)]
+    for name, row in [*per_sequence.items(), ("OVERALL", overall)]:
+        cells = []
+        for column in columns:
+            value = row.get(column)
+            cells.append(f"{value:>15.4f}" if isinstance(value, float) else f"{str(value):>15}")
+        lines.append(f"{name:<28}" + "".join(cells))
+    return "\n".join(lines)
+
+
+def write_plots(
+    folder: Path, model: Any, cfg: Any, dataset: Any, results: Sequence[Any], examples: int, device: Any
+) -> list[Path]:
+    """Precision-recall plot of all frames and a few example frames (GT green, predictions red, flow)."""
+    import cv2
+    import numpy as np
+    from torch.utils.data import Subset
+
+    from rafd.train.predict import predict
+    from rafd.viz import draw_detections, plot_precision_recall
+
+    folder.mkdir(parents=True, exist_ok=True)
+    written = []
+    pr_path = folder / "precision_recall.png"
+    plot_precision_recall(
+        [r.predictions for r in results], [r.ground_truth for r in results], pr_path, iou_thresholds=(0.3, 0.5, 0.7)
+    )
+    written.append(pr_path)
+    if examples > 0 and len(dataset):
+        # Frames that hold objects make better examples; fall back to any frame.
+        with_objects = [i for i, r in enumerate(results) if len(r.ground_truth)] or list(range(len(results)))
+        picks = sorted({with_objects[int(k)] for k in np.linspace(0, len(with_objects) - 1, min(examples, len(with_objects)))})
+        example_results = predict(model, Subset(dataset, picks), cfg, device, batch_size=len(picks), keep_flow=True, progress=False)
+        for index, result in zip(picks, example_results):
+            window = dataset[index]
+            image = np.asarray(window["frames"])[-1].squeeze()  # [H, W] newest frame
+            canvas = draw_detections(
+                image,
+                result.predictions,
+                result.ground_truth,
+                resolution=cfg.resolution,
+                flow=result.flow,
+            )
+            path = folder / f"example_{result.sequence}_{result.frame:06d}.png"
+            if not cv2.imwrite(str(path), canvas):
+                raise OSError(f"could not write {path}")
+            written.append(path)
+    return written
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    args = build_parser().parse_args(argv)
+    logging.basicConfig(level=logging.INFO, format="%(asctime)s %(levelname)s %(name)s: %(message)s")
+    import torch
+
+    from rafd.checkpoint import load_checkpoint
+    from rafd.train.datasets import DatasetError, open_windows
+    from rafd.train.distributed import resolve_device
+    from rafd.train.predict import predict, summarise, summarise_by_sequence
+
+    if not args.checkpoint.is_file():
+        print(f"rafd-eval: error: checkpoint {args.checkpoint} does not exist", file=sys.stderr)
+        return 2
+    try:
+        device = resolve_device(args.device)
+        model, cfg, meta = load_checkpoint(args.checkpoint, map_location="cpu")
+        dataset = open_windows(args.data, args.split, cfg, args.max_windows, augment=False)
+    except (DatasetError, ValueError, RuntimeError) as error:
+        print(f"rafd-eval: error: {error}", file=sys.stderr)
+        return 2
+    if args.threads:
+        torch.set_num_threads(args.threads)
+    model = model.to(device).eval()
+    results = predict(model, dataset, cfg, device, batch_size=args.batch_size, progress=not args.no_progress)
+    overall = summarise(results)
+    per_sequence = summarise_by_sequence(results)
+    report = {
+        "checkpoint": str(args.checkpoint),
+        "data": str(args.data),
+        "split": args.split,
+        "num_frames": cfg.num_frames,
+        "input_size": cfg.input_size,
+        "overall": overall,
+        "per_sequence": per_sequence,
+        "checkpoint_meta": {k: meta.get(k) for k in ("epoch", "step") if isinstance(meta, dict)},
+    }
+    print(format_table(overall, per_sequence))
+    if args.plots is not None:
+        paths = write_plots(args.plots, model, cfg, dataset, results, args.examples, device)
+        report["plots"] = [str(p) for p in paths]
+        print(f"plots: {args.plots} ({len(paths)} files)")
+    if args.json is not None:
+        args.json.parent.mkdir(parents=True, exist_ok=True)
+        args.json.write_text(json.dumps(_jsonable(report), indent=2))
+        print(f"metrics: {args.json}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,49 @@
+"""Public entry points: simulate one RADIATE-format sequence or a whole split of them."""
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+
+from rafd.geometry import RADIATE_SCAN_SIZE
+from rafd.sim.sensor import Difficulty
+from rafd.sim.sequence import run_simulation
+from rafd.sim.writer import write_sequence
+
+
+def sequence_seed(seed: int, index: int) -> int:
+    """Independent per-sequence seed derived from (dataset seed, sequence index)."""
+    return int(np.random.SeedSequence([int(seed), int(index)]).generate_state(1, np.uint64)[0])
+
+
+def simulate_sequence(
+    out_dir: str | Path,
+    seed: int,
+    num_frames: int,
+    split: str = "train_good_weather",
+    size: int = RADIATE_SCAN_SIZE,
+    difficulty: Difficulty = Difficulty(),
+) -> Path:
+    """Simulate and write one sequence into the folder `out_dir` (its name becomes meta.json "name")."""
+    out_dir = Path(out_dir)
+    sequence = run_simulation(seed, num_frames, split, size, difficulty, name=out_dir.name)
+    return write_sequence(sequence, out_dir)
+
+
+def simulate_dataset(
+    root: str | Path,
+    sequences: int,
+    frames: int,
+    seed: int,
+    split: str = "train_good_weather",
+    size: int = RADIATE_SCAN_SIZE,
+    difficulty: Difficulty = Difficulty(),
+) -> list[Path]:
+    """Write `sequences` folders root/sim_<seed>_<k>, each simulated from sequence_seed(seed, k)."""
+    if sequences < 1:
+        raise ValueError(f"sequences must be >= 1, got {sequences}")
+    root = Path(root)
+    return [
+        simulate_sequence(root / f"sim_{seed}_{k}", sequence_seed(seed, k), frames, split, size, difficulty)
+        for k in range(sequences)
+    ]

@@ -1,0 +1,79 @@
+"""Write a simulated sequence in RADIATE's on-disk layout (+ our ego_poses.csv with the true poses)."""
+from __future__ import annotations
+
+import csv
+import json
+from pathlib import Path
+
+import cv2
+import numpy as np
+
+from rafd.geometry import box_to_radiate
+from rafd.sim.sequence import SimulatedSequence
+
+POSES_HEADER = ("frame", "timestamp", "x", "y", "yaw")
+
+
+def format_timestamp(nanoseconds: int) -> str:
+    """UNIX nanoseconds -> RADIATE's 'seconds.nanoseconds' text, exact (no float rounding)."""
+    return f"{int(nanoseconds) // 1_000_000_000}.{int(nanoseconds) % 1_000_000_000:09d}"
+
+
+def annotations_json(sequence: SimulatedSequence) -> list[dict]:
+    """RADIATE annotations: one entry per object, bboxes[k] for frame k + 1, [] where absent."""
+    size = sequence.images[0].shape[0]
+    entries = []
+    for obj in sequence.objects:
+        bboxes: list = []
+        for box in obj.boxes:
+            if np.isfinite(box[0]):
+                position, rotation = box_to_radiate(box, image_size=size, resolution=sequence.resolution)
+                bboxes.append({"position": position, "rotation": rotation})
+            else:
+                bboxes.append([])
+        entries.append({"id": int(obj.id), "class_name": obj.class_name, "bboxes": bboxes})
+    return entries
+
+
+def _write_poses(path: Path, sequence: SimulatedSequence) -> None:
+    frames = np.arange(1, len(sequence.images) + 1)
+    try:  # the DATA module's writer when present, so reader and writer cannot drift apart
+        from rafd.data.poses import write_ego_poses
+    except ImportError:
+        write_ego_poses = None
+    if write_ego_poses is not None:
+        write_ego_poses(path, frames, sequence.timestamps_ns / 1e9, sequence.poses)
+        return
+    with path.open("w", newline="") as handle:
+        writer = csv.writer(handle)
+        writer.writerow(POSES_HEADER)
+        for frame, stamp, pose in zip(frames, sequence.timestamps_ns, sequence.poses):
+            writer.writerow([int(frame), format_timestamp(stamp), *(repr(float(v)) for v in pose)])
+
+
+def write_sequence(sequence: SimulatedSequence, out_dir: Path) -> Path:
+    """Create `out_dir` (a sequence folder) with Navtech_Cartesian/, its .txt, annotations, meta.json, ego_poses.csv."""
+    out_dir = Path(out_dir)
+    image_dir = out_dir / "Navtech_Cartesian"
+    image_dir.mkdir(parents=True, exist_ok=True)
+    (out_dir / "annotations").mkdir(exist_ok=True)
+    lines = []
+    for index, (image, stamp) in enumerate(zip(sequence.images, sequence.timestamps_ns), start=1):
+        path = image_dir / f"{index:06d}.png"
+        if not cv2.imwrite(str(path), image):
+            raise OSError(f"could not write {path}")
+        lines.append(f"Frame: {index:06d} Time: {format_timestamp(stamp)}\n")
+    (out_dir / "Navtech_Cartesian.txt").write_text("".join(lines))
+    (out_dir / "annotations" / "annotations.json").write_text(json.dumps(annotations_json(sequence)))
+    meta = {
+        "name": sequence.name,
+        "type": "simulated",
+        "set": sequence.split,
+        "version": "1.0",
+        "seed": int(sequence.seed),
+        "resolution": sequence.resolution,
+        "image_size": int(sequence.images[0].shape[0]),
+    }
+    (out_dir / "meta.json").write_text(json.dumps(meta))
+    _write_poses(out_dir / "ego_poses.csv", sequence)
+    return out_dir

@@ -1,0 +1,80 @@
+"""The FastAPI app factory: `uvicorn --factory service.app:create_app`.
+
+The model is loaded in the lifespan, in a background task, never at import: /health/live answers at
+once, /health/ready (and every model route) answers 503 until the model is loaded and warmed up.
+"""
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import logging
+import time
+from collections.abc import AsyncIterator, Callable
+from typing import Any
+
+from fastapi import FastAPI
+from starlette.concurrency import run_in_threadpool
+
+from rafd import __version__
+from service.detector import DetectService
+from service.errors import install_error_handlers
+from service.limits import BodySizeLimitMiddleware
+from service.loading import check_buffer_length, open_runner, warm_up
+from service.metrics import MetricsMiddleware, ServiceMetrics
+from service.poses import Odometry
+from service.routers import detect, health, metrics, model, streams
+from service.settings import Settings, get_settings
+from service.streams import StreamStore
+
+log = logging.getLogger(__name__)
+
+
+def create_app(
+    settings: Settings | None = None,
+    runner: Any | None = None,
+    odometry: Odometry | None = None,
+    clock: Callable[[], float] = time.monotonic,
+) -> FastAPI:
+    """Build the app; `runner` (an OnnxRunner-compatible object) and `odometry` can be injected for tests."""
+    settings = settings or get_settings()
+    service_metrics = ServiceMetrics()
+
+    async def load(app: FastAPI) -> None:
+        try:
+            loaded = runner if runner is not None else await run_in_threadpool(open_runner, settings)
+            check_buffer_length(settings, loaded)
+            await run_in_threadpool(warm_up, loaded)
+            store = StreamStore(loaded.new_state, settings.max_streams, settings.stream_ttl_s, clock=clock,
+                                on_evict=lambda reason: service_metrics.evictions.labels(reason=reason).inc())
+            service_metrics.track_active_streams(lambda: len(store))
+            app.state.service = DetectService(loaded, settings, store, service_metrics, odometry)
+            log.info("model ready: %s", loaded.metadata.get("version", "unknown"))
+        except Exception as exc:  # readiness reports it; the process stays up for inspection
+            log.exception("model failed to load")
+            app.state.load_error = f"{type(exc).__name__}: {exc}"
+
+    @contextlib.asynccontextmanager
+    async def lifespan(app: FastAPI) -> AsyncIterator[None]:
+        app.state.service = None
+        app.state.load_error = None
+        task = asyncio.create_task(load(app))
+        try:
+            yield
+        finally:
+            task.cancel()
+            with contextlib.suppress(asyncio.CancelledError):
+                await task
+            app.state.service = None
+
+    app = FastAPI(title="RaFD radar detection service", version=__version__, lifespan=lifespan)
+    app.state.settings = settings
+    app.state.metrics = service_metrics
+    app.state.service = None
+    app.state.load_error = None
+    install_error_handlers(app)
+    for router in (detect.router, streams.router, health.router, model.router, metrics.router):
+        app.include_router(router)
+    # Last added = outermost: metrics also count the 413s the size limit answers.
+    app.add_middleware(BodySizeLimitMiddleware, max_bytes=settings.max_request_bytes)
+    app.add_middleware(MetricsMiddleware, metrics=service_metrics)
+    return app

@@ -1,0 +1,170 @@
+"""The detect pipeline: decode -> per-stream lock -> pose -> runner step -> commit -> boxes and flow."""
+from __future__ import annotations
+
+import base64
+import time
+from dataclasses import dataclass
+from typing import Any, Literal
+
+import numpy as np
+from starlette.concurrency import run_in_threadpool
+
+from rafd.detections import decode_detections
+from rafd.geometry import box_polygons_pixels
+from service import poses
+from service.errors import ApiError
+from service.images import DecodedFrame, accepted_sizes, decode_frame
+from service.metrics import ServiceMetrics
+from service.schemas import DetectFields
+from service.settings import Settings
+from service.streams import StreamStore
+
+FlowFormat = Literal["list", "base64"]
+CELL_RULE = ("cell (i, j) = (row, col) covers posted pixels u in [origin_u + j*stride_px, +stride_px), "
+             "v in [origin_v + i*stride_px, +stride_px); its centre in metres (ego frame): "
+             "x = (j + 0.5 - width/2) * cell_size_m, y = (height/2 - i - 0.5) * cell_size_m")
+FLOW_AXES = ("component 0 = x (right), component 1 = y (forward), metres in the newest frame's ego axes; "
+             "ego motion removed")
+
+
+@dataclass(frozen=True)
+class DetectOptions:
+    flow: bool = True
+    flow_format: FlowFormat = "list"
+
+
+class DetectService:
+    """Everything /detect needs once the model is loaded: runner, stream store, odometry, settings."""
+
+    def __init__(self, runner: Any, settings: Settings, store: StreamStore, metrics: ServiceMetrics,
+                 odometry: poses.Odometry | None = None) -> None:
+        self.runner = runner
+        self.config = runner.config
+        self.settings = settings
+        self.store = store
+        self.metrics = metrics
+        self._odometry = odometry
+
+    @property
+    def accepted_sizes(self) -> tuple[int, ...]:
+        return accepted_sizes(self.config.input_size, self.config.resolution)
+
+    def odometry(self) -> poses.Odometry:
+        if self._odometry is None:
+            self._odometry = poses.default_odometry()
+        return self._odometry
+
+    async def detect(self, fields: DetectFields, image: bytes, options: DetectOptions) -> dict[str, Any]:
+        """One frame of one stream -> the JSON answer; the stream changes only when everything succeeded."""
+        start = time.perf_counter()
+        decoded = await run_in_threadpool(decode_frame, image, self.config.input_size, self.config.resolution)
+        frame = decoded.model_input()  # [S, S] float32 in [0, 1]
+        decoded_at = time.perf_counter()
+        requested = None if fields.pose is None else np.array([fields.pose.x, fields.pose.y, fields.pose.yaw])
+
+        async with self.store.session(fields.stream_id) as entry:
+            locked_at = time.perf_counter()
+            if entry.last_timestamp is not None and fields.timestamp <= entry.last_timestamp:
+                raise ApiError(409, "timestamp_not_increasing",
+                               f"timestamp {fields.timestamp!r} is not after this stream's last frame "
+                               f"({entry.last_timestamp!r}); timestamps must increase within a stream")
+            if requested is not None:
+                poses.check_request_pose(entry.pose_source)
+                pose, source = requested, "request"
+            elif entry.last_frame is None:  # a stream's first frame anchors its odometry world frame
+                pose, source = np.zeros(3), "odometry"
+            else:
+                pose = await run_in_threadpool(poses.odometry_pose, entry.last_pose, entry.last_frame, decoded.crop,
+                                               self.config.resolution, self.odometry())
+                source = "odometry"
+            odometry_done = time.perf_counter()
+            # float64: world poses may be large (UTM metres); the runner takes differences before casting.
+            result, new_state = await run_in_threadpool(self.runner.step, entry.state, frame, pose)
+            model_done = time.perf_counter()
+            previous_timestamp = entry.last_timestamp
+            entry.commit(new_state, fields.timestamp, decoded.crop, pose, source)
+
+        self.metrics.frames.inc()
+        self.metrics.model_latency.observe(model_done - odometry_done)
+        answer = self._answer(fields, decoded, result, pose, source, previous_timestamp, options)
+        done = time.perf_counter()
+        answer["timing"] = {
+            "decode_ms": _ms(decoded_at - start),
+            "wait_ms": _ms(locked_at - decoded_at),
+            "odometry_ms": _ms(odometry_done - locked_at),
+            "model_ms": _ms(model_done - odometry_done),
+            "post_ms": _ms(done - model_done),
+            "total_ms": _ms(done - start),
+        }
+        return answer
+
+    # ------------------------------------------------------------------ post-processing
+    def _answer(self, fields: DetectFields, decoded: DecodedFrame, result: Any, pose: np.ndarray, source: str,
+                previous_timestamp: float | None, options: DetectOptions) -> dict[str, Any]:
+        cfg = self.config
+        frames_used = int(result.frames_used)
+        metadata = self.runner.metadata
+        return {
+            "stream_id": fields.stream_id,
+            "timestamp": fields.timestamp,
+            "frames_used": frames_used,
+            "num_frames": cfg.num_frames,
+            "warming_up": frames_used < cfg.num_frames,
+            "pose_source": source,
+            "pose": {"x": float(pose[0]), "y": float(pose[1]), "yaw": float(pose[2])},
+            "boxes": self._boxes(result, decoded.posted_size),
+            "flow": self._flow(result, decoded, previous_timestamp, fields.timestamp, options),
+            "input": {"posted_size": decoded.posted_size, "model_size": cfg.input_size,
+                      "crop_offset_px": decoded.crop_offset},
+            "model": {"version": metadata.get("version", "unknown"),
+                      "checkpoint_sha256": metadata.get("checkpoint_sha256", "unknown")},
+        }
+
+    def _boxes(self, result: Any, posted_size: int) -> list[dict[str, Any]]:
+        detections = decode_detections(result.boxes, result.scores, self.settings.score_threshold)
+        polygons = box_polygons_pixels(detections.boxes, posted_size, self.config.resolution)  # [N, 4, 2]
+        names = self.config.class_names
+        out = []
+        for box, score, label, polygon in zip(detections.boxes, detections.scores, detections.labels, polygons):
+            out.append({
+                # 0.1 mm and 1e-5 rad: far below the radar's 17 cm pixels, keeps the JSON short
+                "x": round(float(box[0]), 4), "y": round(float(box[1]), 4),
+                "width": round(float(box[2]), 4), "length": round(float(box[3]), 4),
+                "yaw": round(float(box[4]), 5), "score": round(float(score), 5), "class_id": int(label),
+                "class": names[label] if label < len(names) else str(label),
+                "polygon": np.round(polygon, 2).tolist(),
+            })
+        return out
+
+    def _flow(self, result: Any, decoded: DecodedFrame, previous_timestamp: float | None, timestamp: float,
+              options: DetectOptions) -> dict[str, Any] | None:
+        """The newest pair's flow [2, Hf, Wf]; None when not asked for or no real pair exists yet."""
+        if not options.flow or result.flow is None or result.frames_used < 2:
+            return None
+        flow = np.asarray(result.flow)[-1]  # [T-1, 2, Hf, Wf] -> [2, Hf, Wf] newest pair
+        _, height, width = flow.shape
+        stride = self.config.input_size // height
+        cell = self.config.cell_size
+        if options.flow_format == "base64":
+            values: Any = base64.b64encode(flow.astype("<f2").tobytes()).decode("ascii")
+            encoding = "base64-float16"
+        else:
+            values = np.round(flow.astype(np.float64), 3).tolist()  # millimetres: well below a cell
+            encoding = "list"
+        return {
+            "pair": [previous_timestamp, timestamp],
+            "shape": [2, height, width],
+            "units": "m",
+            "axes": FLOW_AXES,
+            "grid": {
+                "height": height, "width": width, "cell_size_m": cell, "stride_px": stride,
+                "origin_px": [decoded.crop_offset, decoded.crop_offset],
+                "cell_centre_rule": CELL_RULE,
+            },
+            "encoding": encoding,
+            "values": values,
+        }
+
+
+def _ms(seconds: float) -> float:
+    return round(seconds * 1000.0, 3)

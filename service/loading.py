@@ -1,0 +1,46 @@
+"""Open the ONNX runner and warm it up (runs in a worker thread from the app's lifespan)."""
+from __future__ import annotations
+
+import logging
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from service.settings import Settings
+
+log = logging.getLogger(__name__)
+
+
+def resolve_model_path(settings: Settings) -> Path:
+    """RAFD_MODEL_PATH, or the model shipped in the package."""
+    if settings.model_path is not None:
+        path = Path(settings.model_path)
+        if not path.is_file():
+            raise FileNotFoundError(f"RAFD_MODEL_PATH={path} is not a file")
+        return path
+    from rafd.assets import default_onnx  # lazy: the shipped asset is optional at import time
+
+    return Path(default_onnx())
+
+
+def open_runner(settings: Settings) -> Any:
+    """An onnxruntime-backed rafd.runtime.OnnxRunner (imported here, never at service import)."""
+    path = resolve_model_path(settings)
+    from rafd.runtime import OnnxRunner
+
+    log.info("loading %s with %d onnxruntime threads", path, settings.threads)
+    return OnnxRunner(path, threads=settings.threads)
+
+
+def check_buffer_length(settings: Settings, runner: Any) -> None:
+    """The per-stream buffer is the model's temporal window: the two must agree."""
+    frames = runner.config.num_frames
+    if settings.buffer_length is not None and settings.buffer_length != frames:
+        raise ValueError(f"RAFD_BUFFER_LENGTH={settings.buffer_length} but the model takes {frames} frames")
+
+
+def warm_up(runner: Any) -> None:
+    """One step on a blank frame: first-run allocations and kernel choices happen before traffic."""
+    size = runner.config.input_size
+    runner.step(runner.new_state(), np.zeros((size, size), np.float32), np.zeros(3, np.float32))

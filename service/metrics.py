@@ -1,0 +1,65 @@
+"""Prometheus metrics on a per-app registry (two apps in one process, e.g. tests, never share counters)."""
+from __future__ import annotations
+
+import time
+from collections.abc import Callable
+
+from prometheus_client import CollectorRegistry, Counter, Gauge, Histogram
+from starlette.types import ASGIApp, Message, Receive, Scope, Send
+
+LATENCY_BUCKETS = (0.005, 0.01, 0.025, 0.05, 0.1, 0.25, 0.5, 1.0, 2.5, 5.0, 10.0)
+
+
+class ServiceMetrics:
+    def __init__(self) -> None:
+        self.registry = CollectorRegistry(auto_describe=True)
+        self.requests = Counter("rafd_requests", "HTTP requests by route, method and status code",
+                                ["route", "method", "code"], registry=self.registry)
+        self.errors = Counter("rafd_request_errors", "HTTP responses with status >= 400 by route and code",
+                              ["route", "code"], registry=self.registry)
+        self.latency = Histogram("rafd_request_duration_seconds", "HTTP request latency by route",
+                                 ["route"], buckets=LATENCY_BUCKETS, registry=self.registry)
+        self.model_latency = Histogram("rafd_model_step_seconds", "onnxruntime time per detect step",
+                                       buckets=LATENCY_BUCKETS, registry=self.registry)
+        self.frames = Counter("rafd_frames_processed", "frames run through the model", registry=self.registry)
+        self.active_streams = Gauge("rafd_active_streams", "streams holding a buffer", registry=self.registry)
+        self.evictions = Counter("rafd_stream_evictions", "streams evicted, by reason (ttl or lru)",
+                                 ["reason"], registry=self.registry)
+        for reason in ("ttl", "lru"):
+            self.evictions.labels(reason=reason)  # export zeros so dashboards see the series from the start
+
+    def track_active_streams(self, count: Callable[[], int]) -> None:
+        """The gauge reads the store at scrape time (so TTL expiry shows without a background task)."""
+        self.active_streams.set_function(count)
+
+
+class MetricsMiddleware:
+    """Counts every HTTP request by its route template (not the raw path: stream ids would explode labels)."""
+
+    def __init__(self, app: ASGIApp, metrics: ServiceMetrics) -> None:
+        self.app = app
+        self.metrics = metrics
+
+    async def __call__(self, scope: Scope, receive: Receive, send: Send) -> None:
+        if scope["type"] != "http":
+            await self.app(scope, receive, send)
+            return
+        start = time.perf_counter()
+        status = 500
+
+        async def send_wrapper(message: Message) -> None:
+            nonlocal status
+            if message["type"] == "http.response.start":
+                status = message["status"]
+            await send(message)
+
+        try:
+            await self.app(scope, receive, send_wrapper)
+        finally:
+            route = scope.get("route")
+            path = getattr(route, "path", None) or "unmatched"
+            code = str(status)
+            self.metrics.requests.labels(route=path, method=scope["method"], code=code).inc()
+            if status >= 400:
+                self.metrics.errors.labels(route=path, code=code).inc()
+            self.metrics.latency.labels(route=path).observe(time.perf_counter() - start)

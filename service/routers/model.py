@@ -1,0 +1,28 @@
+"""The served model: ONNX metadata, config and what the service accepts."""
+from __future__ import annotations
+
+from typing import Any
+
+from fastapi import APIRouter, Depends
+
+from service.dependencies import get_service
+from service.detector import DetectService
+
+router = APIRouter(tags=["model"])
+
+
+@router.get("/model")
+async def model_info(service: DetectService = Depends(get_service)) -> dict[str, Any]:
+    cfg = service.config
+    return {
+        "metadata": dict(service.runner.metadata),
+        "config": cfg.to_dict(),
+        "input_size": cfg.input_size,
+        "num_frames": cfg.num_frames,
+        "feature_size": cfg.feature_size,
+        "cell_size_m": cfg.cell_size,
+        "resolution_m_per_px": cfg.resolution,
+        "class_names": list(cfg.class_names),
+        "accepted_image_sizes": list(service.accepted_sizes),
+        "score_threshold": service.settings.score_threshold,
+    }

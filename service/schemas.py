@@ -1,0 +1,127 @@
+"""Request and response models of the HTTP API."""
+from __future__ import annotations
+
+from typing import Annotated, Literal
+
+from pydantic import BaseModel, ConfigDict, Field
+
+# URL-path-safe, printable, no whitespace: the id also appears in DELETE /streams/{stream_id}.
+STREAM_ID_PATTERN = r"^[A-Za-z0-9._~:@+\-]{1,128}$"
+StreamId = Annotated[str, Field(min_length=1, max_length=128, pattern=STREAM_ID_PATTERN,
+                                description="1-128 characters from A-Z a-z 0-9 . _ ~ : @ + -")]
+
+Strict = ConfigDict(extra="forbid", allow_inf_nan=False)
+
+
+class Pose(BaseModel):
+    """World pose of the radar's ego frame: world = R(yaw) @ ego + (x, y)."""
+
+    model_config = Strict
+    x: float = Field(description="metres")
+    y: float = Field(description="metres")
+    yaw: float = Field(description="radians, counter-clockwise")
+
+
+class DetectFields(BaseModel):
+    """The non-image fields of POST /detect (JSON body or multipart form)."""
+
+    model_config = Strict
+    stream_id: StreamId
+    timestamp: float = Field(description="seconds (e.g. UNIX time); must increase within a stream")
+    pose: Pose | None = Field(default=None, description="omit to estimate ego motion from the radar (odometry)")
+
+
+class DetectJson(DetectFields):
+    image: str = Field(min_length=1, description="base64 PNG, 8-bit greyscale (a data: URL prefix is accepted)")
+
+
+class BoxOut(BaseModel):
+    x: float = Field(description="centre, metres right of the radar (ego frame of this frame)")
+    y: float = Field(description="centre, metres forward of the radar")
+    width: float = Field(description="metres along the box's x axis")
+    length: float = Field(description="metres along the box's y axis")
+    yaw: float = Field(description="radians, counter-clockwise from ego x")
+    score: float
+    class_id: int
+    class_name: str = Field(serialization_alias="class")
+    polygon: list[list[float]] = Field(description="4 corners (u, v) in the POSTED image's pixels")
+
+
+class FlowGrid(BaseModel):
+    height: int
+    width: int
+    cell_size_m: float
+    stride_px: int = Field(description="model-input pixels per cell")
+    origin_px: list[int] = Field(description="(u, v) of cell (0, 0)'s top-left corner in the POSTED image")
+    cell_centre_rule: str
+
+
+class FlowOut(BaseModel):
+    pair: list[float | None] = Field(description="timestamps (previous, newest) of the frame pair the flow is for")
+    shape: list[int] = Field(description="[2, Hf, Wf]")
+    units: Literal["m"] = "m"
+    axes: str
+    grid: FlowGrid
+    encoding: Literal["list", "base64-float16"]
+    values: list[list[list[float]]] | str
+
+
+class InputOut(BaseModel):
+    posted_size: int
+    model_size: int
+    crop_offset_px: int = Field(description="posted pixel of the model crop's top-left corner")
+
+
+class TimingOut(BaseModel):
+    decode_ms: float
+    odometry_ms: float
+    wait_ms: float = Field(description="time queued behind earlier frames of the same stream")
+    model_ms: float
+    post_ms: float
+    total_ms: float
+
+
+class ModelRef(BaseModel):
+    version: str
+    checkpoint_sha256: str
+
+
+class DetectResponse(BaseModel):
+    stream_id: str
+    timestamp: float
+    frames_used: int
+    num_frames: int
+    warming_up: bool = Field(description="true while fewer than num_frames frames are buffered")
+    pose_source: Literal["request", "odometry"]
+    pose: Pose
+    boxes: list[BoxOut]
+    flow: FlowOut | None = Field(description="null with ?flow=false, on a stream's first frame or a 1-frame model")
+    input: InputOut
+    model: ModelRef
+    timing: TimingOut
+
+
+class StreamOut(BaseModel):
+    stream_id: str
+    frames_buffered: int
+    frames_seen: int
+    last_timestamp: float | None
+    idle_s: float
+    pose_source: str | None
+    state_bytes: int
+
+
+class StreamsResponse(BaseModel):
+    count: int
+    max_streams: int
+    ttl_s: float
+    streams: list[StreamOut]
+
+
+class ErrorBody(BaseModel):
+    code: str
+    message: str
+
+
+class ErrorResponse(BaseModel):
+    error: ErrorBody

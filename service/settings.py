@@ -1,0 +1,71 @@
+"""Service settings from RAFD_* environment variables (pydantic-settings), cached per process."""
+from __future__ import annotations
+
+import math
+import os
+from functools import lru_cache
+from pathlib import Path
+
+from pydantic import Field
+from pydantic_settings import BaseSettings, SettingsConfigDict
+
+CGROUP_V2_CPU_MAX = Path("/sys/fs/cgroup/cpu.max")
+CGROUP_V1_QUOTA = Path("/sys/fs/cgroup/cpu/cpu.cfs_quota_us")
+CGROUP_V1_PERIOD = Path("/sys/fs/cgroup/cpu/cpu.cfs_period_us")
+
+
+def cgroup_cpu_limit(cpu_max: Path = CGROUP_V2_CPU_MAX, v1_quota: Path = CGROUP_V1_QUOTA,
+                     v1_period: Path = CGROUP_V1_PERIOD) -> int | None:
+    """Whole CPUs allowed by the container's CFS quota (rounded up), None when unlimited or unknown."""
+    try:
+        if cpu_max.is_file():
+            quota, period = cpu_max.read_text().split()[:2]
+            if quota == "max":
+                return None
+            return max(1, math.ceil(int(quota) / int(period)))
+        if v1_quota.is_file() and v1_period.is_file():
+            quota_us = int(v1_quota.read_text())
+            if quota_us <= 0:  # -1 = unlimited
+                return None
+            return max(1, math.ceil(quota_us / int(v1_period.read_text())))
+    except (OSError, ValueError):
+        return None  # unreadable or malformed: fall back to the affinity mask
+    return None
+
+
+def available_cpus() -> int:
+    """CPUs this process may use: the affinity mask (not os.cpu_count()), capped by the cgroup quota."""
+    try:
+        cpus = len(os.sched_getaffinity(0))
+    except AttributeError:  # not on Linux
+        cpus = os.cpu_count() or 1
+    limit = cgroup_cpu_limit()
+    return max(1, min(cpus, limit) if limit else cpus)
+
+
+class Settings(BaseSettings):
+    """Everything an operator may tune; each field reads RAFD_<NAME> (e.g. RAFD_MAX_STREAMS)."""
+
+    # `model_path` would clash with pydantic's protected "model_" namespace without this.
+    model_config = SettingsConfigDict(env_prefix="RAFD_", protected_namespaces=(), extra="forbid")
+
+    # ONNX file; None serves the model shipped in the package (rafd.assets.default_onnx()).
+    model_path: Path | None = None
+    # onnxruntime intra-op threads: sized from the CPUs the container may really use.
+    threads: int = Field(default_factory=available_cpus, ge=1)
+    # Live streams held at once; beyond it the least recently used stream is evicted.
+    max_streams: int = Field(default=256, ge=1)
+    # A stream idle for longer than this is forgotten (its next frame starts a new buffer).
+    stream_ttl_s: float = Field(default=300.0, gt=0)
+    # Request bodies above this many bytes get 413 (a base64 1152x1152 RADIATE PNG is ~1-2 MB).
+    max_request_bytes: int = Field(default=8 * 1024 * 1024, ge=1024)
+    # Frames per stream buffer; must equal the model's num_frames (None: take it from the model).
+    buffer_length: int | None = Field(default=None, ge=1)
+    # Detections with a score below this are dropped from the answer.
+    score_threshold: float = Field(default=0.3, ge=0.0, le=1.0)
+
+
+@lru_cache(maxsize=1)
+def get_settings() -> Settings:
+    """The process-wide settings, read from the environment once."""
+    return Settings()

@@ -1,0 +1,39 @@
+"""rafd-benchmark: a scaled-down benchmark simulates, trains two variants and writes the tables."""
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import pytest
+
+from rafd.cli.benchmark import BENCHMARK_SPLITS, VARIANTS, main, markdown_table
+
+
+def test_variants_map_to_the_papers_ablations() -> None:
+    assert VARIANTS["single"].train_flags() == ["--frames", "1"]
+    assert "--no-flow-supervision" in VARIANTS["no_flow_sup"].train_flags()
+    assert set(VARIANTS["baseline"].train_flags()) >= {"--no-enhancement", "--no-flow-supervision", "--no-flow-guidance"}
+    table = markdown_table([{"variant": "rafd4", "description": "d", "mAP@0.3": 50.0, "epe_all": float("nan")}])
+    assert "| rafd4 | d | 50.00 |" in table and "| - |" in table
+
+
+def test_small_benchmark_end_to_end(tmp_path: Path) -> None:
+    data = tmp_path / "bench"
+    assert main(["data", str(data), "--scale", "0.25", "--frames", "5"]) == 0
+    manifest = json.loads((data / "benchmark.json").read_text())
+    assert [s["split"] for s in manifest["splits"]] == [s.split for s in BENCHMARK_SPLITS]
+    assert [s["seed"] for s in manifest["splits"]] == [s.seed for s in BENCHMARK_SPLITS]
+    out = tmp_path / "run"
+    code = main(["run", str(data), str(out), "--variants", "rafd2,single", "--epochs", "1",
+                 "--max-steps-per-epoch", "1", "--batch-size", "2", "--device", "cpu"])
+    assert code == 0
+    results = json.loads((out / "results.json").read_text())
+    assert [r["variant"] for r in results["rows"]] == ["rafd2", "single"]
+    assert all(0.0 <= r["mAP@0.5"] <= 100.0 for r in results["rows"])
+    assert results["rows"][1]["epe_all"] is None  # single frame: no flow
+    assert (out / "results.md").read_text().count("\n") == 4
+
+
+def test_run_without_manifest_and_unknown_variant_fail(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    assert main(["run", str(tmp_path), str(tmp_path / "o")]) != 0
+    assert "benchmark.json" in capsys.readouterr().err

@@ -1,0 +1,108 @@
+"""rafd-client against a real uvicorn server running the service with the FakeRunner."""
+from __future__ import annotations
+
+import json
+import sys
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pytest
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[2] / "service"))  # the service tests' FakeRunner and helpers
+from fake_runner import FakeRunner  # noqa: E402
+from service_testing import FakeOdometry, serve_in_thread, wait_ready  # noqa: E402
+
+from rafd.cli.client import main  # noqa: E402
+from service.app import create_app  # noqa: E402
+from service.settings import Settings  # noqa: E402
+
+POSES = np.array([[0.0, 0.0, 0.0], [0.5, 1.0, 0.01], [1.0, 2.0, 0.02]])
+
+
+@pytest.fixture
+def sequence(tmp_path: Path) -> Path:
+    """A 3-frame RADIATE-format folder: full 1152 scans with a bright car near the radar, plus ego_poses.csv."""
+    root = tmp_path / "city_7_0"
+    (root / "Navtech_Cartesian").mkdir(parents=True)
+    lines, rows = [], ["frame,timestamp,x,y,yaw"]
+    for n in range(1, 4):
+        scan = np.zeros((1152, 1152), np.uint8)
+        scan[560 - 8 * n : 572 - 8 * n, 600:608] = 255
+        cv2.imwrite(str(root / "Navtech_Cartesian" / f"{n:06d}.png"), scan)
+        stamp = 1574859771.25 + 0.25 * n
+        lines.append(f"Frame: {n:06d} Time: {stamp:.9f}")
+        rows.append(f"{n},{stamp},{POSES[n - 1][0]},{POSES[n - 1][1]},{POSES[n - 1][2]}")
+    (root / "Navtech_Cartesian.txt").write_text("\n".join(lines) + "\n")
+    (root / "ego_poses.csv").write_text("\n".join(rows) + "\n")
+    (root / "meta.json").write_text(json.dumps({"name": "city_7_0", "type": "city", "set": "test"}))
+    (root / "annotations").mkdir()
+    (root / "annotations" / "annotations.json").write_text("[]")
+    return root
+
+
+@pytest.fixture
+def service_url():
+    with serve_in_thread(create_app(Settings(threads=1), runner=FakeRunner(), odometry=FakeOdometry())) as url:
+        import httpx
+
+        with httpx.Client(base_url=url) as http:
+            wait_ready(http)
+        yield url
+
+
+def test_client_streams_a_sequence_and_writes_drawings_and_video(sequence, service_url, tmp_path, capsys):
+    out = tmp_path / "out"
+    assert main([str(sequence), "--url", service_url, "--out", str(out)]) == 0
+    answers = [json.loads(line) for line in (out / "answers.jsonl").read_text().splitlines()]
+    assert [a["frames_used"] for a in answers] == [1, 2, 3]
+    assert {a["stream_id"] for a in answers} == {"city_7_0"}
+    assert all(a["pose_source"] == "request" for a in answers)
+    np.testing.assert_allclose([[a["pose"][k] for k in ("x", "y", "yaw")] for a in answers], POSES, atol=1e-9)
+    drawn = cv2.imread(str(out / "frames" / "000003.png"))
+    assert drawn.shape == (1152, 1152, 3)
+    polygon = np.round(np.asarray(answers[2]["boxes"][0]["polygon"])).astype(int)
+    u, v = polygon[0]
+    assert tuple(drawn[v, u]) == (0, 255, 0)  # the box outline is drawn at its posted-pixel corner
+    video = cv2.VideoCapture(str(out / "sequence.mp4"))
+    assert video.isOpened() and int(video.get(cv2.CAP_PROP_FRAME_COUNT)) == 3
+    assert "frame 000003" in capsys.readouterr().out
+
+
+def test_client_without_poses_lets_the_service_use_odometry(sequence, service_url, tmp_path):
+    out = tmp_path / "odo"
+    assert main([str(sequence), "--url", service_url, "--no-pose", "--limit", "2", "--stream-id", "odo",
+                 "--out", str(out)]) == 0
+    answers = [json.loads(line) for line in (out / "answers.jsonl").read_text().splitlines()]
+    assert [a["pose_source"] for a in answers] == ["odometry", "odometry"]
+    assert [a["stream_id"] for a in answers] == ["odo", "odo"]
+    assert answers[1]["pose"] != answers[0]["pose"]  # the (fake) odometry moved the ego frame
+
+
+def test_client_reports_bad_folders_and_unreachable_services(tmp_path, sequence, capsys):
+    assert main([str(tmp_path / "nowhere"), "--url", "http://127.0.0.1:9"]) == 2
+    assert "Navtech_Cartesian.txt" in capsys.readouterr().err
+    assert main([str(sequence), "--url", "http://127.0.0.1:9", "--timeout", "2"]) == 1
+    assert "cannot reach" in capsys.readouterr().err
+
+
+def test_client_on_the_real_radiate_sample(radiate_sample, service_url, tmp_path):
+    out = tmp_path / "real"
+    assert main([str(radiate_sample), "--url", service_url, "--out", str(out), "--limit", "3", "--no-pose"]) == 0
+    answers = [json.loads(line) for line in (out / "answers.jsonl").read_text().splitlines()]
+    assert [a["input"]["posted_size"] for a in answers] == [1152] * 3
+    assert answers[0]["pose"] == {"x": 0.0, "y": 0.0, "yaw": 0.0}
+
+
+def test_client_on_a_simulated_sequence_sends_its_ego_poses(service_url, tmp_path):
+    from rafd.sim import simulate_sequence
+
+    sequence = simulate_sequence(tmp_path / "sim_seq", seed=4, num_frames=3, size=128)
+    out = tmp_path / "sim_out"
+    assert main([str(sequence), "--url", service_url, "--out", str(out)]) == 0
+    answers = [json.loads(line) for line in (out / "answers.jsonl").read_text().splitlines()]
+    rows = (sequence / "ego_poses.csv").read_text().splitlines()[1:]
+    poses = np.array([[float(v) for v in row.split(",")[2:5]] for row in rows])
+    np.testing.assert_allclose([[a["pose"][k] for k in ("x", "y", "yaw")] for a in answers], poses, atol=1e-6)
+    assert [a["input"]["posted_size"] for a in answers] == [128] * 3
+    assert len(list((out / "frames").glob("*.png"))) == 3

@@ -1,0 +1,55 @@
+"""rafd-simulate CLI: success path, preview, and error exits."""
+from __future__ import annotations
+
+from pathlib import Path
+
+import cv2
+import pytest
+
+from rafd.cli.simulate import main
+
+
+def test_writes_sequences(tmp_path: Path, capsys: pytest.CaptureFixture) -> None:
+    assert main([str(tmp_path / "out"), "--sequences", "2", "--frames", "2", "--seed", "5", "--size", "128", "--split", "test"]) == 0
+    for k in range(2):
+        image = cv2.imread(str(tmp_path / "out" / f"sim_5_{k}" / "Navtech_Cartesian" / "000002.png"), cv2.IMREAD_UNCHANGED)
+        assert image.shape == (128, 128) and image.dtype.name == "uint8"
+    assert "sim_5_1" in capsys.readouterr().out
+
+
+@pytest.mark.parametrize(
+    "args, message",
+    [
+        (["--size", "127"], "even"),
+        (["--frames", "0"], "--frames"),
+        (["--sequences", "0"], "--sequences"),
+        (["--clutter", "-1"], "clutter"),
+    ],
+)
+def test_bad_arguments(tmp_path: Path, capsys: pytest.CaptureFixture, args: list[str], message: str) -> None:
+    assert main([str(tmp_path / "out"), *args]) == 2
+    assert message in capsys.readouterr().err
+
+
+def test_out_dir_not_writable(tmp_path: Path, capsys: pytest.CaptureFixture) -> None:
+    blocker = tmp_path / "file"
+    blocker.write_text("not a folder")
+    assert main([str(blocker / "out"), "--frames", "1", "--size", "64"]) == 2
+    assert "OUT_DIR" in capsys.readouterr().err
+
+
+def test_missing_out_dir_and_preview_without_sample(tmp_path: Path, capsys: pytest.CaptureFixture, monkeypatch: pytest.MonkeyPatch) -> None:
+    assert main([]) == 2
+    monkeypatch.delenv("RAFD_RADIATE_SAMPLE", raising=False)
+    assert main(["--preview", str(tmp_path / "p.png")]) == 2
+    assert main(["--preview", str(tmp_path / "p.png"), "--sample", str(tmp_path)]) == 2
+    assert "RADIATE sequence folder" in capsys.readouterr().err
+
+
+def test_preview_side_by_side(tmp_path: Path, radiate_sample: Path) -> None:
+    out = tmp_path / "preview.png"
+    assert main(["--preview", str(out), "--sample", str(radiate_sample)]) == 0
+    picture = cv2.imread(str(out))
+    assert picture.shape == (768, 2 * 768 + 8, 3)
+    red = (picture[..., 2] > 200) & (picture[..., 1] < 60)
+    assert red[:, :768].sum() > 20 and red[:, 776:].sum() > 20  # boxes drawn on both panels

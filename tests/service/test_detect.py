@@ -1,0 +1,191 @@
+"""POST /detect happy paths: answers equal the runner's output, decoded; polygons, flow, warm-up, poses."""
+from __future__ import annotations
+
+import base64
+
+import numpy as np
+import pytest
+from fake_runner import FakeRunner
+from fastapi.testclient import TestClient
+from service_testing import blob_frame, detect_json, png, wait_ready
+
+from rafd.detections import decode_detections
+from rafd.geometry import box_polygons_pixels, compose_poses
+from service.app import create_app
+
+FRAMES = [blob_frame(128, [(8 + 4 * t, 16, 250), (64, 40 + 4 * t, 120), (100, 100, 90)]) for t in range(6)]
+POSES = [(1.0 * t, 0.5 * t, 0.05 * t) for t in range(6)]
+
+
+def offline(frames, poses):
+    """The FakeRunner run directly on the stream's frames: what the service must answer."""
+    runner, state, results = FakeRunner(), None, []
+    state = runner.new_state()
+    for frame, pose in zip(frames, poses):
+        result, state = runner.step(state, frame.astype(np.float32) / 255.0, np.asarray(pose, np.float32))
+        results.append(result)
+    return results
+
+
+def assert_boxes_match(answer_boxes, result, posted_size, threshold=0.3):
+    expected = decode_detections(result.boxes, result.scores, threshold)
+    assert len(answer_boxes) == len(expected) > 0
+    got = np.array([[b["x"], b["y"], b["width"], b["length"], b["yaw"]] for b in answer_boxes])
+    np.testing.assert_allclose(got, expected.boxes, atol=1e-4)
+    np.testing.assert_allclose([b["score"] for b in answer_boxes], expected.scores, atol=1e-5)
+    polygons = np.array([b["polygon"] for b in answer_boxes])
+    np.testing.assert_allclose(polygons, box_polygons_pixels(expected.boxes, posted_size), atol=0.01)
+    assert {b["class"] for b in answer_boxes} == {"vehicle"}
+
+
+def test_json_stream_warms_up_then_uses_full_window(client):
+    expected = offline(FRAMES, POSES)
+    for t, (frame, pose) in enumerate(zip(FRAMES, POSES)):
+        response = client.post("/detect", json=detect_json("car-1", 100.0 + t, frame, pose))
+        assert response.status_code == 200, response.text
+        answer = response.json()
+        assert answer["frames_used"] == min(t + 1, 4)
+        assert answer["warming_up"] is (t < 3)
+        assert answer["pose_source"] == "request"
+        assert answer["pose"] == pytest.approx({"x": pose[0], "y": pose[1], "yaw": pose[2]})
+        assert answer["input"] == {"posted_size": 128, "model_size": 128, "crop_offset_px": 0}
+        assert answer["model"]["version"] == "fake-1"
+        assert set(answer["timing"]) == {"decode_ms", "wait_ms", "odometry_ms", "model_ms", "post_ms", "total_ms"}
+        assert_boxes_match(answer["boxes"], expected[t], 128)
+        if t == 0:
+            assert answer["flow"] is None  # no real pair on a stream's first frame
+        else:
+            flow = answer["flow"]
+            assert flow["shape"] == [2, 32, 32] and flow["units"] == "m" and flow["encoding"] == "list"
+            assert flow["pair"] == [100.0 + t - 1, 100.0 + t]
+            np.testing.assert_allclose(np.array(flow["values"]), expected[t].flow[-1], atol=5e-4)
+
+
+def test_full_scan_is_centre_cropped_and_polygons_use_its_pixels(client):
+    crop = FRAMES[0]
+    scan = np.zeros((1152, 1152), np.uint8)
+    scan[512:640, 512:640] = crop  # the model's 128 crop around the radar at (576, 576)
+    scan[0:50, 0:50] = 255  # outside the crop: must not matter
+    from_scan = client.post("/detect", json=detect_json("scan", 1.0, scan, POSES[0])).json()
+    from_crop = client.post("/detect", json=detect_json("crop", 1.0, crop, POSES[0])).json()
+    assert from_scan["input"] == {"posted_size": 1152, "model_size": 128, "crop_offset_px": 512}
+    assert [b["score"] for b in from_scan["boxes"]] == [b["score"] for b in from_crop["boxes"]]
+    scan_polygons = np.array([b["polygon"] for b in from_scan["boxes"]])
+    crop_polygons = np.array([b["polygon"] for b in from_crop["boxes"]])
+    np.testing.assert_allclose(scan_polygons, crop_polygons + 512, atol=0.011)
+    assert_boxes_match(from_scan["boxes"], offline([crop], POSES[:1])[0], 1152)
+    second = client.post("/detect", json=detect_json("scan", 2.0, scan, POSES[1])).json()
+    assert second["flow"]["grid"]["origin_px"] == [512, 512]
+    assert second["flow"]["grid"]["stride_px"] == 4
+
+
+def test_multipart_gives_the_same_answer_as_json(client):
+    for t in range(3):
+        files = {"image": ("frame.png", png(FRAMES[t]), "image/png")}
+        data = {"stream_id": "form", "timestamp": str(10.0 + t), "pose_x": str(POSES[t][0]),
+                "pose_y": str(POSES[t][1]), "pose_yaw": str(POSES[t][2])}
+        form = client.post("/detect", data=data, files=files)
+        assert form.status_code == 200, form.text
+        js = client.post("/detect", json=detect_json("json", 10.0 + t, FRAMES[t], POSES[t])).json()
+        for key in ("boxes", "flow", "frames_used", "pose", "pose_source"):
+            assert form.json()[key] == js[key]
+
+
+def test_flow_can_be_left_out_or_sent_as_base64_float16(client):
+    expected = offline(FRAMES[:2], POSES[:2])[1].flow[-1]
+    client.post("/detect", json=detect_json("f", 1.0, FRAMES[0], POSES[0]))
+    client.post("/detect", json=detect_json("g", 1.0, FRAMES[0], POSES[0]))
+    assert client.post("/detect?flow=false", json=detect_json("f", 2.0, FRAMES[1], POSES[1])).json()["flow"] is None
+    flow = client.post("/detect?flow_format=base64", json=detect_json("g", 2.0, FRAMES[1], POSES[1])).json()["flow"]
+    assert flow["encoding"] == "base64-float16"
+    values = np.frombuffer(base64.b64decode(flow["values"]), "<f2").reshape(flow["shape"])
+    np.testing.assert_allclose(values, expected, rtol=1e-3, atol=1e-3)
+
+
+def test_without_pose_the_service_uses_odometry_composed_onto_the_last_pose(client, odometry):
+    answers = [client.post("/detect", json=detect_json("odo", float(t), FRAMES[t])).json() for t in range(3)]
+    assert [a["pose_source"] for a in answers] == ["odometry"] * 3
+    expected_pose = np.zeros(3)
+    for t, answer in enumerate(answers):
+        if t:
+            expected_pose = compose_poses(expected_pose, odometry.motion)
+        np.testing.assert_allclose([answer["pose"][k] for k in ("x", "y", "yaw")], expected_pose, atol=1e-6)
+    # Odometry saw (previous crop, current crop) at the model's resolution.
+    assert len(odometry.calls) == 2
+    np.testing.assert_array_equal(odometry.calls[1][0], FRAMES[1])
+    np.testing.assert_array_equal(odometry.calls[1][1], FRAMES[2])
+    # The runner got those poses: the fake's yaw is newest yaw - oldest yaw of its window.
+    assert answers[2]["boxes"][0]["yaw"] == pytest.approx(2 * odometry.motion[2], abs=1e-5)
+
+
+def test_pose_mixing_rule(client, odometry):
+    # Started with request poses: a frame without pose continues from the last pose by odometry.
+    client.post("/detect", json=detect_json("gps", 1.0, FRAMES[0], (10.0, 20.0, 0.3)))
+    gap = client.post("/detect", json=detect_json("gps", 2.0, FRAMES[1])).json()
+    assert gap["pose_source"] == "odometry"
+    np.testing.assert_allclose([gap["pose"][k] for k in ("x", "y", "yaw")],
+                               compose_poses(np.array([10.0, 20.0, 0.3]), odometry.motion), atol=1e-6)
+    back = client.post("/detect", json=detect_json("gps", 3.0, FRAMES[2], (11.0, 21.0, 0.4)))
+    assert back.status_code == 200 and back.json()["pose_source"] == "request"
+    # Started without poses: a request pose would live in another world frame -> 409, nothing changes.
+    client.post("/detect", json=detect_json("odo", 1.0, FRAMES[0]))
+    before = client.get("/streams").json()
+    conflict = client.post("/detect", json=detect_json("odo", 2.0, FRAMES[1], (1.0, 2.0, 0.0)))
+    assert conflict.status_code == 409
+    assert conflict.json()["error"]["code"] == "pose_source_conflict"
+    after = client.get("/streams").json()
+    strip = lambda body: [{k: v for k, v in s.items() if k != "idle_s"} for s in body["streams"]]  # noqa: E731
+    assert strip(after) == strip(before)
+
+
+def test_score_threshold_setting_filters_boxes(settings):
+    settings.score_threshold = 0.6
+    with TestClient(create_app(settings, runner=FakeRunner())) as client:
+        wait_ready(client)
+        answer = client.post("/detect", json=detect_json("t", 1.0, FRAMES[0], POSES[0])).json()
+    assert answer["boxes"] and all(b["score"] >= 0.6 for b in answer["boxes"])
+    assert_boxes_match(answer["boxes"], offline(FRAMES[:1], POSES[:1])[0], 128, threshold=0.6)
+
+
+def test_real_odometry_on_the_radiate_sample(radiate_sample, settings):
+    """With no odometry injected the service uses rafd.odometry (when that module is present)."""
+    pytest.importorskip("rafd.odometry")
+    scans = sorted((radiate_sample / "Navtech_Cartesian").glob("*.png"))[:3]
+    with TestClient(create_app(settings, runner=FakeRunner())) as client:
+        wait_ready(client)
+        answers = []
+        for t, path in enumerate(scans):
+            body = {"stream_id": "real", "timestamp": float(t), "image": base64.b64encode(path.read_bytes()).decode()}
+            response = client.post("/detect", json=body)
+            assert response.status_code == 200, response.text
+            answers.append(response.json())
+    assert [a["pose_source"] for a in answers] == ["odometry"] * 3
+    assert answers[0]["pose"] == {"x": 0.0, "y": 0.0, "yaw": 0.0}
+    assert all(np.isfinite(list(a["pose"].values())).all() for a in answers)
+
+
+class FailingRunner(FakeRunner):
+    """Fails on frames whose top-left pixel is 7 (the model breaking on one frame)."""
+
+    def step(self, state, frame, pose):
+        if round(float(frame[0, 0]) * 255) == 7:
+            raise RuntimeError("onnxruntime failed")
+        return super().step(state, frame, pose)
+
+
+def test_a_model_failure_answers_500_and_changes_no_stream(settings):
+    broken = FRAMES[1].copy()
+    broken[0, 0] = 7
+    app = create_app(settings, runner=FailingRunner())
+    with TestClient(app, raise_server_exceptions=False) as client:
+        wait_ready(client)
+        assert client.post("/detect", json=detect_json("ok", 1.0, FRAMES[0], POSES[0])).status_code == 200
+        before = client.get("/streams").json()["streams"]
+        failed = client.post("/detect", json=detect_json("ok", 2.0, broken, POSES[1]))
+        assert failed.status_code == 500 and failed.json()["error"]["code"] == "internal_error"
+        assert client.post("/detect", json=detect_json("new", 1.0, broken, POSES[0])).status_code == 500
+        after = client.get("/streams").json()["streams"]
+        assert [{k: v for k, v in s.items() if k != "idle_s"} for s in after] == \
+            [{k: v for k, v in s.items() if k != "idle_s"} for s in before]  # "new" was not created either
+        retry = client.post("/detect", json=detect_json("ok", 2.0, FRAMES[1], POSES[1])).json()
+        assert retry["frames_used"] == 2  # the failed frame never entered the buffer

@@ -1,0 +1,48 @@
+"""rafd-serve: argument handling up to the uvicorn call (which is replaced by a recorder)."""
+from __future__ import annotations
+
+import sys
+import types
+
+import pytest
+import uvicorn
+
+from service.cli import main
+
+
+@pytest.fixture
+def recorded(monkeypatch):
+    calls = []
+    monkeypatch.setattr(uvicorn, "run", lambda app, **options: calls.append((app, options)))
+    return calls
+
+
+def test_serves_the_given_model_on_the_given_address(tmp_path, recorded):
+    model = tmp_path / "model.onnx"
+    model.write_bytes(b"onnx")
+    assert main(["--model", str(model), "--host", "0.0.0.0", "--port", "9001", "--threads", "2"]) == 0
+    (app, options), = recorded
+    assert options["host"] == "0.0.0.0" and options["port"] == 9001
+    assert app.state.settings.model_path == model and app.state.settings.threads == 2
+
+
+def test_missing_model_file_is_a_clear_error(tmp_path, recorded, capsys):
+    assert main(["--model", str(tmp_path / "missing.onnx")]) == 2
+    assert "missing.onnx" in capsys.readouterr().err
+    assert not recorded
+
+
+def test_without_model_uses_the_shipped_default(tmp_path, recorded, monkeypatch, capsys):
+    shipped = tmp_path / "default.onnx"
+    shipped.write_bytes(b"onnx")
+    monkeypatch.delenv("RAFD_MODEL_PATH", raising=False)
+    monkeypatch.setitem(sys.modules, "rafd.assets", types.SimpleNamespace(default_onnx=lambda: shipped))
+    assert main([]) == 0
+    assert recorded[0][0].state.settings.model_path == shipped
+
+    def none_shipped():
+        raise FileNotFoundError("no rafd/assets/*.onnx in this build")
+
+    monkeypatch.setitem(sys.modules, "rafd.assets", types.SimpleNamespace(default_onnx=none_shipped))
+    assert main([]) == 2
+    assert "no default model" in capsys.readouterr().err

@@ -1,0 +1,141 @@
+"""The per-stream store: TTL expiry and LRU cap (with an injected clock), delete/reset, GET /streams."""
+from __future__ import annotations
+
+import asyncio
+
+import pytest
+from fake_runner import FakeRunner
+from fastapi.testclient import TestClient
+from service_testing import blob_frame, detect_json, wait_ready
+
+from service.app import create_app
+from service.settings import Settings
+from service.streams import StreamStore
+
+FRAME = blob_frame(128, [(8, 8, 255)])
+
+
+class Clock:
+    def __init__(self) -> None:
+        self.now = 1000.0
+
+    def __call__(self) -> float:
+        return self.now
+
+
+def make_store(max_streams=3, ttl_s=10.0):
+    clock, evicted = Clock(), []
+    store = StreamStore(FakeRunner().new_state, max_streams, ttl_s, clock=clock, on_evict=evicted.append)
+    return store, clock, evicted
+
+
+async def feed(store: StreamStore, stream_id: str, timestamp: float) -> None:
+    """What a successful detect does to the store: hold the session, commit one frame."""
+    async with store.session(stream_id) as entry:
+        entry.commit(entry.state, timestamp, FRAME, None, "request")
+
+
+def test_store_expires_idle_streams_after_the_ttl():
+    store, clock, evicted = make_store(ttl_s=10.0)
+    asyncio.run(feed(store, "a", 1.0))
+    clock.now += 5.0
+    asyncio.run(feed(store, "b", 1.0))
+    clock.now += 6.0  # a idle 11 s, b idle 6 s
+    assert [s.stream_id for s in store.snapshot()] == ["b"]
+    assert evicted == ["ttl"]
+    assert "a" not in store and len(store) == 1
+    assert store.snapshot()[0].idle_s == pytest.approx(6.0)
+    clock.now += 4.5  # b idle 10.5 s
+    assert len(store) == 0 and evicted == ["ttl", "ttl"]
+
+
+def test_store_evicts_the_least_recently_used_at_the_cap():
+    store, clock, evicted = make_store(max_streams=3)
+    for name in ("a", "b", "c"):
+        asyncio.run(feed(store, name, 1.0))
+        clock.now += 1.0
+    asyncio.run(feed(store, "a", 2.0))  # a is now the most recent; b the least
+    asyncio.run(feed(store, "d", 1.0))
+    assert sorted(s.stream_id for s in store.snapshot()) == ["a", "c", "d"]
+    assert evicted == ["lru"]
+
+
+def test_store_never_evicts_a_stream_with_a_request_in_flight():
+    async def scenario(store: StreamStore) -> list[str]:
+        async with store.session("busy") as entry:
+            entry.commit(entry.state, 1.0, FRAME, None, "request")
+            await feed(store, "x", 1.0)  # cap 2 reached: busy + x
+            await feed(store, "y", 1.0)  # must evict x (idle), not busy
+            return sorted(s.stream_id for s in store.snapshot())
+
+    store, _, evicted = make_store(max_streams=2)
+    assert asyncio.run(scenario(store)) == ["busy", "y"]
+    assert evicted == ["lru"]
+
+
+def test_cap_waits_for_in_flight_streams_then_applies():
+    async def scenario(store: StreamStore) -> list[str]:
+        async with store.session("busy") as entry:
+            entry.commit(entry.state, 1.0, FRAME, None, "request")
+            await feed(store, "other", 1.0)  # cap 1, but "busy" is in flight: nothing can go yet
+            assert sorted(s.stream_id for s in store.snapshot()) == ["busy", "other"]
+        return [s.stream_id for s in store.snapshot()]
+
+    store, _, evicted = make_store(max_streams=1)
+    assert asyncio.run(scenario(store)) == ["busy"]  # "other" was the least recently used once busy ended
+    assert evicted == ["lru"]
+
+
+def test_a_new_stream_whose_first_frame_fails_leaves_nothing():
+    async def failing(store: StreamStore) -> None:
+        async with store.session("new"):
+            raise RuntimeError("model failed")
+
+    store, _, evicted = make_store(max_streams=1)
+    asyncio.run(feed(store, "old", 1.0))
+    with pytest.raises(RuntimeError):
+        asyncio.run(failing(store))
+    assert store.get("new") is None
+    assert [s.stream_id for s in store.snapshot()] == ["old"] and evicted == []  # the failure evicted nobody
+
+
+@pytest.fixture
+def clocked():
+    clock = Clock()
+    settings = Settings(threads=1, max_streams=3, stream_ttl_s=60.0)
+    with TestClient(create_app(settings, runner=FakeRunner(), clock=clock)) as client:
+        wait_ready(client)
+        yield client, clock
+
+
+def test_endpoints_list_streams_and_count_ttl_and_lru_evictions(clocked):
+    client, clock = clocked
+    for i, name in enumerate(["a", "b", "c", "d"]):  # d evicts a (LRU)
+        assert client.post("/detect", json=detect_json(name, 1.0, FRAME, (0, 0, 0))).status_code == 200
+        clock.now += 10.0
+    body = client.get("/streams").json()
+    assert body["count"] == 3 and body["max_streams"] == 3 and body["ttl_s"] == 60.0
+    rows = {s["stream_id"]: s for s in body["streams"]}
+    assert set(rows) == {"b", "c", "d"}
+    assert rows["b"]["idle_s"] == pytest.approx(30.0) and rows["d"]["idle_s"] == pytest.approx(10.0)
+    assert rows["d"]["frames_buffered"] == 1 and rows["d"]["last_timestamp"] == 1.0
+    clock.now += 45.0  # b (75 s) and c (65 s) idle past the TTL, d at 55 s
+    assert [s["stream_id"] for s in client.get("/streams").json()["streams"]] == ["d"]
+    metrics = client.get("/metrics").text
+    assert 'rafd_stream_evictions_total{reason="lru"} 1.0' in metrics
+    assert 'rafd_stream_evictions_total{reason="ttl"} 2.0' in metrics
+    assert "rafd_active_streams 1.0" in metrics
+    # An expired stream starts over: an old timestamp is accepted again and the buffer restarts.
+    again = client.post("/detect", json=detect_json("b", 0.5, FRAME, (0, 0, 0))).json()
+    assert again["frames_used"] == 1
+
+
+def test_delete_resets_a_stream(clocked):
+    client, _ = clocked
+    for t in (1.0, 2.0, 3.0):
+        client.post("/detect", json=detect_json("r", t, FRAME, (t, 0, 0)))
+    assert client.delete("/streams/r").status_code == 204
+    assert client.get("/streams").json()["count"] == 0
+    assert client.delete("/streams/r").status_code == 404
+    restarted = client.post("/detect", json=detect_json("r", 1.0, FRAME, (0, 0, 0))).json()
+    assert restarted["frames_used"] == 1 and restarted["warming_up"] is True
