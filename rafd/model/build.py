@@ -1,0 +1,92 @@
+"""build_model(cfg): the only place that reads RaFDConfig and wires the modules together."""
+from __future__ import annotations
+
+from torch import nn
+
+from rafd.config import RaFDConfig
+from rafd.model.align import cell_centres, metres_to_grid
+from rafd.model.attention import AttentionLayer
+from rafd.model.backbone import ResNet
+from rafd.model.decoder import BoxRegression, DecoderLayer, QueryDecoder
+from rafd.model.deformable import DeformableAttention, DeformableLayer
+from rafd.model.detector import FrameEncoder, RaFD
+from rafd.model.enhance import build_enhancement
+from rafd.model.flow import FlowEstimator, build_flow_encoder
+from rafd.model.head import DetectionHead, HeatmapHead
+from rafd.model.neck import FPNNeck
+from rafd.model.position import sine_position_encoding
+from rafd.model.propagation import FlowGuidedPropagation
+
+
+def build_model(cfg: RaFDConfig) -> RaFD:
+    """RaFDConfig -> RaFD (train mode, fresh weights); static buffers sized for cfg.input_size."""
+    if cfg.output_stride != 4:
+        raise ValueError(f"output_stride must be 4 (the first ResNet stage's stride), got {cfg.output_stride}")
+    channels = cfg.neck.channels
+    if channels % 2:
+        raise ValueError(f"neck.channels must be even (flow features have C/2), got {channels}")
+    size = cfg.feature_size
+    if size % 4:
+        raise ValueError(f"feature map side {size} must be divisible by 4 (2 windows, shifted by half a window)")
+    centres = cell_centres(size, cfg.input_size, cfg.resolution)  # [Hf*Wf, 2] metres
+    half_extent = cfg.input_size * cfg.resolution / 2.0  # metres from the radar to the map's edge
+    grid = metres_to_grid(centres, half_extent)  # [Hf*Wf, 2] normalised
+
+    backbone = ResNet(cfg.backbone.blocks, cfg.backbone.channels)
+    encoder = FrameEncoder(
+        backbone,
+        FPNNeck(backbone.out_channels, channels),
+        build_enhancement(channels, size, cfg.enhance.num_blocks, cfg.enhance.ffn_ratio, cfg.enhance.enabled),
+    )
+
+    flow = propagation = None
+    if cfg.num_frames > 1:
+        half = channels // 2
+        flow = FlowEstimator(
+            build_flow_encoder(channels),
+            [AttentionLayer(half, cfg.flow.ffn_ratio) for _ in range(cfg.flow.num_cross_blocks)],
+            sine_position_encoding(half, size, size),
+            centres.clone(),
+            half_extent,
+        )
+        prop_cfg = cfg.propagation
+        propagation = FlowGuidedPropagation(
+            [
+                DeformableLayer(DeformableAttention(channels, prop_cfg.num_points, (size, size)), channels, prop_cfg.ffn_ratio)
+                for _ in range(prop_cfg.num_blocks)
+            ],
+            centres.clone(),
+            half_extent,
+            prop_cfg.flow_guided,
+        )
+
+    head_cfg = cfg.head
+    if head_cfg.num_queries > size * size:
+        raise ValueError(f"num_queries {head_cfg.num_queries} exceeds the {size * size} cells")
+    decoder = QueryDecoder(
+        [
+            DecoderLayer(
+                AttentionLayer(channels, ffn_ratio=0),
+                DeformableLayer(DeformableAttention(channels, head_cfg.num_points, (size, size)), channels, head_cfg.ffn_ratio),
+            )
+            for _ in range(head_cfg.decoder_layers)
+        ]
+    )
+    head = DetectionHead(
+        HeatmapHead(channels, head_cfg.num_classes),
+        nn.Linear(2, channels),
+        decoder,
+        BoxRegression(channels),
+        head_cfg.num_queries,
+        centres.clone(),
+        grid.clone(),
+        cfg.cell_size,
+    )
+    return RaFD(encoder, flow, propagation, head, cfg.num_frames)
+
+
+def count_parameters(model: nn.Module) -> int:
+    """Number of learned parameters."""
+    return sum(p.numel() for p in model.parameters())
+
+

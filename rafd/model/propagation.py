@@ -1,0 +1,42 @@
+"""Flow-guided propagation (paper 2.3): deformable attention from the current cells into the previous map.
+
+Queries are the current frame's cells; values the previous propagated map T_{t-1} aligned to the
+current grid by the ego pose; each query's reference point is its own cell moved back by the
+estimated flow, r_t - V (where its content was), or r_t itself for the vanilla ablation.
+"""
+from __future__ import annotations
+
+from torch import Tensor, nn
+
+from rafd.model.align import align_to_current, metres_to_grid
+from rafd.model.deformable import DeformableLayer
+
+
+class FlowGuidedPropagation(nn.Module):
+    """(S_t, T_{t-1} [B, C, Hf, Wf], flow [B, 2, Hf, Wf] m, relative_pose [B, 3]) -> T_t [B, C, Hf, Wf]."""
+
+    def __init__(self, layers: list[DeformableLayer], centres: Tensor, half_extent: float, flow_guided: bool) -> None:
+        super().__init__()
+        self.layers = nn.ModuleList(layers)
+        self.half_extent = half_extent
+        self.flow_guided = flow_guided
+        self.register_buffer("centres", centres, persistent=False)  # [Hf*Wf, 2] metres
+
+    def reference_points(self, flow: Tensor) -> Tensor:
+        """flow [B, 2, Hf, Wf] metres -> [B, Hf*Wf, 2] normalised sampling centres r_t - V."""
+        here = self.centres[None].to(flow.dtype)  # [1, Hf*Wf, 2] metres, r_t
+        if self.flow_guided:
+            here = here - flow.flatten(2).transpose(1, 2)  # [B, Hf*Wf, 2] metres, where the content was
+        else:
+            here = here.expand(flow.shape[0], -1, -1)  # [B, Hf*Wf, 2]
+        # metres_to_grid flips y: flow forward (+y) is image up, i.e. towards smaller rows
+        return metres_to_grid(here, self.half_extent)
+
+    def forward(self, current: Tensor, previous: Tensor, flow: Tensor, relative_pose: Tensor) -> Tensor:
+        batch, channels, height, width = current.shape
+        aligned = align_to_current(previous, current, relative_pose, self.centres, self.half_extent)  # [B, C, Hf, Wf]
+        reference = self.reference_points(flow)  # [B, Hf*Wf, 2]
+        x = current.flatten(2).transpose(1, 2)  # [B, Hf*Wf, C]
+        for layer in self.layers:
+            x = layer(x, reference, aligned)
+        return x.transpose(1, 2).reshape(batch, channels, height, width)  # [B, C, Hf, Wf]
