@@ -50,6 +50,9 @@ def format_table(overall: dict[str, Any], per_sequence: dict[str, dict[str, Any]
     return "\n".join(lines)
 
 
+EXAMPLE_SCORE = 0.3  # predictions drawn on example frames (the service's default threshold)
+
+
 def write_plots(
     folder: Path, model: Any, cfg: Any, dataset: Any, results: Sequence[Any], examples: int, device: Any
 ) -> list[Path]:
@@ -58,15 +61,16 @@ def write_plots(
     import numpy as np
     from torch.utils.data import Subset
 
+    from rafd.metrics import precision_recall
     from rafd.train.predict import predict
     from rafd.viz import draw_detections, plot_precision_recall
 
     folder.mkdir(parents=True, exist_ok=True)
     written = []
     pr_path = folder / "precision_recall.png"
-    plot_precision_recall(
-        [r.predictions for r in results], [r.ground_truth for r in results], pr_path, iou_thresholds=(0.3, 0.5, 0.7)
-    )
+    predictions, ground_truths = [r.predictions for r in results], [r.ground_truth for r in results]
+    curves = {t: precision_recall(predictions, ground_truths, t) for t in (0.3, 0.5, 0.7)}
+    plot_precision_recall(curves, pr_path)
     written.append(pr_path)
     if examples > 0 and len(dataset):
         # Frames that hold objects make better examples; fall back to any frame.
@@ -76,12 +80,15 @@ def write_plots(
         for index, result in zip(picks, example_results):
             window = dataset[index]
             image = np.asarray(window["frames"])[-1].squeeze()  # [H, W] newest frame
+            shown = result.predictions[result.predictions[:, 5] >= EXAMPLE_SCORE]  # AP keeps all K; a picture cannot
             canvas = draw_detections(
                 image,
-                result.predictions,
-                result.ground_truth,
+                gt_boxes=result.ground_truth,
+                pred_boxes=shown[:, :5],
+                pred_scores=shown[:, 5],
                 resolution=cfg.resolution,
                 flow=result.flow,
+                upscale=4,  # 128 px crops are too small to read the boxes at 1:1
             )
             path = folder / f"example_{result.sequence}_{result.frame:06d}.png"
             if not cv2.imwrite(str(path), canvas):
