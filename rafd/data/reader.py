@@ -1,0 +1,376 @@
+"""Read one RADIATE sequence folder (real or simulated) into frames, objects and ego poses.
+
+Folder layout (DESIGN.md section 2):
+    Navtech_Cartesian/000001.png ...   uint8 grey Cartesian scans, radar at the image centre
+    Navtech_Cartesian.txt              `Frame: 000001 Time: 1574859771.744660272`, one line per scan
+    annotations/annotations.json      [{"id", "class_name", "bboxes"}], bboxes[k] = frame k + 1 ([] if absent)
+    meta.json                          {"name", "set" (the split), ...; simulated: "image_size", "resolution"}
+    ego_poses.csv                      optional, ours (rafd.data.poses): frame, timestamp, x, y, yaw
+
+Rules: annotations are indexed by frame number (the list can be longer than the frames on disk);
+polygons follow the RADIATE SDK (corners of [x0, y0, w, h] rotated about the centre by
+R(deg2rad(-rotation)) in pixels); boxes are metres in the ego frame via geometry.radiate_to_box with the
+image's own size. Bad data raises FileNotFoundError/ValueError naming the file; anything skipped is
+counted in a log warning. Poses come from ego_poses.csv ("file"), else from radar odometry ("odometry",
+logged), never silently identity.
+"""
+from __future__ import annotations
+
+import json
+import logging
+import math
+import re
+import struct
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import cv2
+import numpy as np
+
+from rafd.data.poses import POSES_FILE, read_ego_poses
+from rafd.geometry import RADIATE_RESOLUTION, radiate_polygon, radiate_to_box
+
+log = logging.getLogger(__name__)
+
+IMAGE_DIR = "Navtech_Cartesian"
+TIMESTAMPS_FILE = "Navtech_Cartesian.txt"
+ANNOTATIONS_FILE = "annotations/annotations.json"
+META_FILE = "meta.json"
+RADIATE_CLASSES = ("car", "van", "truck", "bus", "motorbike", "bicycle", "pedestrian", "group_of_pedestrians")
+POSE_TIMESTAMP_TOLERANCE = 1e-3  # seconds: ego_poses.csv rows must carry their frame's timestamp
+
+_PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"
+_TIMESTAMP_LINE = re.compile(r"Frame:\s*(\d+)\s+Time:\s*([0-9]+(?:\.[0-9]*)?)\s*")
+_IMAGE_NAME = re.compile(r"(\d+)\.png")
+
+
+@dataclass(frozen=True, eq=False)
+class RadarObject:
+    id: int
+    class_name: str  # RADIATE's class name, as annotated
+    polygon: np.ndarray  # [4, 2] corner pixels (u, v) of the full scan, RADIATE SDK order
+    box: np.ndarray  # [5] (x, y, width, length, yaw) metres / radians in this frame's ego frame
+
+
+@dataclass(frozen=True, eq=False)
+class RadarFrame:
+    number: int  # RADIATE frame number (the N of 00000N.png)
+    timestamp: float  # UNIX seconds
+    image_path: Path
+    objects: list[RadarObject] = field(default_factory=list)
+
+    def load(self) -> np.ndarray:
+        """uint8 [H, W] scan."""
+        return load_image(self.image_path)
+
+
+@dataclass(frozen=True, eq=False)
+class RadarSequence:
+    name: str
+    split: str | None  # meta.json "set"; None without meta.json
+    path: Path
+    frames: list[RadarFrame]
+    # [N, 3] world poses (x, y, yaw), row k = frames[k]; None when neither a file nor odometry gave them.
+    # (The contract said dict frame -> pose; the consumers index by position: see pose_of for numbers.)
+    poses: np.ndarray | None
+    pose_source: str | None  # "file" (ego_poses.csv), "odometry" (estimated here) or None
+    image_size: int = 0  # pixels per side of every scan
+    resolution: float = RADIATE_RESOLUTION  # metres per pixel
+    annotated: bool = True  # False when the folder has no annotations/annotations.json
+
+    def __len__(self) -> int:
+        return len(self.frames)
+
+    def load_image(self, index: int) -> np.ndarray:
+        """uint8 [H, W] scan of frames[index] (a position in `frames`, not a frame number)."""
+        return self.frames[index].load()
+
+    def frame_index(self, number: int) -> int:
+        """Position in `frames` of RADIATE frame `number` (KeyError if absent)."""
+        for index, frame in enumerate(self.frames):
+            if frame.number == number:
+                return index
+        raise KeyError(f"{self.path}: no frame {number}")
+
+    def pose_of(self, number: int) -> np.ndarray:
+        """[3] world pose of RADIATE frame `number`."""
+        if self.poses is None:
+            raise ValueError(f"{self.path}: sequence has no poses")
+        return self.poses[self.frame_index(number)]
+
+    def poses_by_frame(self) -> dict[int, np.ndarray]:
+        """{frame number: [3] world pose} (the contract's mapping form); {} without poses."""
+        if self.poses is None:
+            return {}
+        return {frame.number: pose for frame, pose in zip(self.frames, self.poses)}
+
+
+# ---------------------------------------------------------------- images
+def load_image(path: str | Path) -> np.ndarray:
+    """uint8 [H, W] grey image; FileNotFoundError / ValueError naming the file when missing or undecodable."""
+    path = Path(path)
+    if not path.is_file():
+        raise FileNotFoundError(f"radar image {path} not found")
+    image = cv2.imread(str(path), cv2.IMREAD_GRAYSCALE)
+    if image is None:
+        raise ValueError(f"radar image {path} is corrupt or not an image (cv2.imread failed)")
+    return image
+
+
+def png_size(path: Path) -> tuple[int, int]:
+    """(width, height) from a PNG's IHDR header (24 bytes read); ValueError naming the file if not a PNG."""
+    try:
+        with path.open("rb") as handle:
+            head = handle.read(24)
+    except FileNotFoundError:
+        raise FileNotFoundError(f"radar image {path} not found") from None
+    except OSError as error:
+        raise ValueError(f"radar image {path} cannot be read ({error})") from error
+    if len(head) < 24 or head[:8] != _PNG_SIGNATURE or head[12:16] != b"IHDR":
+        raise ValueError(f"radar image {path} is corrupt or not a PNG (bad header)")
+    width, height = struct.unpack(">II", head[16:24])
+    return int(width), int(height)
+
+
+# ---------------------------------------------------------------- files of a sequence
+def read_timestamps(path: Path) -> list[tuple[int, float, str]]:
+    """Navtech_Cartesian.txt -> [(frame number, UNIX seconds, the seconds as written)] in file order, validated."""
+    if not path.is_file():
+        raise FileNotFoundError(f"timestamp file {path} not found (not a RADIATE sequence folder?)")
+    entries: list[tuple[int, float, str]] = []
+    for line_number, line in enumerate(path.read_text().splitlines(), start=1):
+        if not line.strip():
+            continue
+        match = _TIMESTAMP_LINE.fullmatch(line.strip())
+        if match is None:
+            raise ValueError(f"{path}:{line_number}: expected 'Frame: 000001 Time: 1574859771.744660272', got {line!r}")
+        number, stamp = int(match.group(1)), float(match.group(2))
+        if entries and number <= entries[-1][0]:
+            raise ValueError(f"{path}:{line_number}: frame {number} after frame {entries[-1][0]}; frames must increase")
+        if entries and stamp <= entries[-1][1]:
+            raise ValueError(f"{path}:{line_number}: time {stamp} does not increase (previous {entries[-1][1]})")
+        entries.append((number, stamp, match.group(2)))
+    if not entries:
+        raise ValueError(f"{path}: no frames listed")
+    return entries
+
+
+def read_meta(path: Path) -> dict:
+    """meta.json -> dict ({} with a warning when missing)."""
+    if not path.is_file():
+        log.warning("%s not found: split unknown (None), name from the folder", path)
+        return {}
+    meta = _read_json(path)
+    if not isinstance(meta, dict):
+        raise ValueError(f"{path}: expected a JSON object, got {type(meta).__name__}")
+    if "set" in meta and not isinstance(meta["set"], str):
+        raise ValueError(f"{path}: 'set' must be a string, got {meta['set']!r}")
+    return meta
+
+
+def _read_json(path: Path):
+    try:
+        return json.loads(path.read_text())
+    except json.JSONDecodeError as error:
+        raise ValueError(f"{path}: malformed JSON ({error})") from error
+    except (OSError, UnicodeDecodeError) as error:
+        raise ValueError(f"{path}: cannot read ({error})") from error
+
+
+def _number(value, path: Path, where: str) -> float:
+    if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value):
+        raise ValueError(f"{path}: {where}: expected a finite number, got {value!r}")
+    return float(value)
+
+
+def read_annotations(
+    path: Path, frame_numbers: list[int], image_size: int, resolution: float
+) -> dict[int, list[RadarObject]]:
+    """annotations.json -> {frame number: objects} for the frames on disk (bboxes[k] is frame k + 1)."""
+    entries = _read_json(path)
+    if not isinstance(entries, list):
+        raise ValueError(f"{path}: expected a JSON list of objects, got {type(entries).__name__}")
+    objects: dict[int, list[RadarObject]] = {n: [] for n in frame_numbers}
+    skipped_size, unknown_classes, duplicates = 0, set(), 0
+    for index, entry in enumerate(entries):
+        if not isinstance(entry, dict) or not {"id", "class_name", "bboxes"} <= set(entry):
+            raise ValueError(f"{path}: entry {index} must be an object with 'id', 'class_name' and 'bboxes'")
+        object_id, class_name, bboxes = entry["id"], entry["class_name"], entry["bboxes"]
+        if isinstance(object_id, bool) or not isinstance(object_id, int):
+            raise ValueError(f"{path}: entry {index}: 'id' must be an integer, got {object_id!r}")
+        if not isinstance(class_name, str) or not class_name:
+            raise ValueError(f"{path}: entry {index} (id {object_id}): 'class_name' must be a non-empty string")
+        if not isinstance(bboxes, list):
+            raise ValueError(f"{path}: entry {index} (id {object_id}): 'bboxes' must be a list")
+        if class_name not in RADIATE_CLASSES:
+            unknown_classes.add(class_name)
+        for number in frame_numbers:
+            if number < 1 or number > len(bboxes):
+                continue  # not annotated beyond the list: absent
+            annotation = bboxes[number - 1]
+            if annotation in ([], {}, None):
+                continue
+            where = f"entry {index} (id {object_id}), frame {number}"
+            if not isinstance(annotation, dict) or "position" not in annotation or "rotation" not in annotation:
+                raise ValueError(f"{path}: {where}: expected [] or {{'position': [x, y, w, h], 'rotation': deg}}")
+            position = annotation["position"]
+            if not isinstance(position, list) or len(position) != 4:
+                raise ValueError(f"{path}: {where}: 'position' must be [x, y, w, h], got {position!r}")
+            position = [_number(v, path, where) for v in position]
+            rotation = _number(annotation["rotation"], path, where)
+            if position[2] <= 0 or position[3] <= 0:
+                skipped_size += 1
+                continue
+            if any(o.id == object_id for o in objects[number]):
+                duplicates += 1
+            objects[number].append(
+                RadarObject(
+                    id=object_id,
+                    class_name=class_name,
+                    polygon=radiate_polygon(position, rotation),
+                    box=radiate_to_box(position, rotation, image_size=image_size, resolution=resolution),
+                )
+            )
+    if skipped_size:
+        log.warning("%s: skipped %d annotations with zero or negative width/height", path, skipped_size)
+    if unknown_classes:
+        log.warning("%s: class names outside RADIATE's %s: %s", path, RADIATE_CLASSES, sorted(unknown_classes))
+    if duplicates:
+        log.warning("%s: %d annotations repeat an id already used in the same frame", path, duplicates)
+    return objects
+
+
+def _check_images(folder: Path, numbers: list[int], timestamps_path: Path) -> tuple[list[Path], int]:
+    """Image path per listed frame, checked against the folder (both ways) and the PNG headers -> (paths, size)."""
+    image_dir = folder / IMAGE_DIR
+    if not image_dir.is_dir():
+        raise FileNotFoundError(f"image folder {image_dir} not found (not a RADIATE sequence folder?)")
+    on_disk: dict[int, Path] = {}
+    ignored = 0
+    for entry in image_dir.iterdir():
+        match = _IMAGE_NAME.fullmatch(entry.name)
+        if match:
+            on_disk[int(match.group(1))] = entry
+        else:
+            ignored += 1
+    if ignored:
+        log.warning("%s: ignored %d files that are not NNNNNN.png scans", image_dir, ignored)
+    paths = []
+    for number in numbers:
+        if number not in on_disk:
+            raise FileNotFoundError(f"radar image {image_dir / f'{number:06d}.png'} not found ({timestamps_path.name} lists frame {number})")
+        paths.append(on_disk[number])
+    extra = sorted(set(on_disk) - set(numbers))
+    if extra:
+        names = ", ".join(on_disk[n].name for n in extra[:5]) + (" ..." if len(extra) > 5 else "")
+        raise ValueError(f"{timestamps_path} disagrees with the images: no timestamp for {len(extra)} scans ({names})")
+    sizes = {}
+    for path in paths:
+        width, height = png_size(path)
+        if width != height:
+            raise ValueError(f"radar image {path} is {width}x{height}; scans must be square with the radar at the centre")
+        sizes.setdefault(width, path)
+    if len(sizes) > 1:
+        detail = ", ".join(f"{size} px ({path.name})" for size, path in sizes.items())
+        raise ValueError(f"{image_dir}: scans differ in size: {detail}")
+    return paths, next(iter(sizes))
+
+
+def _file_poses(path: Path, numbers: list[int], stamps: list[float]) -> np.ndarray:
+    table = read_ego_poses(path)
+    missing = [n for n in numbers if n not in table]
+    if missing:
+        raise ValueError(f"{path}: no pose for {len(missing)} frames on disk (first: frame {missing[0]})")
+    for number, stamp in zip(numbers, stamps):
+        if abs(table[number][0] - stamp) > POSE_TIMESTAMP_TOLERANCE:
+            raise ValueError(
+                f"{path}: frame {number} has timestamp {table[number][0]:.6f}, "
+                f"{TIMESTAMPS_FILE} says {stamp:.6f} (pose file of another sequence?)"
+            )
+    extra = len(table) - len(numbers)
+    if extra:
+        log.debug("%s: %d pose rows for frames not on disk ignored", path, extra)
+    return np.stack([table[n][1] for n in numbers])
+
+
+@dataclass(frozen=True, eq=False)
+class FrameList:
+    """A sequence folder's scans without annotations or poses (validated like read_sequence)."""
+
+    folder: Path
+    numbers: list[int]
+    timestamps: list[float]
+    timestamp_texts: list[str]  # as written in Navtech_Cartesian.txt (all nanosecond digits)
+    image_paths: list[Path]
+    image_size: int
+    resolution: float
+    meta: dict
+
+
+def list_frames(path: str | Path) -> FrameList:
+    """Frame numbers, timestamps and image paths of a sequence folder, checked against each other, and
+    meta.json (split, optional image_size / resolution)."""
+    folder = Path(path)
+    if not folder.is_dir():
+        raise FileNotFoundError(f"sequence folder {folder} not found (expected {folder / TIMESTAMPS_FILE} and {folder / IMAGE_DIR}/)")
+    timestamps_path = folder / TIMESTAMPS_FILE
+    listed = read_timestamps(timestamps_path)
+    numbers, stamps = [n for n, _, _ in listed], [t for _, t, _ in listed]
+    image_paths, image_size = _check_images(folder, numbers, timestamps_path)
+    meta_path = folder / META_FILE
+    meta = read_meta(meta_path)
+    if "image_size" in meta and meta["image_size"] != image_size:
+        raise ValueError(f"{meta_path}: image_size {meta['image_size']!r} but the scans are {image_size} px")
+    resolution = RADIATE_RESOLUTION
+    if "resolution" in meta:
+        resolution = _number(meta["resolution"], meta_path, "resolution")
+        if resolution <= 0:
+            raise ValueError(f"{meta_path}: resolution must be positive, got {resolution}")
+    return FrameList(folder, numbers, stamps, [text for _, _, text in listed], image_paths, image_size, resolution, meta)
+
+
+def read_sequence(path: str | Path, estimate_poses: bool = True) -> RadarSequence:
+    """One RADIATE sequence folder -> RadarSequence. estimate_poses=False skips odometry when the folder has no
+    ego_poses.csv (poses None, pose_source None): for tools that only need frames and annotations."""
+    listing = list_frames(path)
+    folder, numbers, stamps = listing.folder, listing.numbers, listing.timestamps
+    image_size, resolution, meta = listing.image_size, listing.resolution, listing.meta
+
+    annotations_path = folder / ANNOTATIONS_FILE
+    annotated = annotations_path.is_file()
+    if annotated:
+        objects = read_annotations(annotations_path, numbers, image_size, resolution)
+    else:
+        log.warning("%s not found: the %d frames carry no objects", annotations_path, len(numbers))
+        objects = {n: [] for n in numbers}
+    frames = [RadarFrame(n, t, p, objects[n]) for n, t, p in zip(numbers, stamps, listing.image_paths)]
+
+    poses_path = folder / POSES_FILE
+    poses: np.ndarray | None = None
+    pose_source: str | None = None
+    if poses_path.exists():
+        poses, pose_source = _file_poses(poses_path, numbers, stamps), "file"
+    elif estimate_poses:
+        from rafd.odometry import estimate_sequence_poses  # opencv only; imported here to keep the reader light
+
+        start = time.perf_counter()
+        poses = estimate_sequence_poses((frame.load() for frame in frames), resolution)
+        pose_source = "odometry"
+        log.info(
+            "%s: no %s; ego poses of %d frames estimated by radar odometry in %.1f s (run `rafd-odometry %s` to save them)",
+            folder, POSES_FILE, len(frames), time.perf_counter() - start, folder,
+        )
+    else:
+        log.info("%s: no %s and odometry not requested: sequence without poses", folder, POSES_FILE)
+    return RadarSequence(
+        name=str(meta.get("name") or folder.name),
+        split=meta.get("set"),
+        path=folder,
+        frames=frames,
+        poses=poses,
+        pose_source=pose_source,
+        image_size=image_size,
+        resolution=resolution,
+        annotated=annotated,
+    )

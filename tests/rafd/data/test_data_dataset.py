@@ -1,0 +1,138 @@
+"""RadarWindowDataset: discovery, split filter, windows, benchmark crop protocol, augmentation, speed."""
+from __future__ import annotations
+
+import json
+import logging
+import shutil
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from rafd.augment import Augmentation
+from rafd.config import RaFDConfig
+from rafd.data import RadarWindowDataset, find_sequences, load_image, read_sequence
+from rafd.geometry import centre_crop
+from rafd.sim import simulate_sequence
+
+CFG = RaFDConfig.tiny()  # 128 px crop (+-11.1 m), 4 frames
+HALF = CFG.input_size / 2 * CFG.resolution
+
+
+@pytest.fixture(scope="module")
+def root(sim_truth_and_folder, tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """Two sequences: the 10-frame train_good_weather simulation with pedestrians added near the radar, and
+    a 6-frame 256 px `test` one, in nested folders."""
+    root = tmp_path_factory.mktemp("windows")
+    train = Path(shutil.copytree(sim_truth_and_folder[1], root / "good" / "sim_27_0"))
+    path = train / "annotations" / "annotations.json"
+    entries = json.loads(path.read_text())
+    walker = {"position": [186.0, 180.0, 6.0, 6.0], "rotation": 0.0}  # 384 px scan: centre (189, 183) px
+    group = {"position": [200.0, 200.0, 12.0, 10.0], "rotation": 10.0}
+    entries.append({"id": 901, "class_name": "pedestrian", "bboxes": [walker] * 10})
+    entries.append({"id": 902, "class_name": "group_of_pedestrians", "bboxes": [group] * 10})
+    path.write_text(json.dumps(entries))
+    simulate_sequence(root / "other" / "sim_test", seed=5, num_frames=6, split="test", size=256)
+    return root
+
+
+def test_discovery_split_filter_and_window_counts(root: Path, caplog: pytest.LogCaptureFixture) -> None:
+    assert [p.name for p in find_sequences(root)] == ["sim_27_0", "sim_test"]
+    assert len(RadarWindowDataset(root, split=None, cfg=CFG)) == 7 + 3
+    assert len(RadarWindowDataset(root, split="train_good_weather", cfg=CFG)) == 7
+    assert len(RadarWindowDataset(root, split="test", cfg=CFG)) == 3
+    assert len(RadarWindowDataset(root, split=["test", "train_good_weather"], cfg=CFG)) == 10
+    strided = RadarWindowDataset(root, split="train_good_weather", cfg=CFG, stride=2)
+    assert [strided[k]["frame"] for k in range(len(strided))] == [4, 6, 8, 10]
+    assert len(RadarWindowDataset(root / "other" / "sim_test", split=None, cfg=CFG.replace(num_frames=2))) == 5
+    with caplog.at_level(logging.WARNING, logger="rafd.data.dataset"):
+        assert len(RadarWindowDataset(root, split="train_good_and_bad_weather", cfg=CFG)) == 0
+    assert "splits found" in caplog.text
+    with pytest.raises(FileNotFoundError, match="no RADIATE sequence"):
+        RadarWindowDataset(root / "good" / "sim_27_0" / "annotations", split=None, cfg=CFG)
+
+
+def test_window_content_follows_the_protocol(root: Path, sim_truth_and_folder) -> None:
+    truth, _ = sim_truth_and_folder
+    dataset = RadarWindowDataset(root, split="train_good_weather", cfg=CFG)
+    sequence = read_sequence(root / "good" / "sim_27_0")
+    for index in range(len(dataset)):
+        window = dataset[index]
+        assert window["sequence"] == "sim_27_0" and window["frame"] == index + 4
+        assert window["frames"].shape == (4, 128, 128) and window["frames"].dtype == np.uint8
+        np.testing.assert_array_equal(window["poses"], truth.poses[index : index + 4])
+        assert window["poses"].dtype == np.float64
+        for t in range(4):
+            k = index + t
+            np.testing.assert_array_equal(window["frames"][t], centre_crop(truth.images[k], 128))
+            expected = sorted(
+                (o.id, o.class_name)
+                for o in truth.objects
+                if np.isfinite(o.boxes[k, 0]) and np.all(np.abs(o.boxes[k, :2]) < HALF)
+                and o.class_name not in ("pedestrian", "group_of_pedestrians")
+            )
+            assert sorted(zip(window["ids"][t].tolist(), window["classes"][t])) == expected
+            assert window["boxes"][t].shape == (len(expected), 5) and window["ids"][t].dtype == np.int64
+            for object_id, box in zip(window["ids"][t], window["boxes"][t]):
+                np.testing.assert_allclose(box, next(o.boxes[k] for o in truth.objects if o.id == object_id), atol=1e-9)
+        # The added pedestrians sit inside the crop and are dropped; the reader still has them.
+        assert {901, 902} <= {o.id for o in sequence.frames[index].objects}
+        assert not {901, 902} & set(np.concatenate(window["ids"]).tolist())
+    assert sum(len(b) for k in range(len(dataset)) for b in dataset[k]["boxes"]) > 0
+
+
+def test_windows_collate_into_a_batch(root: Path) -> None:
+    from rafd.train.collate import Collator
+
+    dataset = RadarWindowDataset(root, split=None, cfg=CFG)
+    batch = Collator(CFG)([dataset[0], dataset[len(dataset) - 1]])
+    assert tuple(batch.frames.shape) == (2, 4, 1, 128, 128) and tuple(batch.poses.shape) == (2, 4, 3)
+    assert tuple(batch.targets["heatmap"].shape) == (2, 1, 32, 32)
+    assert tuple(batch.targets["flow"].shape) == (2, 3, 2, 32, 32)
+    assert batch.sequences == ["sim_27_0", "sim_test"] and batch.frame_numbers == [4, 6]
+
+
+def test_windows_read_in_milliseconds(tmp_path: Path) -> None:
+    simulate_sequence(tmp_path / "fast", seed=2, num_frames=12, split="test", size=512)
+    dataset = RadarWindowDataset(tmp_path, split="test", cfg=RaFDConfig.paper())
+    start = time.perf_counter()
+    for index in range(len(dataset)):
+        dataset[index]
+    per_window = (time.perf_counter() - start) / len(dataset)
+    assert per_window < 0.05, f"{per_window * 1e3:.1f} ms per window"  # ~3 ms here on one free core
+
+
+def test_augmented_windows_are_seeded_and_consistent(root: Path) -> None:
+    plain = RadarWindowDataset(root, split="train_good_weather", cfg=CFG)
+    first = RadarWindowDataset(root, split="train_good_weather", cfg=CFG, augment=True, seed=7)
+    again = RadarWindowDataset(root, split="train_good_weather", cfg=CFG, augment=True, seed=7)
+    other = RadarWindowDataset(root, split="train_good_weather", cfg=CFG, augment=True, seed=8)
+    drawn = [first[k] for k in range(len(first))]
+    assert [w["augmentation"] for w in drawn] == [again[k]["augmentation"] for k in range(len(again))]
+    assert [w["augmentation"] for w in drawn] != [other[k]["augmentation"] for k in range(len(other))]
+    assert any(w["augmentation"]["flip"] for w in drawn) and any(w["augmentation"]["angle"] != 0 for w in drawn)
+    for k, window in enumerate(drawn):
+        augmentation = Augmentation(**window["augmentation"])
+        expected = plain.window(k, augmentation)
+        np.testing.assert_array_equal(window["frames"], expected["frames"])
+        np.testing.assert_array_equal(window["poses"], augmentation.poses(plain[k]["poses"]))
+        full = [plain.sequences[0].image_paths[k + t] for t in range(4)]
+        for t in range(4):
+            np.testing.assert_array_equal(window["frames"][t], augmentation.image(load_image(full[t]), 128))
+            # Every kept box is an augmented original (same id), inside the crop.
+            originals = {i: b for i, b in zip(plain.sequences[0].ids[k + t], plain.sequences[0].boxes[k + t])}
+            for object_id, box in zip(window["ids"][t], window["boxes"][t]):
+                np.testing.assert_allclose(box, augmentation.boxes(originals[object_id][None])[0], atol=1e-12)
+                assert np.all(np.abs(box[:2]) < HALF)
+
+
+def test_unusable_sequences_fail_clearly(root: Path, tmp_path: Path) -> None:
+    with pytest.raises(ValueError, match="cannot be centre-cropped"):
+        RadarWindowDataset(root / "other", split=None, cfg=RaFDConfig.paper().replace(input_size=512))
+    with pytest.raises(ValueError, match="resolution"):
+        RadarWindowDataset(root / "other", split=None, cfg=CFG.replace(resolution=0.5))
+    bare = Path(shutil.copytree(root / "other" / "sim_test", tmp_path / "bare"))
+    (bare / "annotations" / "annotations.json").unlink()
+    with pytest.raises(FileNotFoundError, match="annotations.json"):
+        RadarWindowDataset(bare, split=None, cfg=CFG)
