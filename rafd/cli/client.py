@@ -8,7 +8,6 @@ from __future__ import annotations
 
 import argparse
 import base64
-import csv
 import json
 import sys
 import urllib.error
@@ -30,42 +29,19 @@ class ClientFrame:
 
 
 def read_frames(sequence_dir: Path) -> tuple[str, list[ClientFrame]]:
-    """(sequence name, frames sorted by timestamp) via rafd.data when available, else a minimal reader."""
-    try:
-        from rafd.data import read_sequence
-    except ImportError:
-        return sequence_dir.name, _read_minimal(sequence_dir)
-    sequence = read_sequence(sequence_dir)
+    """(sequence name, frames sorted by timestamp); poses only from the folder's ego_poses.csv.
+
+    No odometry here: without a pose file the service estimates ego motion itself (and says so).
+    """
+    from rafd.data import read_sequence
+
+    sequence = read_sequence(sequence_dir, estimate_poses=False)
     frames = [
         ClientFrame(f.number, float(f.timestamp), Path(f.image_path),
                     None if sequence.poses is None else sequence.poses[i])
         for i, f in enumerate(sequence.frames)
     ]
     return sequence.name or sequence_dir.name, sorted(frames, key=lambda f: f.timestamp)
-
-
-def _read_minimal(sequence_dir: Path) -> list[ClientFrame]:
-    """Navtech_Cartesian.txt (`Frame: 000001 Time: 1574859771.744660272`) + optional ego_poses.csv."""
-    index = sequence_dir / "Navtech_Cartesian.txt"
-    if not index.is_file():
-        raise FileNotFoundError(f"{index} not found: not a RADIATE sequence folder")
-    poses: dict[int, np.ndarray] = {}
-    pose_file = sequence_dir / "ego_poses.csv"
-    if pose_file.is_file():
-        with pose_file.open(newline="") as handle:
-            for row in csv.DictReader(handle):
-                poses[int(row["frame"])] = np.array([float(row["x"]), float(row["y"]), float(row["yaw"])])
-    frames = []
-    for line_number, line in enumerate(index.read_text().splitlines(), 1):
-        parts = line.split()
-        if not parts:
-            continue
-        if len(parts) != 4 or parts[0] != "Frame:" or parts[2] != "Time:":
-            raise ValueError(f"{index}:{line_number}: expected 'Frame: N Time: T', got {line!r}")
-        number = int(parts[1])
-        frames.append(ClientFrame(number, float(parts[3]), sequence_dir / "Navtech_Cartesian" / f"{number:06d}.png",
-                                  poses.get(number)))
-    return sorted(frames, key=lambda f: f.timestamp)
 
 
 class ServiceError(RuntimeError):

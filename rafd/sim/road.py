@@ -95,8 +95,10 @@ def drive_ego(rng: np.random.Generator, road: Road, times: np.ndarray, lane_offs
     offset = lane_offset + weave
     points, heading = road.frame_at(s, offset)
     # Heading correction from the weave: d(offset)/ds, guarded where the ego stands still.
-    ds = np.gradient(s)
-    slope = np.where(ds > 0.05, np.gradient(offset) / np.maximum(ds, 0.05), 0.0)
+    # np.gradient needs two samples: a one-frame drive has no weave slope.
+    ds = np.gradient(s) if len(s) > 1 else np.zeros_like(s)
+    d_offset = np.gradient(offset) if len(s) > 1 else np.zeros_like(s)
+    slope = np.where(ds > 0.05, d_offset / np.maximum(ds, 0.05), 0.0)
     yaw = heading + np.arctan(np.clip(slope, -0.1, 0.1)) - np.pi / 2.0  # ego +y along travel
     yaw = (yaw + np.pi) % (2 * np.pi) - np.pi
     return EgoDrive(s=s, offset=offset, poses=np.concatenate([points, yaw[:, None]], 1))

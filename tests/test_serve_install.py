@@ -1,0 +1,73 @@
+"""The serving image's install path without Docker: a fresh venv with ONLY the `serve` extra (no torch)
+installs the package non-editably (as the Dockerfile does), starts `rafd-serve` on the shipped model and
+answers POST /detect.
+"""
+from __future__ import annotations
+
+import base64
+import os
+import socket
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import cv2
+import httpx
+import numpy as np
+import pytest
+
+REPO = Path(__file__).resolve().parents[1]
+
+
+def free_port() -> int:
+    with socket.socket() as sock:
+        sock.bind(("127.0.0.1", 0))
+        return int(sock.getsockname()[1])
+
+
+@pytest.fixture(scope="module")
+def serve_venv(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    venv = tmp_path_factory.mktemp("serve-venv")
+    subprocess.run([sys.executable, "-m", "venv", str(venv)], check=True)
+    install = subprocess.run([str(venv / "bin" / "pip"), "install", "-q", f"{REPO}[serve]"],
+                             capture_output=True, text=True)
+    assert install.returncode == 0, install.stderr[-3000:]
+    return venv
+
+
+def test_serve_extra_installs_without_torch_and_answers_detect(serve_venv: Path, tmp_path: Path):
+    python = serve_venv / "bin" / "python"
+    probe = subprocess.run([str(python), "-c", "import importlib.util as u; print(u.find_spec('torch') is None)"],
+                           capture_output=True, text=True, check=True, cwd=tmp_path)
+    assert probe.stdout.strip() == "True", "the serve extra pulled in torch"
+
+    port = free_port()
+    env = {k: v for k, v in os.environ.items() if not k.startswith("RAFD_")}
+    server = subprocess.Popen([str(serve_venv / "bin" / "rafd-serve"), "--port", str(port), "--threads", "1"],
+                              cwd=tmp_path, env=env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+    url = f"http://127.0.0.1:{port}"
+    try:
+        deadline = time.monotonic() + 90.0
+        while True:
+            assert server.poll() is None, f"rafd-serve exited: {server.stdout.read()[-3000:]}"
+            try:
+                if httpx.get(f"{url}/health/ready", timeout=1.0).status_code == 200:
+                    break
+            except httpx.HTTPError:
+                pass
+            assert time.monotonic() < deadline, "rafd-serve not ready after 90 s"
+            time.sleep(0.25)
+        size = httpx.get(f"{url}/model").json()["input_size"]
+        image = np.random.default_rng(0).integers(0, 60, (int(size), int(size)), dtype=np.uint8)
+        ok, png = cv2.imencode(".png", image)
+        assert ok
+        answer = httpx.post(f"{url}/detect", timeout=30.0, json={
+            "stream_id": "install-check", "timestamp": 1.0, "pose": {"x": 0.0, "y": 0.0, "yaw": 0.0},
+            "image": base64.b64encode(png.tobytes()).decode("ascii")})
+        assert answer.status_code == 200, answer.text
+        body = answer.json()
+        assert body["frames_used"] == 1 and isinstance(body["boxes"], list)
+    finally:
+        server.terminate()
+        server.wait(timeout=30)
