@@ -36,9 +36,12 @@ def peak_indices(heatmap: Tensor, k: int) -> Tensor:
     """Top-k local maxima after 3x3 max-pool NMS: [B, Ncls, Hf, Wf] logits -> [B, k] int64 flat cell indices."""
     logits = best_class(heatmap.detach())  # [B, 1, Hf, Wf]
     pooled = F.max_pool2d(logits, 3, stride=1, padding=1)  # [B, 1, Hf, Wf]
-    # Non-maxima get a very low logit instead of being removed: the shape stays static for ONNX.
-    peaks = torch.where(pooled == logits, logits, torch.full_like(logits, -1.0e4))
-    return peaks.flatten(1).topk(k, dim=1).indices  # [B, k]
+    # Non-maxima are ranked below every maximum instead of being removed (static shape for ONNX),
+    # but still by their own score: a constant fill would tie them, and ORT and torch break ties
+    # differently when a heatmap has fewer than k maxima.
+    is_peak = (pooled == logits).to(logits.dtype)
+    key = torch.sigmoid(logits) + is_peak  # maxima in [1, 2], the rest in [0, 1]
+    return key.flatten(1).topk(k, dim=1).indices  # [B, k]
 
 
 def force_ground_truth(peaks: Tensor, gt_indices: Tensor, gt_mask: Tensor) -> Tensor:

@@ -1,0 +1,60 @@
+"""rafd-export checkpoint.pt model.onnx [--opset N] [--form step|window] [--no-verify]"""
+from __future__ import annotations
+
+import argparse
+import sys
+
+from export import MIN_OPSET
+
+
+def _opset(text: str) -> int:
+    value = int(text)
+    if value < MIN_OPSET:
+        raise argparse.ArgumentTypeError(f"opset must be >= {MIN_OPSET} (GridSample), got {value}")
+    return value
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(
+        prog="rafd-export",
+        description="Export a RaFD checkpoint to ONNX (static shapes, metadata for the service) and verify it "
+                    "with onnxruntime against PyTorch (random inputs, plus real frames when RAFD_RADIATE_SAMPLE "
+                    "names a RADIATE sequence).")
+    parser.add_argument("checkpoint", help="checkpoint written by rafd-train (rafd.checkpoint.save_checkpoint)")
+    parser.add_argument("output", help="ONNX file to write (replaced atomically, only after verification)")
+    parser.add_argument("--opset", type=_opset, default=MIN_OPSET,
+                        help=f"ONNX opset, >= {MIN_OPSET} (default %(default)s)")
+    parser.add_argument("--form", choices=("step", "window"), default="step",
+                        help="step: streaming step graph with feature/flow caches (the service's form); "
+                             "window: model.forward on a full window (default %(default)s)")
+    parser.add_argument("--no-verify", action="store_true", help="skip the onnxruntime vs PyTorch parity check")
+    return parser
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = build_parser().parse_args(argv)
+    # Heavy imports (torch, onnx) after argument parsing: --help stays fast.
+    from export.onnx_export import ExportError, export_onnx
+    from export.verify import VerificationError
+    from rafd.checkpoint import CheckpointError
+
+    def log(message: str) -> None:
+        print(message, flush=True)
+
+    try:
+        result = export_onnx(args.checkpoint, args.output, opset=args.opset, form=args.form,
+                             verify=not args.no_verify, log=log)
+    except CheckpointError as error:
+        print(f"rafd-export: error: bad checkpoint: {error}", file=sys.stderr)
+        return 1
+    except (ExportError, VerificationError) as error:
+        print(f"rafd-export: error: {error}", file=sys.stderr)
+        return 1
+    verified = "verified" if result.report is not None else "not verified (--no-verify)"
+    print(f"wrote {result.path} ({result.size_bytes / 1e6:.2f} MB, {result.form} form, opset {result.opset}, "
+          f"{result.exporter} exporter, {verified})")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,165 @@
+"""Checkpoint -> ONNX (step or window form) with metadata, onnx.checker and onnxruntime parity verification."""
+from __future__ import annotations
+
+import hashlib
+import json
+import os
+import tempfile
+import time
+import warnings
+from collections.abc import Callable
+from dataclasses import dataclass
+from pathlib import Path
+
+import onnx
+import torch
+
+import rafd
+from export.step import build_graph, example_inputs, feature_channels
+from export.verify import Report, verify_export
+from rafd.checkpoint import load_checkpoint
+from rafd.config import RaFDConfig
+from rafd.runtime import FORMS, graph_inputs, graph_outputs
+
+from export import MIN_OPSET
+
+
+class ExportError(RuntimeError):
+    """The export cannot be done (bad output path, exporter failure, invalid graph)."""
+
+
+@dataclass
+class ExportResult:
+    path: Path
+    form: str
+    opset: int
+    exporter: str  # "torchscript" (torch.onnx.export dynamo=False) or "dynamo"
+    export_seconds: float  # torch.onnx.export + metadata + onnx.checker
+    verify_seconds: float
+    size_bytes: int
+    metadata: dict[str, str]
+    report: Report | None
+
+
+def check_output_path(output: Path) -> None:
+    """Fail before the (slow) export when the output cannot be written."""
+    if output.is_dir():
+        raise ExportError(f"output path {output} is a directory")
+    parent = output.parent
+    if not parent.is_dir():
+        raise ExportError(f"cannot write {output}: {parent} is not an existing directory")
+    try:  # os.access is not enough (root, read-only mounts): really create a file there
+        with tempfile.NamedTemporaryFile(dir=parent, prefix=f".{output.name}.", suffix=".probe"):
+            pass
+    except OSError as error:
+        raise ExportError(f"cannot write {output}: {error.strerror or error}") from error
+
+
+def file_sha256(path: Path) -> str:
+    digest = hashlib.sha256()
+    with open(path, "rb") as handle:
+        for block in iter(lambda: handle.read(1 << 20), b""):
+            digest.update(block)
+    return digest.hexdigest()
+
+
+def build_metadata(cfg: RaFDConfig, checkpoint_sha256: str, form: str, channels: int, opset: int,
+                   exporter: str) -> dict[str, str]:
+    """rafd.runtime.METADATA_KEYS (+ opset, exporter): everything the service needs besides the graph."""
+    return {
+        "config": cfg.to_json(),
+        "input_size": str(cfg.input_size),
+        "resolution": repr(float(cfg.resolution)),
+        "num_frames": str(cfg.num_frames),
+        "class_names": json.dumps(list(cfg.class_names)),
+        "checkpoint_sha256": checkpoint_sha256,
+        "version": rafd.__version__,
+        "form": form,
+        "feature_channels": str(channels),
+        "opset": str(opset),
+        "exporter": exporter,
+    }
+
+
+def _torch_export(graph: torch.nn.Module, inputs: tuple, path: Path, cfg: RaFDConfig, form: str, opset: int,
+                  log: Callable[[str], None]) -> str:
+    """torch.onnx.export with static shapes: the TorchScript exporter first (robust with grid_sample), then dynamo."""
+    names = dict(input_names=list(graph_inputs(form, cfg.num_frames)),
+                 output_names=list(graph_outputs(form, cfg.num_frames)), opset_version=opset)
+    try:
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")  # the TorchScript exporter's deprecation / tracer warnings
+            torch.onnx.export(graph, inputs, str(path), dynamo=False, do_constant_folding=True, **names)
+        return "torchscript"
+    except Exception as error:  # noqa: BLE001 - any exporter failure: try the other exporter
+        log(f"TorchScript exporter failed ({type(error).__name__}: {error}); trying the dynamo exporter")
+    try:
+        program = torch.onnx.export(graph, inputs, dynamo=True, external_data=False, optimize=True, **names)
+        program.save(str(path))
+        return "dynamo"
+    except Exception as error:  # noqa: BLE001
+        raise ExportError(f"torch.onnx.export failed with both exporters: {type(error).__name__}: {error}") from error
+
+
+def _restore_unused_inputs(proto: onnx.ModelProto, names: tuple[str, ...], example: tuple[torch.Tensor, ...]) -> None:
+    """The exporters drop inputs the graph does not use (poses for T = 1); the contract keeps them."""
+    present = {value.name: onnx.ValueInfoProto.FromString(value.SerializeToString()) for value in proto.graph.input}
+    inputs = [present.get(name) or onnx.helper.make_tensor_value_info(name, onnx.TensorProto.FLOAT, list(tensor.shape))
+              for name, tensor in zip(names, example)]
+    del proto.graph.input[:]
+    proto.graph.input.extend(inputs)
+
+
+def export_onnx(checkpoint: str | os.PathLike[str], output: str | os.PathLike[str], opset: int = MIN_OPSET,
+                form: str = "step", verify: bool = True, log: Callable[[str], None] = print) -> ExportResult:
+    """Export a checkpoint; the output appears (atomically) only when checker and verification passed.
+
+    Raises rafd.checkpoint.CheckpointError (bad checkpoint), ExportError, export.verify.VerificationError.
+    """
+    checkpoint, output = Path(checkpoint), Path(output)
+    if opset < MIN_OPSET:
+        raise ExportError(f"opset {opset} is too old: RaFD needs opset >= {MIN_OPSET}")
+    if form not in FORMS:
+        raise ExportError(f"form must be one of {FORMS}, got {form!r}")
+    check_output_path(output)
+    model, cfg, _ = load_checkpoint(checkpoint)
+    model = model.eval()
+    sha = file_sha256(checkpoint)
+
+    start = time.perf_counter()
+    channels = feature_channels(model, cfg)
+    graph = build_graph(model, cfg, form)
+    tmp = output.with_name(f".{output.name}.{os.getpid()}.tmp")
+    try:
+        with tempfile.TemporaryDirectory(dir=output.parent, prefix=f".{output.name}.") as workdir:
+            raw = Path(workdir, "raw.onnx")
+            with torch.no_grad():
+                example = example_inputs(cfg, form, channels)
+                exporter = _torch_export(graph, example, raw, cfg, form, opset, log)
+            proto = onnx.load(str(raw))  # also pulls in external data, if the exporter wrote any
+        _restore_unused_inputs(proto, graph_inputs(form, cfg.num_frames), example)
+        metadata = build_metadata(cfg, sha, form, channels, opset, exporter)
+        del proto.metadata_props[:]
+        for key, value in metadata.items():
+            proto.metadata_props.add(key=key, value=value)
+        try:
+            onnx.checker.check_model(proto, full_check=True)
+        except (onnx.checker.ValidationError, onnx.shape_inference.InferenceError) as error:
+            raise ExportError(f"onnx.checker rejected the exported graph: {error}") from error
+        onnx.save(proto, str(tmp))
+        del proto
+        export_seconds = time.perf_counter() - start
+        size = tmp.stat().st_size
+        log(f"exported {form} graph with the {exporter} exporter, opset {opset}: {size / 1e6:.2f} MB "
+            f"in {export_seconds:.1f} s")
+
+        report, verify_seconds = None, 0.0
+        if verify:
+            start = time.perf_counter()
+            report = verify_export(tmp, model, cfg, form, log=log)
+            verify_seconds = time.perf_counter() - start
+        os.replace(tmp, output)
+    finally:
+        tmp.unlink(missing_ok=True)
+    return ExportResult(path=output, form=form, opset=opset, exporter=exporter, export_seconds=export_seconds,
+                        verify_seconds=verify_seconds, size_bytes=size, metadata=metadata, report=report)

@@ -1,0 +1,81 @@
+"""The torch modules that are exported: the streaming step graph and the full-window graph.
+
+Both are thin wrappers over the model's own streaming decomposition (encode_frame / pair_flow / detect), so the
+step graph computes exactly what model.forward computes for the window whose caches it is given.
+Input and output names and shapes are the contract of rafd.runtime (see its docstring).
+"""
+from __future__ import annotations
+
+import torch
+from torch import Tensor, nn
+
+from rafd.config import RaFDConfig
+from rafd.model import relative_pose_torch
+from rafd.runtime import FORMS
+
+class StepGraph(nn.Module):
+    """One new frame + the previous window's caches -> detections of the new window, its flows, the new features.
+
+    inputs:  frame [1,1,S,S], poses [1,T,3], past_features [1,T-1,C,Hf,Wf], past_flows [1,T-2,2,Hf,Wf] (T = 4)
+    outputs: heatmap, scores, boxes, flow [1,T-1,2,Hf,Wf], features [1,C,Hf,Wf]
+    For T = 1 it is the single-frame model: inputs frame, poses [1,1,3]; outputs heatmap, scores, boxes.
+    """
+
+    def __init__(self, model: nn.Module, num_frames: int) -> None:
+        super().__init__()
+        self.model = model
+        self.num_frames = num_frames
+
+    def forward(self, frame: Tensor, poses: Tensor, past_features: Tensor | None = None,
+                past_flows: Tensor | None = None) -> tuple[Tensor, ...]:
+        if self.num_frames == 1:
+            out = self.model(frame[:, None], poses)
+            return out["heatmap"], out["scores"], out["boxes"]
+        features = self.model.encode_frame(frame)
+        relative = relative_pose_torch(poses[:, -2], poses[:, -1])
+        flow = self.model.pair_flow(past_features[:, -1], features, relative)[:, None]
+        flows = flow if past_flows is None else torch.cat([past_flows, flow], 1)
+        out = self.model.detect(torch.cat([past_features, features[:, None]], 1), flows, poses)
+        return out["heatmap"], out["scores"], out["boxes"], flows, features
+
+
+class WindowGraph(nn.Module):
+    """model.forward on a full window: frames [1,T,1,S,S], poses [1,T,3] -> heatmap, scores, boxes(, flow)."""
+
+    def __init__(self, model: nn.Module, num_frames: int) -> None:
+        super().__init__()
+        self.model = model
+        self.num_frames = num_frames
+
+    def forward(self, frames: Tensor, poses: Tensor) -> tuple[Tensor, ...]:
+        out = self.model(frames, poses)
+        if self.num_frames == 1:
+            return out["heatmap"], out["scores"], out["boxes"]
+        return out["heatmap"], out["scores"], out["boxes"], out["flow"]
+
+
+@torch.no_grad()
+def feature_channels(model: nn.Module, cfg: RaFDConfig) -> int:
+    """C of model.encode_frame (the step graph's cached feature maps)."""
+    return int(model.encode_frame(torch.zeros(1, 1, cfg.input_size, cfg.input_size)).shape[1])
+
+
+def build_graph(model: nn.Module, cfg: RaFDConfig, form: str) -> nn.Module:
+    if form not in FORMS:
+        raise ValueError(f"form must be one of {FORMS}, got {form!r}")
+    return (StepGraph if form == "step" else WindowGraph)(model, cfg.num_frames).eval()
+
+
+def example_inputs(cfg: RaFDConfig, form: str, channels: int, seed: int = 0) -> tuple[Tensor, ...]:
+    """Random inputs of the graph's static shapes (frames in [0, 1], small ego motion)."""
+    generator = torch.Generator().manual_seed(seed)
+    T, S, F = cfg.num_frames, cfg.input_size, cfg.feature_size
+    poses = torch.cumsum(torch.randn(1, T, 3, generator=generator) * torch.tensor([1.0, 1.0, 0.05]), 1)
+    if form == "window":
+        return torch.rand(1, T, 1, S, S, generator=generator), poses
+    inputs: tuple[Tensor, ...] = (torch.rand(1, 1, S, S, generator=generator), poses)
+    if T > 1:
+        inputs += (torch.randn(1, T - 1, channels, F, F, generator=generator),)
+    if T > 2:
+        inputs += (torch.randn(1, T - 2, 2, F, F, generator=generator),)
+    return inputs

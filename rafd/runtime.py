@@ -1,0 +1,270 @@
+"""Torch-free streaming runner over onnxruntime (numpy + onnxruntime only), shared by the service and the tests.
+
+Warm-up rule (the same in PyTorch and ONNX): a window with fewer than T real frames is padded at the OLD end by
+repeating the oldest real frame with its pose, e.g. for T = 4 the windows of a stream f1, f2, f3, f4, f5, ... are
+[f1 f1 f1 f1], [f1 f1 f1 f2], [f1 f1 f2 f3], [f1 f2 f3 f4], [f2 f3 f4 f5], ...  `window_from_history` builds that
+window from a stream's history (the PyTorch side of the comparison uses it).
+
+Step graph (exported by `rafd-export --form step`, the service's form): per frame it encodes only the new frame,
+computes only the newest pair's flow and runs the propagation chain + head:
+    inputs  frame [1,1,S,S], poses [1,T,3] (window, oldest first, last = this frame),
+            past_features [1,T-1,C,Hf,Wf], past_flows [1,T-2,2,Hf,Wf] (T = 4 only)
+    outputs heatmap [1,1,Hf,Wf], scores [1,K], boxes [1,K,5], flow [1,T-1,2,Hf,Wf], features [1,C,Hf,Wf]
+For T = 1 the step graph is the single-frame model (inputs frame, poses [1,1,3]; no caches, no flow).
+
+Since each padded window is the previous one shifted by one frame, the state simply holds the previous window's
+caches, already padded: the last T-1 features, the last T-2 pair flows and the last T-1 world poses.
+
+First frame of a stream (no caches yet), for T > 1:
+  1. run with zero caches: only its `features` output F1 is used;
+  2. run with past_features = [F1] * (T-1) (and zero past_flows): its newest `flow` output is the self-pair flow
+     S1 = pair_flow(F1, F1, identity). For T = 2 there are no past flows, so this run is already the result for
+     the window [f1 f1];
+  3. (T = 4 only) run with past_features = [F1] * 3 and past_flows = [S1] * 2: the result for [f1 f1 f1 f1].
+  (The third run is needed because the detection of run 2 saw zero past flows; it happens once per stream.)
+
+Poses: world poses may be large (UTM metres), so the window's poses are re-expressed in float64 in the newest
+frame's ego frame (newest pose = (0, 0, 0)) before the cast to float32. The model only uses relative poses, which
+do not change under that rigid change of world frame.
+
+Window form (`rafd-export --form window`, model.forward on the whole window): the state keeps the last T-1 frames
+instead and every step runs the full padded window (the same results, without the caching).
+
+`step` is pure: the old state stays valid and can be stepped again (the service commits the new state only when
+the whole request succeeded). States are immutable and their cached arrays are read-only.
+"""
+from __future__ import annotations
+
+import os
+from collections.abc import Sequence
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from rafd.config import RaFDConfig
+
+METADATA_KEYS = ("config", "input_size", "resolution", "num_frames", "class_names", "checkpoint_sha256", "version",
+                 "form", "feature_channels")
+FORMS = ("step", "window")
+
+
+def graph_inputs(form: str, num_frames: int) -> tuple[str, ...]:
+    """Input names of an exported graph, in order."""
+    if form == "window":
+        return ("frames", "poses")
+    return ("frame", "poses", "past_features", "past_flows")[: min(num_frames + 1, 4)]
+
+
+def graph_outputs(form: str, num_frames: int) -> tuple[str, ...]:
+    """Output names of an exported graph, in order."""
+    if num_frames == 1:
+        return ("heatmap", "scores", "boxes")
+    return ("heatmap", "scores", "boxes", "flow") + (("features",) if form == "step" else ())
+
+
+def default_threads() -> int:
+    """The CPUs this process may use (its affinity mask, e.g. a container's cpuset), not os.cpu_count()."""
+    try:
+        return max(1, len(os.sched_getaffinity(0)))
+    except AttributeError:  # not on Linux
+        return os.cpu_count() or 1
+
+
+def window_from_history(frames: Sequence[np.ndarray], poses: np.ndarray | Sequence[np.ndarray],
+                        num_frames: int) -> tuple[np.ndarray, np.ndarray]:
+    """A stream's history (oldest first, any length >= 1) -> its newest window under the warm-up rule.
+
+    Returns (frames [T, ...] stacked as given, poses float64 [T, 3]): the last T frames, padded at the old end by
+    repeating the oldest of them with its pose when fewer than T are available.
+    """
+    frames = list(frames)[-num_frames:]
+    poses = np.asarray(poses, dtype=np.float64).reshape(-1, 3)[-num_frames:]
+    if not frames:
+        raise ValueError("window_from_history needs at least one frame")
+    if len(poses) != len(frames):
+        raise ValueError(f"got {len(frames)} frames but {len(poses)} poses")
+    pad = num_frames - len(frames)
+    return np.stack([frames[0]] * pad + frames), np.concatenate([np.repeat(poses[:1], pad, axis=0), poses])
+
+
+def poses_in_newest_frame(poses: np.ndarray) -> np.ndarray:
+    """World poses [T, 3] (float64) -> float32 [T, 3] expressed in the newest pose's ego frame.
+
+    Pose i becomes invert(newest) o pose_i (yaw wrapped to [-pi, pi)); relative poses between any two are unchanged,
+    and the differences are taken in float64 so large world coordinates lose no precision.
+    """
+    poses = np.asarray(poses, dtype=np.float64)
+    ref = poses[-1]
+    c, s = np.cos(ref[2]), np.sin(ref[2])
+    dx, dy = poses[:, 0] - ref[0], poses[:, 1] - ref[1]
+    out = np.empty(poses.shape, dtype=np.float32)
+    out[:, 0] = c * dx + s * dy
+    out[:, 1] = -s * dx + c * dy
+    out[:, 2] = (poses[:, 2] - ref[2] + np.pi) % (2.0 * np.pi) - np.pi
+    return out
+
+
+def _frozen(array: np.ndarray) -> np.ndarray:
+    array.flags.writeable = False
+    return array
+
+
+@dataclass(frozen=True)
+class StreamState:
+    """One stream's caches: the previous window minus its oldest frame, padded by the warm-up rule, oldest first."""
+
+    frames_used: int = 0  # real frames in the newest window: min(frames seen, T)
+    poses: tuple[np.ndarray, ...] = ()  # T-1 world poses, float64 [3]
+    features: tuple[np.ndarray, ...] = ()  # step form: T-1 per-frame features [C, Hf, Wf]
+    flows: tuple[np.ndarray, ...] = ()  # step form: T-2 pair flows [2, Hf, Wf]
+    frames: tuple[np.ndarray, ...] = ()  # window form: T-1 frames [S, S]
+
+    @property
+    def nbytes(self) -> int:
+        """Bytes held (padding repeats one array, counted once)."""
+        unique = {id(a): a for a in self.poses + self.features + self.flows + self.frames}
+        return sum(a.nbytes for a in unique.values())
+
+
+@dataclass(frozen=True)
+class StepResult:
+    heatmap: np.ndarray  # [Hf, Wf] logits
+    boxes: np.ndarray  # [K, 5] (x, y, width, length, yaw), metres, newest ego frame
+    scores: np.ndarray  # [K] in [0, 1]
+    flow: np.ndarray | None  # [T-1, 2, Hf, Wf] metres, the window's pair flows (None for T = 1)
+    frames_used: int
+
+
+class OnnxRunner:
+    """One onnxruntime session over an exported RaFD model (step or window form); thread-safe, stateless."""
+
+    def __init__(self, model_path: str | os.PathLike[str], threads: int | None = None) -> None:
+        import onnxruntime as ort
+
+        path = Path(model_path)
+        if not path.is_file():
+            raise FileNotFoundError(f"ONNX model {path} does not exist")
+        self.path = path
+        self.threads = int(threads) if threads else default_threads()
+        options = ort.SessionOptions()
+        options.intra_op_num_threads = self.threads
+        options.inter_op_num_threads = 1
+        options.execution_mode = ort.ExecutionMode.ORT_SEQUENTIAL
+        options.graph_optimization_level = ort.GraphOptimizationLevel.ORT_ENABLE_ALL
+        try:
+            self.session = ort.InferenceSession(str(path), sess_options=options, providers=["CPUExecutionProvider"])
+        except Exception as error:  # onnxruntime raises its own exception types
+            raise ValueError(f"cannot load ONNX model {path}: {error}") from error
+        self.metadata: dict[str, str] = dict(self.session.get_modelmeta().custom_metadata_map)
+        if "config" not in self.metadata:
+            raise ValueError(f"{path} is not a RaFD export: its metadata has no 'config' "
+                             f"(keys: {sorted(self.metadata)})")
+        self.config = RaFDConfig.from_json(self.metadata["config"])
+        self.input_names = tuple(i.name for i in self.session.get_inputs())
+        self.output_names = tuple(o.name for o in self.session.get_outputs())
+        self.form = self.metadata.get("form") or ("window" if "frames" in self.input_names else "step")
+        T = self.config.num_frames
+        expected, needed_outputs = graph_inputs(self.form, T), graph_outputs(self.form, T)
+        if (self.form not in FORMS or set(self.input_names) != set(expected)
+                or not set(needed_outputs) <= set(self.output_names)):
+            raise ValueError(f"{path}: not a RaFD {self.form!r} graph for T = {T}: inputs {self.input_names}, "
+                             f"outputs {self.output_names} (expected inputs {expected}, outputs {needed_outputs})")
+        shapes = {i.name: tuple(i.shape) for i in self.session.get_inputs()}
+        size = self.config.input_size
+        if self.form == "step" and T > 1:
+            _, _, channels, height, width = shapes["past_features"]
+            self._zero_features = _frozen(np.zeros((channels, height, width), np.float32))
+            self._zero_flow = _frozen(np.zeros((2, height, width), np.float32))
+        frame_shape = shapes["frames" if self.form == "window" else "frame"]
+        if tuple(frame_shape[-2:]) != (size, size):
+            raise ValueError(f"{path}: input frame shape {frame_shape} does not match input_size {size}")
+
+    # ------------------------------------------------------------------ API
+    def new_state(self) -> StreamState:
+        return StreamState()
+
+    def run(self, feeds: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
+        """One raw session run -> {output name: array}."""
+        return dict(zip(self.output_names, self.session.run(None, feeds)))
+
+    def step(self, state: StreamState, frame: np.ndarray, pose: np.ndarray) -> tuple[StepResult, StreamState]:
+        """Add one frame (float32 [S, S] in [0, 1]) with its world pose [3] -> (result for its window, new state)."""
+        size = self.config.input_size
+        if not isinstance(frame, np.ndarray) or frame.dtype != np.float32 or frame.shape != (size, size):
+            raise ValueError(f"frame must be float32 [{size}, {size}], got "
+                             f"{getattr(frame, 'dtype', type(frame).__name__)} {getattr(frame, 'shape', '')}")
+        if not (frame.min() >= 0.0 and frame.max() <= 1.0):  # also false for NaN
+            raise ValueError("frame values must lie in [0, 1]")
+        pose = np.array(pose, dtype=np.float64)  # a copy: the state keeps it
+        if pose.shape != (3,) or not np.all(np.isfinite(pose)):
+            raise ValueError(f"pose must be 3 finite numbers, got {pose!r}")
+        _frozen(pose)
+        if self.form == "window":
+            return self._step_window(state, frame, pose)
+        if self.config.num_frames == 1:
+            out = self.run({"frame": frame[None, None], "poses": np.zeros((1, 1, 3), np.float32)})
+            return self._result(out, 1), StreamState(frames_used=1)
+        if state.frames_used == 0:
+            return self._first_step(frame, pose)
+        return self._step(state, frame, pose)
+
+    # ------------------------------------------------------------------ step form
+    def _step(self, state: StreamState, frame: np.ndarray, pose: np.ndarray) -> tuple[StepResult, StreamState]:
+        poses = state.poses + (pose,)
+        out = self._run_step(frame, poses, state.features, state.flows)
+        flows = state.flows
+        if flows:  # T = 4: keep the newest T-2 pair flows (a copy: result.flow belongs to the caller)
+            flows = flows[1:] + (_frozen(out["flow"][0, -1].copy()),)
+        new_state = StreamState(
+            frames_used=min(state.frames_used + 1, self.config.num_frames),
+            poses=poses[1:],
+            features=state.features[1:] + (_frozen(out["features"][0]),),
+            flows=flows,
+        )
+        return self._result(out, new_state.frames_used), new_state
+
+    def _first_step(self, frame: np.ndarray, pose: np.ndarray) -> tuple[StepResult, StreamState]:
+        T = self.config.num_frames
+        poses = (pose,) * T
+        zero_flows = (self._zero_flow,) * (T - 2)
+        features = (_frozen(self._run_step(frame, poses, (self._zero_features,) * (T - 1), zero_flows)
+                            ["features"][0]),) * (T - 1)
+        out = self._run_step(frame, poses, features, zero_flows)
+        flows: tuple[np.ndarray, ...] = ()
+        if T > 2:  # the self-pair flow S1 fills the flow caches; rerun with them
+            flows = (_frozen(out["flow"][0, -1].copy()),) * (T - 2)
+            out = self._run_step(frame, poses, features, flows)
+        new_state = StreamState(frames_used=1, poses=poses[1:], features=features, flows=flows)
+        return self._result(out, 1), new_state
+
+    def _run_step(self, frame: np.ndarray, poses: tuple[np.ndarray, ...], features: tuple[np.ndarray, ...],
+                  flows: tuple[np.ndarray, ...]) -> dict[str, np.ndarray]:
+        feeds = {
+            "frame": frame[None, None],
+            "poses": poses_in_newest_frame(np.stack(poses))[None],
+            "past_features": np.stack(features)[None],
+        }
+        if flows:
+            feeds["past_flows"] = np.stack(flows)[None]
+        return self.run(feeds)
+
+    # ------------------------------------------------------------------ window form
+    def _step_window(self, state: StreamState, frame: np.ndarray, pose: np.ndarray) -> tuple[StepResult, StreamState]:
+        T = self.config.num_frames
+        frame = _frozen(frame.copy())  # the state keeps it
+        if state.frames_used == 0:
+            frames, poses = (frame,) * T, (pose,) * T
+        else:
+            frames, poses = state.frames + (frame,), state.poses + (pose,)
+        out = self.run({"frames": np.stack(frames)[None, :, None],
+                        "poses": poses_in_newest_frame(np.stack(poses))[None]})
+        new_state = StreamState(frames_used=min(state.frames_used + 1, T), poses=poses[1:], frames=frames[1:])
+        return self._result(out, new_state.frames_used), new_state
+
+    # ------------------------------------------------------------------ outputs
+    def _result(self, out: dict[str, np.ndarray], frames_used: int) -> StepResult:
+        flow = out.get("flow")
+        return StepResult(heatmap=out["heatmap"][0, 0], boxes=out["boxes"][0], scores=out["scores"][0],
+                          flow=None if flow is None else flow[0], frames_used=frames_used)
+
