@@ -379,6 +379,7 @@ def build_parser() -> argparse.ArgumentParser:
 def main(argv: Sequence[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(levelname)s %(name)s: %(message)s")
+    logging.getLogger("httpx").setLevel(logging.WARNING)  # one line per request would bury the table
     report = Report()
     configs = [c.strip() for c in args.configs.split(",") if c.strip()]
     unknown = set(configs) - {"default", "paper"}
