@@ -74,7 +74,7 @@ class DetectService:
             elif entry.last_frame is None:  # a stream's first frame anchors its odometry world frame
                 pose, source = np.zeros(3), "odometry"
             else:
-                pose = await run_in_threadpool(poses.odometry_pose, entry.last_pose, entry.last_frame, decoded.crop,
+                pose = await run_in_threadpool(poses.odometry_pose, entry.last_pose, entry.last_frame, decoded.odometry_view,
                                                self.config.resolution, self.odometry())
                 source = "odometry"
             odometry_done = time.perf_counter()
@@ -82,7 +82,7 @@ class DetectService:
             result, new_state = await run_in_threadpool(self.runner.step, entry.state, frame, pose)
             model_done = time.perf_counter()
             previous_timestamp = entry.last_timestamp
-            entry.commit(new_state, fields.timestamp, decoded.crop, pose, source)
+            entry.commit(new_state, fields.timestamp, decoded.odometry_view, pose, source)
 
         self.metrics.frames.inc()
         self.metrics.model_latency.observe(model_done - odometry_done)

@@ -13,6 +13,10 @@ from rafd.geometry import RADIATE_RESOLUTION, RADIATE_SCAN_SIZE, centre_crop
 from service.errors import ApiError
 
 PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"
+# Odometry registers this much of the posted scan around the radar (89 m at RADIATE's resolution):
+# on the model's small crop alone the static scene is too sparse and registration sometimes locks
+# onto vehicles that move with the ego.
+ODOMETRY_VIEW_SIZE = 512
 
 
 @dataclass(frozen=True)
@@ -20,6 +24,7 @@ class DecodedFrame:
     crop: np.ndarray  # [S, S] uint8, the model's input crop centred on the radar
     posted_size: int  # side of the posted image (polygons are answered in its pixels)
     crop_offset: int  # posted pixel of the crop's top-left corner (0 when posted at model size)
+    odometry_view: np.ndarray  # [V, V] uint8 centre of the posted image that odometry registers (V >= S)
 
     def model_input(self) -> np.ndarray:
         """[S, S] uint8 -> [S, S] float32 in [0, 1], the runner's frame."""
@@ -72,4 +77,6 @@ def decode_frame(data: bytes, input_size: int, resolution: float) -> DecodedFram
         raise ApiError(422, "unsupported_image_format",
                        f"image is {image.dtype}; expected 8-bit greyscale like RADIATE's Navtech scans")
     crop = centre_crop(image, input_size)
-    return DecodedFrame(crop=np.ascontiguousarray(crop), posted_size=width, crop_offset=(width - input_size) // 2)
+    view = centre_crop(image, max(input_size, min(width, ODOMETRY_VIEW_SIZE)))
+    return DecodedFrame(crop=np.ascontiguousarray(crop), posted_size=width, crop_offset=(width - input_size) // 2,
+                        odometry_view=np.ascontiguousarray(view))

@@ -12,7 +12,7 @@ from collections.abc import Callable
 
 import numpy as np
 
-from rafd.geometry import compose_poses
+from rafd.geometry import centre_crop, compose_poses
 from service.errors import ApiError
 
 # (previous [S, S], current [S, S], resolution m/px) -> [3] current ego pose in the previous ego frame
@@ -42,6 +42,9 @@ def odometry_pose(previous_pose: np.ndarray | None, previous_frame: np.ndarray |
     """[3] world pose of `frame`: (0, 0, 0) for a stream's first frame, else previous pose o relative motion."""
     if previous_pose is None or previous_frame is None:
         return np.zeros(3)
+    if previous_frame.shape != frame.shape:  # a stream switched between full scans and model-size crops
+        side = min(previous_frame.shape[0], frame.shape[0])
+        previous_frame, frame = centre_crop(previous_frame, side), centre_crop(frame, side)
     relative = np.asarray(odometry(previous_frame, frame, resolution), dtype=np.float64)
     if relative.shape != (3,) or not np.all(np.isfinite(relative)):
         raise ApiError(500, "odometry_failed", f"odometry returned {relative!r}; expected 3 finite numbers")

@@ -32,7 +32,7 @@ class StreamEntry:
     busy: int = 0  # requests holding or waiting for the lock: such a stream is never evicted
     frames_seen: int = 0
     last_timestamp: float | None = None
-    last_frame: np.ndarray | None = None  # [S, S] uint8 crop of the last accepted frame (for odometry)
+    last_frame: np.ndarray | None = None  # [V, V] uint8 odometry view of the last accepted frame
     last_pose: np.ndarray | None = None  # [3] world pose of the last accepted frame
     pose_source: str | None = None  # source of the FIRST frame: fixes which world frame the stream uses
 

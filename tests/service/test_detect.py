@@ -118,6 +118,24 @@ def test_without_pose_the_service_uses_odometry_composed_onto_the_last_pose(clie
     assert answers[2]["boxes"][0]["yaw"] == pytest.approx(2 * odometry.motion[2], abs=1e-5)
 
 
+def test_odometry_registers_the_centre_512_px_of_a_full_scan(client, odometry):
+    """The model sees its small crop; odometry sees more of the scene, and copes with a size switch."""
+    rng = np.random.default_rng(3)
+    scans = [rng.integers(0, 255, (1152, 1152), dtype=np.uint8) for _ in range(2)]
+    for t, scan in enumerate(scans):
+        assert client.post("/detect", json=detect_json("wide", float(t), scan)).status_code == 200
+    previous, current, _ = odometry.calls[-1]
+    np.testing.assert_array_equal(previous, scans[0][320:832, 320:832])
+    np.testing.assert_array_equal(current, scans[1][320:832, 320:832])
+    # Then a model-size frame on the same stream: both sides are cut to the common centre.
+    small = FRAMES[0]
+    assert client.post("/detect", json=detect_json("wide", 2.0, small)).status_code == 200
+    previous, current, _ = odometry.calls[-1]
+    half = small.shape[0] // 2
+    np.testing.assert_array_equal(previous, scans[1][576 - half:576 + half, 576 - half:576 + half])
+    np.testing.assert_array_equal(current, small)
+
+
 def test_pose_mixing_rule(client, odometry):
     # Started with request poses: a frame without pose continues from the last pose by odometry.
     client.post("/detect", json=detect_json("gps", 1.0, FRAMES[0], (10.0, 20.0, 0.3)))
