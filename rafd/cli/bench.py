@@ -180,28 +180,10 @@ def bench_model(name: str, checkpoint: Path, work: Path, threads: int, repeats: 
 
 
 def count_step_flops(model: Any, cfg: Any) -> float:
-    """FLOPs of one streaming step: encode the new frame, flow of the newest pair, propagate + head."""
-    import torch
+    """FLOPs of one streaming step: the exported StepGraph itself (new frame, newest pair flow, detect)."""
+    from export.step import build_graph, example_inputs, feature_channels
 
-    from rafd.model import relative_pose_torch
-
-    size, t = cfg.input_size, cfg.num_frames
-    frame = torch.rand(1, 1, size, size)
-    with torch.no_grad():
-        features = model.encode_frame(frame)
-    past = features[:, None].expand(1, t, *features.shape[1:]).contiguous()  # [1, T, C, Hf, Wf]
-    poses = torch.zeros(1, t, 3)
-
-    def step() -> None:
-        new = model.encode_frame(frame)
-        if t > 1:
-            flow = model.pair_flow(past[:, -2], new, relative_pose_torch(poses[:, -2], poses[:, -1]))
-            flows = flow[:, None].expand(1, t - 1, *flow.shape[1:])
-            model.detect(past, flows, poses)
-        else:
-            model.detect(new[:, None], None, poses)
-
-    return count_flops(step)
+    return count_flops(build_graph(model, cfg, "step"), *example_inputs(cfg, "step", feature_channels(model, cfg)))
 
 
 # ----------------------------------------------------------------------------- HTTP path
