@@ -196,11 +196,11 @@ def random_sequence(cfg: RaFDConfig, length: int, seed: int = 0, step_m: float =
 
 
 def radiate_sequence(folder: str | os.PathLike[str], cfg: RaFDConfig, length: int) -> tuple[np.ndarray, np.ndarray]:
-    """The first `length` Navtech_Cartesian frames of a RADIATE sequence, centre-cropped to S, / 255, with poses
-    from rafd.odometry when it is available (zeros otherwise)."""
+    """The first `length` Navtech_Cartesian frames of a RADIATE sequence as model inputs (rafd.preprocess), with
+    poses from rafd.odometry when it is available (zeros otherwise)."""
     import cv2
 
-    from rafd.geometry import centre_crop
+    from rafd.preprocess import model_crop, to_model_input
 
     paths = sorted(Path(folder, "Navtech_Cartesian").glob("*.png"))[:length]
     if not paths:
@@ -210,8 +210,8 @@ def radiate_sequence(folder: str | os.PathLike[str], cfg: RaFDConfig, length: in
         image = cv2.imread(str(path), cv2.IMREAD_GRAYSCALE)
         if image is None:
             raise ValueError(f"cannot read {path}")
-        images.append(centre_crop(image, cfg.input_size))
-    frames = np.stack(images).astype(np.float32) / 255.0
+        images.append(model_crop(image, cfg.input_size))
+    frames = to_model_input(np.stack(images))
     try:
         from rafd.odometry import estimate_sequence_poses
     except ImportError:

@@ -25,7 +25,8 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
-from rafd.geometry import centre_crop, rotation_matrix, wrap_angle
+from rafd.geometry import rotation_matrix, wrap_angle
+from rafd.preprocess import model_crop
 
 
 @dataclass(frozen=True)
@@ -94,7 +95,7 @@ class Augmentation:
         if size > height:
             raise ValueError(f"cannot crop {size}x{size} from a {height}x{height} scan")
         if self.angle == 0.0:
-            crop = centre_crop(image, size)
+            crop = model_crop(image, size)
             return np.ascontiguousarray(crop[:, ::-1]) if self.flip else crop.copy()
         # cv2 pixel indices d of the output: source index = A (d - c_out) + c_in with A = M G^-1 M (M flips
         # image v: metres y points up). Derivation in the module docstring's conventions.

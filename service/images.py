@@ -9,7 +9,8 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
-from rafd.geometry import RADIATE_RESOLUTION, RADIATE_SCAN_SIZE, centre_crop
+from rafd.geometry import RADIATE_RESOLUTION, RADIATE_SCAN_SIZE
+from rafd.preprocess import model_crop, to_model_input
 from service.errors import ApiError
 
 PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"
@@ -28,7 +29,7 @@ class DecodedFrame:
 
     def model_input(self) -> np.ndarray:
         """[S, S] uint8 -> [S, S] float32 in [0, 1], the runner's frame."""
-        return self.crop.astype(np.float32) / 255.0
+        return to_model_input(self.crop)
 
 
 def accepted_sizes(input_size: int, resolution: float) -> tuple[int, ...]:
@@ -76,7 +77,6 @@ def decode_frame(data: bytes, input_size: int, resolution: float) -> DecodedFram
     if image.dtype != np.uint8:
         raise ApiError(422, "unsupported_image_format",
                        f"image is {image.dtype}; expected 8-bit greyscale like RADIATE's Navtech scans")
-    crop = centre_crop(image, input_size)
-    view = centre_crop(image, max(input_size, min(width, ODOMETRY_VIEW_SIZE)))
-    return DecodedFrame(crop=np.ascontiguousarray(crop), posted_size=width, crop_offset=(width - input_size) // 2,
-                        odometry_view=np.ascontiguousarray(view))
+    view = model_crop(image, max(input_size, min(width, ODOMETRY_VIEW_SIZE)))
+    return DecodedFrame(crop=model_crop(image, input_size), posted_size=width, crop_offset=(width - input_size) // 2,
+                        odometry_view=view)

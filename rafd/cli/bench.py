@@ -26,6 +26,8 @@ from typing import Any, Callable, Sequence
 import cv2
 import numpy as np
 
+from rafd.preprocess import to_model_input
+
 log = logging.getLogger("rafd.bench")
 
 
@@ -126,7 +128,7 @@ def bench_model(name: str, checkpoint: Path, work: Path, threads: int, repeats: 
     model, cfg, _ = load_checkpoint(checkpoint)
     size, frames_per_window = cfg.input_size, cfg.num_frames
     images, poses = simulated_frames(size, repeats + 8, seed=7)
-    inputs = [im.astype(np.float32) / 255.0 for im in images]
+    inputs = [to_model_input(im) for im in images]
     window = torch.from_numpy(np.stack(inputs[:frames_per_window]))[None, :, None]  # [1, T, 1, S, S]
     window_poses = torch.from_numpy(poses[:frames_per_window].astype(np.float32))[None]  # [1, T, 3]
 

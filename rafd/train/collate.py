@@ -9,6 +9,7 @@ import torch
 from torch import Tensor
 
 from rafd.config import RaFDConfig
+from rafd.preprocess import to_model_input
 from rafd.targets import build_targets
 
 
@@ -37,14 +38,14 @@ class Batch:
 
 def _frames_tensor(frames: Any, where: str) -> Tensor:
     """Window frames [T, H, W] or [T, 1, H, W] (uint8 or float) -> float32 [T, 1, H, W] in [0, 1]."""
-    array = torch.as_tensor(np.asarray(frames))
+    array = np.asarray(frames)
     if array.ndim == 3:
         array = array[:, None]  # [T, 1, H, W]
     if array.ndim != 4 or array.shape[1] != 1:
         raise ValueError(f"{where}: frames must be [T, H, W] or [T, 1, H, W], got {tuple(array.shape)}")
-    if array.dtype == torch.uint8:
-        return array.float() / 255.0
-    return array.float()
+    if array.dtype == np.uint8:
+        return torch.from_numpy(to_model_input(array))
+    return torch.as_tensor(array).float()
 
 
 def window_targets(window: dict[str, Any], cfg: RaFDConfig) -> dict[str, np.ndarray]:

@@ -1,0 +1,42 @@
+"""The one torch-free path from a radar scan to the model's input frame.
+
+Training (rafd.data.dataset, rafd.train.collate), export verification, the benchmarks and the service all
+call these functions, so what the network sees cannot drift between them:
+
+    scan uint8 [N, N] (RADIATE Cartesian grid, radar at the centre)
+      -> model_crop      uint8 [S, S], the centre S x S pixels (S = the model's input_size)
+      -> to_model_input  float32 [S, S] in [0, 1] (grey / 255)
+
+Anything that depends on the scan's intensity statistics (gain-robust normalisation) is the network's first
+module, so PyTorch and the exported ONNX graph compute it identically from this [0, 1] frame.
+"""
+from __future__ import annotations
+
+import numpy as np
+
+from rafd.geometry import centre_crop
+
+GREY_LEVELS = 255.0  # RADIATE's scans are 8-bit
+
+
+def model_crop(scan: np.ndarray, input_size: int) -> np.ndarray:
+    """uint8 [N, N] scan -> uint8 [S, S] centre crop around the radar (a contiguous copy-free view when possible)."""
+    scan = np.asarray(scan)
+    if scan.ndim != 2 or scan.shape[0] != scan.shape[1]:
+        raise ValueError(f"expected a square 2-D scan with the radar at the centre, got shape {scan.shape}")
+    if (scan.shape[0] - input_size) % 2:
+        raise ValueError(f"a {scan.shape[0]} px scan cannot be centre-cropped to {input_size} px (odd difference)")
+    return np.ascontiguousarray(centre_crop(scan, input_size))
+
+
+def to_model_input(crop: np.ndarray) -> np.ndarray:
+    """uint8 [..., S, S] -> float32 [..., S, S] in [0, 1], the network's frame."""
+    crop = np.asarray(crop)
+    if crop.dtype != np.uint8:
+        raise ValueError(f"radar frames are 8-bit greyscale; got {crop.dtype}")
+    return crop.astype(np.float32) * np.float32(1.0 / GREY_LEVELS)
+
+
+def model_frame(scan: np.ndarray, input_size: int) -> np.ndarray:
+    """uint8 [N, N] scan -> float32 [S, S] model input (model_crop then to_model_input)."""
+    return to_model_input(model_crop(scan, input_size))
