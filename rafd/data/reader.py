@@ -41,7 +41,8 @@ RADIATE_CLASSES = ("car", "van", "truck", "bus", "motorbike", "bicycle", "pedest
 POSE_TIMESTAMP_TOLERANCE = 1e-3  # seconds: ego_poses.csv rows must carry their frame's timestamp
 
 _PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"
-_TIMESTAMP_LINE = re.compile(r"Frame:\s*(\d+)\s+Time:\s*([0-9]+(?:\.[0-9]*)?)\s*")
+_TIMESTAMP_LINE = re.compile(r"Frame:\s*(\d+)\s+Time:\s*([0-9]+(?:\.[0-9]+)?)\s*")
+NANOSECOND_DIGITS = 9
 _IMAGE_NAME = re.compile(r"(\d+)\.png")
 
 
@@ -134,8 +135,27 @@ def png_size(path: Path) -> tuple[int, int]:
 
 
 # ---------------------------------------------------------------- files of a sequence
+def parse_radiate_time(text: str) -> tuple[float, str]:
+    """A RADIATE `Time:` field -> (UNIX seconds, canonical 'seconds.nnnnnnnnn' text), as the RADIATE SDK reads it.
+
+    The recording software printed the nanosecond field without zero padding, so a fraction of fewer than 9 digits
+    is nanoseconds, not a decimal fraction: '1574859771.74466027' is 1574859771 s + 74466027 ns = ...771.074466027
+    (the SDK's "fixing timestamp problem" change left-pads it with zeros). 9 digits read as they are.
+    """
+    seconds, dot, fraction = text.strip().partition(".")
+    if not seconds.isdigit() or (dot and not fraction.isdigit()):
+        raise ValueError(f"not a RADIATE timestamp: {text!r}")
+    if len(fraction) > NANOSECOND_DIGITS:
+        raise ValueError(f"timestamp {text!r} has more than {NANOSECOND_DIGITS} fractional (nanosecond) digits")
+    canonical = f"{int(seconds)}.{fraction.zfill(NANOSECOND_DIGITS)}"
+    return float(canonical), canonical
+
+
 def read_timestamps(path: Path) -> list[tuple[int, float, str]]:
-    """Navtech_Cartesian.txt -> [(frame number, UNIX seconds, the seconds as written)] in file order, validated."""
+    """Navtech_Cartesian.txt -> [(frame number, UNIX seconds, canonical 9-digit text)] in file order, validated.
+
+    Times are read as the RADIATE SDK reads them (parse_radiate_time: a short fraction is zero-padded nanoseconds).
+    """
     if not path.is_file():
         raise FileNotFoundError(f"timestamp file {path} not found (not a RADIATE sequence folder?)")
     entries: list[tuple[int, float, str]] = []
@@ -145,12 +165,16 @@ def read_timestamps(path: Path) -> list[tuple[int, float, str]]:
         match = _TIMESTAMP_LINE.fullmatch(line.strip())
         if match is None:
             raise ValueError(f"{path}:{line_number}: expected 'Frame: 000001 Time: 1574859771.744660272', got {line!r}")
-        number, stamp = int(match.group(1)), float(match.group(2))
+        number = int(match.group(1))
+        try:
+            stamp, text = parse_radiate_time(match.group(2))
+        except ValueError as error:
+            raise ValueError(f"{path}:{line_number}: {error}") from error
         if entries and number <= entries[-1][0]:
             raise ValueError(f"{path}:{line_number}: frame {number} after frame {entries[-1][0]}; frames must increase")
         if entries and stamp <= entries[-1][1]:
             raise ValueError(f"{path}:{line_number}: time {stamp} does not increase (previous {entries[-1][1]})")
-        entries.append((number, stamp, match.group(2)))
+        entries.append((number, stamp, text))
     if not entries:
         raise ValueError(f"{path}: no frames listed")
     return entries
@@ -301,7 +325,7 @@ class FrameList:
     folder: Path
     numbers: list[int]
     timestamps: list[float]
-    timestamp_texts: list[str]  # as written in Navtech_Cartesian.txt (all nanosecond digits)
+    timestamp_texts: list[str]  # canonical 'seconds.nnnnnnnnn' texts (parse_radiate_time), all nanosecond digits
     image_paths: list[Path]
     image_size: int
     resolution: float

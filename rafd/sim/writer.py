@@ -1,17 +1,15 @@
 """Write a simulated sequence in RADIATE's on-disk layout (+ our ego_poses.csv with the true poses)."""
 from __future__ import annotations
 
-import csv
 import json
 from pathlib import Path
 
 import cv2
 import numpy as np
 
+from rafd.data.poses import write_ego_poses
 from rafd.geometry import box_to_radiate
 from rafd.sim.sequence import SimulatedSequence
-
-POSES_HEADER = ("frame", "timestamp", "x", "y", "yaw")
 
 
 def format_timestamp(nanoseconds: int) -> str:
@@ -36,19 +34,9 @@ def annotations_json(sequence: SimulatedSequence) -> list[dict]:
 
 
 def _write_poses(path: Path, sequence: SimulatedSequence) -> None:
+    """The true poses, with the timestamps' exact nanosecond texts (rafd.data.poses: one writer for every path)."""
     frames = np.arange(1, len(sequence.images) + 1)
-    try:  # the DATA module's writer when present, so reader and writer cannot drift apart
-        from rafd.data.poses import write_ego_poses
-    except ImportError:
-        write_ego_poses = None
-    if write_ego_poses is not None:
-        write_ego_poses(path, frames, sequence.timestamps_ns / 1e9, sequence.poses)
-        return
-    with path.open("w", newline="") as handle:
-        writer = csv.writer(handle)
-        writer.writerow(POSES_HEADER)
-        for frame, stamp, pose in zip(frames, sequence.timestamps_ns, sequence.poses):
-            writer.writerow([int(frame), format_timestamp(stamp), *(repr(float(v)) for v in pose)])
+    write_ego_poses(path, frames, [format_timestamp(stamp) for stamp in sequence.timestamps_ns], sequence.poses)
 
 
 def write_sequence(sequence: SimulatedSequence, out_dir: Path) -> Path:

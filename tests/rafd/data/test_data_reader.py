@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 
 from rafd.data import read_sequence
-from rafd.data.reader import load_image
+from rafd.data.reader import list_frames, load_image, parse_radiate_time
 from rafd.geometry import box_corners, metres_to_pixels
 
 RES = 0.173611
@@ -173,7 +173,40 @@ def test_timestamps_file_listing_a_missing_scan(sim_copy: Path) -> None:
         read_sequence(sim_copy)
 
 
-@pytest.mark.parametrize("bad", ["Frame: 000003 Tim: 12.5", "Frame: 000003 Time: 1.0"])
+@pytest.mark.parametrize(
+    "text, seconds, canonical",
+    [
+        ("1574859771.744660272", 1574859771.744660272, "1574859771.744660272"),  # exact: 9 digits
+        ("1574859771.74466027", 1574859771.074466027, "1574859771.074466027"),  # short: nanoseconds, not a decimal
+        ("1574859771.074466027", 1574859771.074466027, "1574859771.074466027"),  # the same time, padded on disk
+        ("1574859772.5", 1574859772.000000005, "1574859772.000000005"),
+        ("1574859772", 1574859772.0, "1574859772.000000000"),  # no fraction
+    ],
+    ids=["exact", "short", "padded", "one-digit", "integer"],
+)
+def test_timestamps_are_read_as_the_radiate_sdk_reads_them(text, seconds, canonical) -> None:
+    parsed, written = parse_radiate_time(text)
+    assert written == canonical
+    assert parsed == pytest.approx(seconds, abs=1e-6)
+
+
+def test_a_short_nanosecond_field_does_not_break_the_order_of_a_valid_sequence(sim_copy: Path) -> None:
+    # RADIATE's logger dropped leading zeros of the nanosecond field: 54000000 ns was printed '54000000' and means
+    # 0.054 s. Read as a decimal (float()), frame 2 would be 0.49 s late and frame 4 (5 ns) 0.5 s late.
+    path = sim_copy / "Navtech_Cartesian.txt"
+    lines = [f"Frame: {k:06d} Time: {1574859770 + k}.{ns}" for k, ns in
+             zip(range(1, 11), ["900000000", "54000000", "954000000", "5", "100000000",
+                                "200000000", "300000000", "400000000", "500000000", "600000000"])]
+    path.write_text("\n".join(lines) + "\n")
+    (sim_copy / "ego_poses.csv").unlink()
+    sequence = read_sequence(sim_copy, estimate_poses=False)
+    stamps = [frame.timestamp for frame in sequence.frames]
+    assert stamps[1] == pytest.approx(1574859772.054, abs=1e-6)
+    assert stamps[3] == pytest.approx(1574859774.000000005, abs=1e-6)
+    assert list_frames(sim_copy).timestamp_texts[1] == "1574859772.054000000"
+
+
+@pytest.mark.parametrize("bad", ["Frame: 000003 Tim: 12.5", "Frame: 000003 Time: 1.0", "Frame: 000003 Time: 12.1234567890"])
 def test_malformed_or_unordered_timestamps(sim_copy: Path, bad: str) -> None:
     path = sim_copy / "Navtech_Cartesian.txt"
     lines = path.read_text().splitlines()
