@@ -21,12 +21,13 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from functools import cached_property
 
 import cv2
 import numpy as np
 
 from rafd.geometry import rotation_matrix, wrap_angle
-from rafd.preprocess import model_crop
+from rafd.preprocess import model_crop, rotation_crop
 
 
 @dataclass(frozen=True)
@@ -57,7 +58,7 @@ class Augmentation:
     def is_identity(self) -> bool:
         return not self.flip and self.angle == 0.0
 
-    @property
+    @cached_property
     def matrix(self) -> np.ndarray:
         """[2, 2] G acting on ego metres."""
         mirror = np.diag([-1.0, 1.0]) if self.flip else np.eye(2)
@@ -97,6 +98,10 @@ class Augmentation:
         if self.angle == 0.0:
             crop = model_crop(image, size)
             return np.ascontiguousarray(crop[:, ::-1]) if self.flip else crop.copy()
+        # Warp from the smallest crop that holds every turned output pixel: the same source whether the scan is a
+        # full 1152 px scan or a prepared cache crop, so both give bit-identical windows.
+        image = model_crop(image, min(height, rotation_crop(size) + (height - rotation_crop(size)) % 2))
+        height = image.shape[0]
         # cv2 pixel indices d of the output: source index = A (d - c_out) + c_in with A = M G^-1 M (M flips
         # image v: metres y points up). Derivation in the module docstring's conventions.
         flip_v = np.diag([1.0, -1.0])

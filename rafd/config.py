@@ -9,6 +9,7 @@ from typing import Any
 from rafd.geometry import RADIATE_RESOLUTION
 
 ALLOWED_FRAMES = (1, 2, 4)
+BOX_ENCODINGS = ("symmetric", "as_labelled")
 
 
 @dataclass(frozen=True)
@@ -57,6 +58,27 @@ class HeadConfig:
     num_points: int = 4  # deformable cross-attention sampling points per query
     ffn_ratio: int = 2
     num_classes: int = 1  # one merged `vehicle` class (benchmark protocol)
+    # How orientation and size are regressed. "symmetric": a box is the same box turned by 180 degrees, and RADIATE's
+    # annotators flip yaw by 180 degrees and swap width/length within one track, so the targets are the canonical
+    # box (width <= length) with (sin 2yaw, cos 2yaw); decoding returns width <= length, yaw in [-pi/2, pi/2).
+    # "as_labelled": (sin yaw, cos yaw) and log(width, length) exactly as annotated (checkpoints before this field).
+    box_encoding: str = "symmetric"
+
+    def __post_init__(self) -> None:
+        if self.box_encoding not in BOX_ENCODINGS:
+            raise ValueError(f"box_encoding must be one of {BOX_ENCODINGS}, got {self.box_encoding!r}")
+
+
+@dataclass(frozen=True)
+class TargetConfig:
+    # Training targets (kept in the config so a checkpoint records how it was trained).
+    # Heatmap Gaussian radius = max(heatmap_min_radius, int(gaussian_radius(l, w, heatmap_min_overlap))) in cells:
+    # CenterPoint / CenterFormer use overlap 0.1 and a floor of 2 (overlap 0.7 and floor 1 give every car 1 cell).
+    heatmap_min_overlap: float = 0.1
+    heatmap_min_radius: int = 2
+    # Pseudo-GT flow region radius max(f(hw), flow_min_radius) with f = gaussian_radius(l, w, flow_min_overlap).
+    flow_min_overlap: float = 0.7
+    flow_min_radius: float = 2.0  # gamma, cells
 
 
 @dataclass(frozen=True)
@@ -72,6 +94,7 @@ class RaFDConfig:
     flow: FlowConfig = field(default_factory=FlowConfig)
     propagation: PropagationConfig = field(default_factory=PropagationConfig)
     head: HeadConfig = field(default_factory=HeadConfig)
+    targets: TargetConfig = field(default_factory=TargetConfig)
 
     def __post_init__(self) -> None:
         if self.num_frames not in ALLOWED_FRAMES:
@@ -120,7 +143,8 @@ class RaFDConfig:
 
     @classmethod
     def from_dict(cls, data: dict[str, Any]) -> "RaFDConfig":
-        """Rebuild from `to_dict()`; unknown keys are an error, not silently dropped."""
+        """Rebuild from `to_dict()`; unknown keys are an error, not silently dropped. Fields a stored config predates
+        take the value they had before they existed (LEGACY_DEFAULTS), never today's default."""
         sub_types = {f.name: f.type for f in dataclasses.fields(cls)}
         nested = {
             "backbone": BackboneConfig,
@@ -129,7 +153,9 @@ class RaFDConfig:
             "flow": FlowConfig,
             "propagation": PropagationConfig,
             "head": HeadConfig,
+            "targets": TargetConfig,
         }
+        data = {**data, **{k: {**v, **data.get(k, {})} for k, v in LEGACY_DEFAULTS.items()}}
         kwargs: dict[str, Any] = {}
         for key, value in data.items():
             if key not in sub_types:
@@ -145,6 +171,13 @@ class RaFDConfig:
     @classmethod
     def from_json(cls, text: str) -> "RaFDConfig":
         return cls.from_dict(json.loads(text))
+
+
+# What configs written before a field existed meant by its absence (see RaFDConfig.from_dict).
+LEGACY_DEFAULTS: dict[str, dict[str, Any]] = {
+    "head": {"box_encoding": "as_labelled"},
+    "targets": {"heatmap_min_overlap": 0.7, "heatmap_min_radius": 1, "flow_min_overlap": 0.7, "flow_min_radius": 2.0},
+}
 
 
 def _build_dataclass(kind: type, values: dict[str, Any]) -> Any:

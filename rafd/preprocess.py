@@ -12,6 +12,8 @@ module, so PyTorch and the exported ONNX graph compute it identically from this 
 """
 from __future__ import annotations
 
+import math
+
 import numpy as np
 
 from rafd.geometry import centre_crop
@@ -27,6 +29,13 @@ def model_crop(scan: np.ndarray, input_size: int) -> np.ndarray:
     if (scan.shape[0] - input_size) % 2:
         raise ValueError(f"a {scan.shape[0]} px scan cannot be centre-cropped to {input_size} px (odd difference)")
     return np.ascontiguousarray(centre_crop(scan, input_size))
+
+
+def rotation_crop(input_size: int) -> int:
+    """Smallest even centre crop from which an input_size crop turned by any angle can be cut (rafd.augment warps
+    from exactly this crop, so a prepared cache and the full scan give identical windows)."""
+    side = math.ceil(input_size * math.sqrt(2.0)) + 2  # + 2: bilinear neighbours of the corner pixels
+    return side + side % 2
 
 
 def to_model_input(crop: np.ndarray) -> np.ndarray:

@@ -4,18 +4,24 @@ Grid (contract): feature cell (i, j) centre at x = (j + 0.5 - Wf/2) * c, y = (Hf
 c = cfg.cell_size; flat index i * Wf + j. A box centre (x, y) lies in cell j = floor(x / c + Wf/2),
 i = floor(Hf/2 - y / c); centres outside the grid get no target (counted in a log warning).
 
-Heatmap: CenterNet's draw_umich_gaussian: radius r = max(MIN_RADIUS, int(gaussian_radius((l, w), 0.7)))
-with l, w the box's length and width in cells, sigma = (2r + 1) / 6, peak exactly 1 at the centre cell,
-max over objects.
+Heatmap: CenterNet's draw_umich_gaussian: radius r = max(min_radius, int(gaussian_radius((l, w), min_overlap)))
+with l, w the box's length and width in cells (cfg.targets: CenterPoint's 0.1 and 2 by default), sigma =
+(2r + 1) / 6, peak exactly 1 at the centre cell, max over objects.
+
+Box regression at the centre cell: offset to the exact centre (cells), log size and orientation as
+cfg.head.box_encoding says: "symmetric" regresses the canonical box (canonical_boxes: width <= length, yaw taken
+modulo 180 degrees) as log(width, length) and (sin 2yaw, cos 2yaw), so the 180-degree flips and width/length swaps
+of real labels within one track are the same target; "as_labelled" regresses log(width, length) and
+(sin yaw, cos yaw) as annotated.
 
 Pseudo-GT flow (paper section 2.5), one map per consecutive pair (t-1, t), in frame t's grid: for each
 object of frame t whose id also appears in frame t-1, its displacement
     d = c_t - T_{t-1 -> t}(c_{t-1}),  T_{t-1 -> t} = geometry.relative_pose(pose_{t-1}, pose_t)
 (the frame-(t-1) centre moved into frame t's ego coordinates: ego motion removed) is written into every
-cell of its Gaussian region: cells within sigma_flow = max(f(hw), GAMMA) cells (Euclidean, cell units) of
-the object's centre cell, with f(hw) = gaussian_radius((l, w), 0.7) in cells (the heatmap's radius before
-flooring) and GAMMA = FLOW_MIN_RADIUS = 2 cells (1.4 m at the paper's 0.69 m cells, about half a car
-length, so even small or thin objects cover a few cells). Where regions overlap, the object whose
+cell of its Gaussian region: cells within sigma_flow = max(f(hw), gamma) cells (Euclidean, cell units) of
+the object's centre cell, with f(hw) = gaussian_radius((l, w), cfg.targets.flow_min_overlap = 0.7) in cells and
+gamma = cfg.targets.flow_min_radius = 2 cells (1.4 m at the paper's 0.69 m cells, about half a car length, so
+even small or thin objects cover a few cells). Where regions overlap, the object whose
 normalised distance (distance / sigma_flow) is smaller wins. Background is zero.
 flow_foreground = 1 in the regions of matched objects. flow_valid = 1 everywhere except the regions of
 objects present in frame t but not in t-1 (their motion is unknown: neither zero nor a displacement is a
@@ -29,16 +35,25 @@ import math
 import numpy as np
 
 from rafd.config import RaFDConfig
-from rafd.geometry import relative_pose, transform_points
+from rafd.geometry import relative_pose, transform_points, wrap_angle
 
 log = logging.getLogger(__name__)
 
-MIN_OVERLAP = 0.7  # CenterNet gaussian_radius min_overlap
-MIN_RADIUS = 1  # heatmap Gaussian radius floor, cells
-FLOW_MIN_RADIUS = 2.0  # gamma of the flow region radius max(f(hw), gamma), cells
+
+def canonical_boxes(boxes: np.ndarray) -> np.ndarray:
+    """[N, 5] boxes -> the same boxes (same corner sets) with width <= length and yaw in [-pi/2, pi/2).
+
+    A box turned by 180 degrees, or with width and length swapped and turned by 90 degrees, covers the same
+    rectangle; this picks one representative (rafd.model.boxes.decode_boxes returns the same form)."""
+    boxes = np.asarray(boxes, dtype=np.float64).reshape(-1, 5).copy()
+    swap = boxes[:, 2] > boxes[:, 3]
+    boxes[swap, 2], boxes[swap, 3] = boxes[swap, 3].copy(), boxes[swap, 2].copy()
+    boxes[swap, 4] += np.pi / 2.0
+    boxes[:, 4] = wrap_angle(2.0 * boxes[:, 4]) / 2.0  # modulo pi, in [-pi/2, pi/2)
+    return boxes
 
 
-def gaussian_radius(height: float, width: float, min_overlap: float = MIN_OVERLAP) -> float:
+def gaussian_radius(height: float, width: float, min_overlap: float = 0.7) -> float:
     """CenterNet's radius (cells) such that a box shifted by it still overlaps the true box with IoU >= min_overlap
     (the three-case formula of CornerNet/CenterNet, as in their code)."""
     a1 = 1.0
@@ -79,9 +94,32 @@ def centre_cells(centres: np.ndarray, cfg: RaFDConfig) -> tuple[np.ndarray, np.n
     return rows, cols, inside
 
 
-def _object_radius(box: np.ndarray, cfg: RaFDConfig) -> float:
-    """f(hw): CenterNet radius of the box in cells (continuous)."""
-    return gaussian_radius(box[3] / cfg.cell_size, box[2] / cfg.cell_size)
+def _object_radius(box: np.ndarray, cfg: RaFDConfig, min_overlap: float) -> float:
+    """CenterNet radius of the box in cells (continuous)."""
+    return gaussian_radius(box[3] / cfg.cell_size, box[2] / cfg.cell_size, min_overlap)
+
+
+def heatmap_radius(box: np.ndarray, cfg: RaFDConfig) -> int:
+    """Heatmap Gaussian radius of a box in cells: max(min_radius, int(gaussian_radius(l, w, min_overlap)))."""
+    targets = cfg.targets
+    return max(targets.heatmap_min_radius, int(_object_radius(box, cfg, targets.heatmap_min_overlap)))
+
+
+def flow_radius(box: np.ndarray, cfg: RaFDConfig) -> float:
+    """Pseudo-GT flow region radius of a box in cells: max(f(hw), gamma)."""
+    targets = cfg.targets
+    return max(_object_radius(box, cfg, targets.flow_min_overlap), targets.flow_min_radius)
+
+
+def box_regression_targets(box: np.ndarray, cfg: RaFDConfig) -> tuple[tuple[float, float], tuple[float, float]]:
+    """One box [5] -> (log size (2), orientation (2)) as cfg.head.box_encoding regresses them."""
+    if cfg.head.box_encoding == "symmetric":
+        box = canonical_boxes(box)[0]
+        angle = 2.0 * box[4]
+    else:
+        angle = box[4]
+    log_size = (math.log(max(box[2], 1e-3)), math.log(max(box[3], 1e-3)))
+    return log_size, (math.sin(angle), math.cos(angle))
 
 
 def _flow_pair(
@@ -100,25 +138,29 @@ def _flow_pair(
     for k, object_id in enumerate(ids_prev.tolist()):
         previous.setdefault(object_id, k)  # a repeated id: the first one (the reader warns about repeats)
     rows, cols, inside = centre_cells(boxes_cur[:, :2], cfg)
-    grid_i, grid_j = np.meshgrid(np.arange(size), np.arange(size), indexing="ij")
     best = np.full((size, size), np.inf)  # normalised distance of the region owning each cell
     for k in np.flatnonzero(inside):
-        sigma = max(_object_radius(boxes_cur[k], cfg), FLOW_MIN_RADIUS)
-        distance = np.hypot(grid_i - rows[k], grid_j - cols[k]) / sigma
-        region = (distance <= 1.0) & (distance < best)
+        sigma = flow_radius(boxes_cur[k], cfg)
+        # only the cells of the disc's bounding window: [top:bottom, left:right]
+        reach = int(np.floor(sigma))
+        top, bottom = max(rows[k] - reach, 0), min(rows[k] + reach + 1, size)
+        left, right = max(cols[k] - reach, 0), min(cols[k] + reach + 1, size)
+        window = (slice(top, bottom), slice(left, right))
+        distance = np.hypot(np.arange(top, bottom)[:, None] - rows[k], np.arange(left, right)[None, :] - cols[k]) / sigma
+        region = (distance <= 1.0) & (distance < best[window])
         if not region.any():
             continue
-        best[region] = distance[region]
+        best[window][region] = distance[region]
         match = previous.get(int(ids_cur[k]))
         if match is None:  # new in frame t: unknown motion
-            flow[:, region] = 0.0
-            valid[0, region] = 0.0
-            foreground[0, region] = 0.0
+            flow[(slice(None), *window)][:, region] = 0.0
+            valid[0][window][region] = 0.0
+            foreground[0][window][region] = 0.0
             continue
         displacement = boxes_cur[k, :2] - transform_points(to_cur, boxes_prev[match, :2])
-        flow[0, region], flow[1, region] = displacement[0], displacement[1]
-        valid[0, region] = 1.0
-        foreground[0, region] = 1.0
+        flow[0][window][region], flow[1][window][region] = displacement[0], displacement[1]
+        valid[0][window][region] = 1.0
+        foreground[0][window][region] = 1.0
     return flow, valid, foreground
 
 
@@ -155,13 +197,11 @@ def build_targets(boxes: list[np.ndarray], ids: list[np.ndarray], poses: np.ndar
     box_targets = np.zeros((k_max, 5), np.float32)
     for slot, k in enumerate(kept):
         box, row, col = newest[k], int(rows[k]), int(cols[k])
-        radius = max(MIN_RADIUS, int(_object_radius(box, cfg)))
-        draw_gaussian(heatmap, row, col, radius)
+        draw_gaussian(heatmap, row, col, heatmap_radius(box, cfg))
         centre_index[slot] = row * size + col
         box_mask[slot] = 1.0
         offset[slot] = (box[0] / cfg.cell_size + size / 2.0 - (col + 0.5), (row + 0.5) - (size / 2.0 - box[1] / cfg.cell_size))
-        log_size[slot] = (math.log(max(box[2], 1e-3)), math.log(max(box[3], 1e-3)))
-        rotation[slot] = (math.sin(box[4]), math.cos(box[4]))
+        log_size[slot], rotation[slot] = box_regression_targets(box, cfg)
         box_targets[slot] = box
 
     # ---- pseudo-GT flow: every consecutive pair

@@ -44,9 +44,13 @@ class Variant:
     enhancement: bool = True
     flow_supervision: bool = True
     flow_guidance: bool = True
+    # Targets before issue 11: (sin yaw, cos yaw) and sizes as labelled, heatmap radius overlap 0.7 / floor 1.
+    legacy_targets: bool = False
 
     def train_flags(self) -> list[str]:
         flags = ["--frames", str(self.frames)]
+        if self.legacy_targets:
+            flags += ["--box-encoding", "as_labelled", "--heatmap-min-overlap", "0.7", "--heatmap-min-radius", "1"]
         if not self.enhancement:
             flags.append("--no-enhancement")
         if not self.flow_supervision:
@@ -62,6 +66,8 @@ VARIANTS = {
     v.name: v
     for v in (
         Variant("rafd4", "RaFD, 4 frames"),
+        Variant("rafd4_legacy_targets", "RaFD, 4 frames, targets as labelled (sin/cos yaw, radius 0.7 / 1)",
+                legacy_targets=True),
         Variant("rafd2", "RaFD, 2 frames", frames=2),
         Variant("single", "single frame (CenterFormer-style)", frames=1),
         Variant("no_enh", "4 frames, without feature enhancement", enhancement=False),
@@ -94,6 +100,7 @@ def build_parser() -> argparse.ArgumentParser:
     run.add_argument("--seed", type=int, default=0)
     run.add_argument("--config", choices=("tiny", "paper"), default="tiny")
     run.add_argument("--device", default="auto")
+    run.add_argument("--precision", choices=("fp32", "bf16", "fp16"), default="fp32", help="training autocast")
     run.add_argument("--max-windows", type=int, help="cap training windows (smoke tests)")
     run.add_argument("--max-steps-per-epoch", type=int, help="cap steps per epoch (smoke tests)")
     return parser
@@ -163,7 +170,7 @@ def run_benchmark(args: argparse.Namespace) -> int:
         train_argv = [
             "--data", str(args.data_root), "--split", manifest["train_split"], "--config", args.config,
             "--out", str(ckpt), "--epochs", str(args.epochs), "--batch-size", str(args.batch_size),
-            "--lr", str(args.lr), "--seed", str(args.seed), "--device", args.device,
+            "--lr", str(args.lr), "--seed", str(args.seed), "--device", args.device, "--precision", args.precision,
             "--input-size", str(manifest["input_size"]), "--val-every", "0", "--no-progress",
             *variant.train_flags(),
         ]

@@ -16,7 +16,12 @@ def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="rafd-eval", description=__doc__)
     parser.add_argument("checkpoint", type=Path, help="checkpoint written by rafd-train")
     parser.add_argument("--data", required=True, type=Path, help="data root holding sequence folders")
-    parser.add_argument("--split", required=True, help="meta.json 'set' to evaluate, e.g. test")
+    parser.add_argument("--split", required=True, action="append",
+                        help="meta.json 'set'(s) to evaluate, e.g. test (repeat or comma-separate)")
+    parser.add_argument("--cache", type=Path, help="scan cache written by rafd-prepare (default: decode the PNGs)")
+    parser.add_argument("--estimate-poses", action="store_true",
+                        help="run radar odometry for sequences without ego_poses.csv (slow; prefer rafd-odometry)")
+    parser.add_argument("--precision", choices=("fp32", "bf16", "fp16"), default="fp32", help="inference autocast")
     parser.add_argument("--json", type=Path, help="write the metrics here")
     parser.add_argument("--plots", type=Path, help="folder for the precision-recall plot and example frames")
     parser.add_argument("--examples", type=int, default=4, help="example frames drawn into --plots")
@@ -113,14 +118,20 @@ def main(argv: Sequence[str] | None = None) -> int:
     try:
         device = resolve_device(args.device)
         model, cfg, meta = load_checkpoint(args.checkpoint, map_location="cpu")
-        dataset = open_windows(args.data, args.split, cfg, args.max_windows, augment=False)
+        dataset = open_windows(args.data, args.split, cfg, args.max_windows, augment=False, cache=args.cache,
+                               estimate_poses=args.estimate_poses)
     except (DatasetError, ValueError, RuntimeError) as error:
         print(f"rafd-eval: error: {error}", file=sys.stderr)
         return 2
     if args.threads:
         torch.set_num_threads(args.threads)
     model = model.to(device).eval()
-    results = predict(model, dataset, cfg, device, batch_size=args.batch_size, progress=not args.no_progress)
+    try:
+        results = predict(model, dataset, cfg, device, batch_size=args.batch_size, progress=not args.no_progress,
+                          precision=args.precision)
+    except ValueError as error:
+        print(f"rafd-eval: error: {error}", file=sys.stderr)
+        return 2
     overall = summarise(results)
     per_sequence = summarise_by_sequence(results)
     report = {

@@ -1,11 +1,16 @@
-"""rafd-odometry: estimate ego poses from a sequence's radar scans and write ego_poses.csv.
+"""rafd-odometry: prepare ego poses by radar odometry for every sequence of a data root (ego_poses.csv).
 
-    rafd-odometry SEQ_DIR [--out CSV] [--force]      write SEQ_DIR/ego_poses.csv (or CSV)
-    rafd-odometry SEQ_DIR... --evaluate               compare with each SEQ_DIR/ego_poses.csv (e.g. the
-                                                      simulator's true poses): per-pair translation (m) and
-                                                      yaw (deg) errors and ms per pair; writes nothing
+    rafd-odometry ROOT [ROOT ...] [--split NAME ...] [--workers N] [--force]
+                                   write ego_poses.csv into every sequence folder at or under each ROOT that has
+                                   none (resumable: run it again after an interruption), in parallel processes
+    rafd-odometry SEQ_DIR --out CSV [--force]
+                                   write one sequence's poses elsewhere
+    rafd-odometry ROOT... --evaluate
+                                   compare estimates with each sequence's ego_poses.csv (e.g. the simulator's true
+                                   poses): per-pair translation (m) and yaw (deg) errors and ms per pair; writes nothing
 
-Exit status 0 on success, 2 on bad input (missing or malformed folder, existing output without --force).
+Training and evaluation never run odometry themselves (unless asked with --estimate-poses): prepare once here.
+Exit status 0 on success, 2 on bad input, 1 when a sequence failed (the others are still written).
 """
 from __future__ import annotations
 
@@ -13,10 +18,14 @@ import argparse
 import logging
 import sys
 import time
+from concurrent.futures import ProcessPoolExecutor, as_completed
 from pathlib import Path
 
 import numpy as np
+from tqdm import tqdm
 
+from rafd.cli.prepare import default_workers
+from rafd.data.dataset import select_sequences
 from rafd.data.poses import POSES_FILE, read_ego_poses, write_ego_poses
 from rafd.data.reader import list_frames, load_image
 from rafd.geometry import compose_poses, relative_pose, wrap_angle
@@ -24,16 +33,18 @@ from rafd.odometry import estimate_relative_pose
 
 
 def _parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(
-        prog="rafd-odometry",
-        description="Radar odometry: estimate the ego motion between consecutive scans of RADIATE-format sequences.",
-    )
-    parser.add_argument("seq_dirs", nargs="+", type=Path, metavar="SEQ_DIR", help="sequence folder(s) (Navtech_Cartesian/ + .txt)")
-    parser.add_argument("--out", type=Path, help=f"output CSV (default SEQ_DIR/{POSES_FILE}; one SEQ_DIR only)")
-    parser.add_argument("--force", action="store_true", help="overwrite an existing output file")
+    parser = argparse.ArgumentParser(prog="rafd-odometry", description=__doc__,
+                                     formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("roots", nargs="+", type=Path, metavar="ROOT",
+                        help="data root(s) or sequence folder(s) (Navtech_Cartesian/ + .txt)")
+    parser.add_argument("--split", action="append", help="only sequences of these meta.json splits")
+    parser.add_argument("--workers", type=int, default=default_workers(), help="parallel processes (default: CPUs)")
+    parser.add_argument("--out", type=Path, help=f"output CSV (default SEQ_DIR/{POSES_FILE}; one sequence only)")
+    parser.add_argument("--force", action="store_true", help="re-estimate sequences that already have poses")
     parser.add_argument(
         "--evaluate", action="store_true",
-        help=f"compare the estimates with each SEQ_DIR/{POSES_FILE} (true poses) and print error statistics; writes nothing",
+        help=f"compare the estimates with each sequence's {POSES_FILE} (true poses) and print error statistics; "
+             "writes nothing",
     )
     return parser
 
@@ -43,9 +54,11 @@ def _fail(message: str) -> int:
     return 2
 
 
-def _estimate(seq_dir: Path) -> tuple[list[int], list[str], np.ndarray, np.ndarray, list[float]]:
-    """-> (frame numbers, timestamps as written, world poses [N, 3], relative poses [N-1, 3], seconds per pair)."""
+def estimate(seq_dir: Path) -> tuple[list[int], list[str], np.ndarray, np.ndarray, list[float]]:
+    """-> (frame numbers, canonical timestamp texts, world poses [N, 3], relative poses [N-1, 3], seconds per pair)."""
     listing = list_frames(seq_dir)
+    if len(listing.numbers) < 2:
+        raise ValueError(f"{seq_dir} has {len(listing.numbers)} frame(s); odometry needs at least 2")
     relatives, seconds = [], []
     previous = load_image(listing.image_paths[0])
     for path in listing.image_paths[1:]:
@@ -58,6 +71,16 @@ def _estimate(seq_dir: Path) -> tuple[list[int], list[str], np.ndarray, np.ndarr
     for relative in relatives:
         poses.append(compose_poses(poses[-1], relative))
     return listing.numbers, listing.timestamp_texts, np.stack(poses), np.array(relatives).reshape(-1, 3), seconds
+
+
+def prepare_poses(seq_dir: Path, out: Path | None, force: bool) -> tuple[str, int, float]:
+    """Write one sequence's ego_poses.csv (atomically) -> (status "written" | "skipped", frames, ms per pair)."""
+    out = out or seq_dir / POSES_FILE
+    if out.exists() and not force:
+        return "skipped", 0, 0.0
+    numbers, stamps, poses, _, seconds = estimate(seq_dir)
+    write_ego_poses(out, numbers, stamps, poses)
+    return "written", len(numbers), 1e3 * float(np.mean(seconds))
 
 
 def _errors(seq_dir: Path, numbers: list[int], relatives: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -81,48 +104,70 @@ def _summary(label: str, translation: np.ndarray, yaw: np.ndarray, seconds: list
     )
 
 
-def main(argv: list[str] | None = None) -> int:
-    """Parse arguments, estimate, write or evaluate; 0 on success, 2 on bad input."""
-    args = _parser().parse_args(argv)
-    logging.basicConfig(level=logging.INFO, format="%(levelname)s %(name)s: %(message)s")
-    if args.out is not None and (len(args.seq_dirs) > 1 or args.evaluate):
-        return _fail("--out takes one SEQ_DIR and is not used with --evaluate")
-    for seq_dir in args.seq_dirs:
-        if not seq_dir.is_dir():
-            return _fail(f"SEQ_DIR {seq_dir} is not a directory")
-    if not args.evaluate:
-        if len(args.seq_dirs) > 1:
-            return _fail("give one SEQ_DIR to write poses (several only with --evaluate)")
-        out = args.out or args.seq_dirs[0] / POSES_FILE
-        if out.exists() and not args.force:
-            return _fail(f"{out} exists; pass --force to overwrite it")
-        if not out.parent.is_dir():
-            return _fail(f"folder of --out does not exist: {out.parent}")
+def _evaluate(folders: list[Path]) -> int:
     all_translation, all_yaw, all_seconds = [], [], []
-    for seq_dir in args.seq_dirs:
+    for seq_dir in folders:
         try:
-            numbers, stamps, poses, relatives, seconds = _estimate(seq_dir)
-            if len(numbers) < 2:
-                return _fail(f"{seq_dir} has {len(numbers)} frame(s); odometry needs at least 2")
-            if args.evaluate:
-                translation, yaw = _errors(seq_dir, numbers, relatives)
+            numbers, _, _, relatives, seconds = estimate(seq_dir)
+            translation, yaw = _errors(seq_dir, numbers, relatives)
         except (FileNotFoundError, ValueError) as error:
             return _fail(str(error))
-        if args.evaluate:
-            print(_summary(str(seq_dir), translation, yaw, seconds))
-            all_translation.append(translation)
-            all_yaw.append(yaw)
-            all_seconds += seconds
-            continue
-        try:
-            write_ego_poses(out, numbers, stamps, poses)
-        except OSError as error:
-            return _fail(f"cannot write {out}: {error}")
-        print(f"wrote {out}: {len(numbers)} poses, {1e3 * np.mean(seconds):.1f} ms per pair, "
-              f"path length {np.hypot(*relatives[:, :2].T).sum():.1f} m")
-    if args.evaluate and len(args.seq_dirs) > 1:
+        print(_summary(str(seq_dir), translation, yaw, seconds))
+        all_translation.append(translation)
+        all_yaw.append(yaw)
+        all_seconds += seconds
+    if len(folders) > 1:
         print(_summary("all", np.concatenate(all_translation), np.concatenate(all_yaw), all_seconds))
     return 0
+
+
+def main(argv: list[str] | None = None) -> int:
+    """Parse arguments, then prepare (in parallel) or evaluate; 0 on success, 2 on bad input, 1 on failures."""
+    args = _parser().parse_args(argv)
+    logging.basicConfig(level=logging.WARNING, format="%(levelname)s %(name)s: %(message)s")
+    if args.workers < 1:
+        return _fail("--workers must be >= 1")
+    folders: list[Path] = []
+    for root in args.roots:
+        if not root.is_dir():
+            return _fail(f"{root} is not a directory")
+        try:
+            chosen, _ = select_sequences(root, args.split)
+        except (FileNotFoundError, ValueError) as error:
+            return _fail(str(error))
+        folders += chosen
+    if not folders:
+        return _fail(f"no sequence of split {args.split} under {', '.join(map(str, args.roots))}")
+    if args.evaluate:
+        if args.out is not None:
+            return _fail("--out is not used with --evaluate")
+        return _evaluate(folders)
+    if args.out is not None:
+        if len(folders) != 1:
+            return _fail(f"--out takes one sequence, found {len(folders)}")
+        if not args.out.parent.is_dir():
+            return _fail(f"folder of --out does not exist: {args.out.parent}")
+    start = time.perf_counter()
+    counts, frames, failures = {"written": 0, "skipped": 0}, 0, []
+    with ProcessPoolExecutor(max_workers=min(args.workers, len(folders))) as pool:
+        jobs = {pool.submit(prepare_poses, folder, args.out, args.force): folder for folder in folders}
+        for job in tqdm(as_completed(jobs), total=len(jobs), desc="odometry", unit="seq", dynamic_ncols=True,
+                        disable=len(jobs) == 1):
+            try:
+                status, count, ms_per_pair = job.result()
+            except (OSError, ValueError) as error:
+                failures.append(f"{jobs[job]}: {error}")
+                continue
+            counts[status] += 1
+            frames += count
+            if status == "written" and len(jobs) == 1:
+                print(f"wrote {args.out or jobs[job] / POSES_FILE}: {count} poses, {ms_per_pair:.1f} ms per pair")
+    seconds = time.perf_counter() - start
+    print(f"{counts['written']} sequences given poses ({frames} frames in {seconds:.1f} s), "
+          f"{counts['skipped']} already had {POSES_FILE} (--force re-estimates them)")
+    for failure in failures:
+        print(f"rafd-odometry: error: {failure}", file=sys.stderr)
+    return 1 if failures else 0
 
 
 if __name__ == "__main__":

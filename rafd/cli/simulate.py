@@ -28,6 +28,11 @@ def _parser() -> argparse.ArgumentParser:
     parser.add_argument("--clutter", type=float, default=1.0, help="clutter strength (1 = matched to real scans)")
     parser.add_argument("--ghosts", type=float, default=1.0, help="multipath ghost strength (1 = default)")
     parser.add_argument("--noise", type=float, default=1.0, help="noise floor power (1 = matched to real scans)")
+    parser.add_argument("--exact-labels", action="store_true",
+                        help="label every box with width across and yaw along its travel (default: RADIATE's "
+                             "annotators' 180-degree and width/length ambiguity)")
+    parser.add_argument("--no-poses", action="store_true",
+                        help="write no ego_poses.csv, like a real RADIATE sequence (prepare with rafd-odometry)")
     parser.add_argument("--preview", type=Path, help="write a simulated-vs-real side-by-side PNG here instead")
     parser.add_argument("--sample", type=Path, help="real RADIATE sequence for --preview (default $RAFD_RADIATE_SAMPLE)")
     return parser
@@ -76,7 +81,8 @@ def main(argv: list[str] | None = None) -> int:
         return _fail(f"OUT_DIR {args.out_dir} is not writable")
     start = time.perf_counter()
     try:
-        paths = simulate_dataset(args.out_dir, args.sequences, args.frames, args.seed, args.split, args.size, difficulty)
+        paths = simulate_dataset(args.out_dir, args.sequences, args.frames, args.seed, args.split, args.size, difficulty,
+                                 ambiguous=not args.exact_labels, poses=not args.no_poses)
     except OSError as error:
         return _fail(str(error))
     for path in paths:

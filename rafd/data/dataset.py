@@ -4,20 +4,26 @@ Protocol (TempoRadar / SIRA / RaFD on RADIATE): centre crop to cfg.input_size ar
 whose centre falls outside the crop dropped, pedestrian and group_of_pedestrians dropped, every other
 class merged into `vehicle` (the window keeps the original class names in "classes").
 
-Sequences: every folder holding Navtech_Cartesian/ under `root` (or `root` itself), filtered by meta.json
-"set" == split (exact match; a list of splits is also accepted; None = all). Each sequence's metadata
-(frames, timestamps, boxes, ids, poses) is read once at construction and kept in memory; images are read
-lazily per window (with a small per-process cache of decoded scans: consecutive windows share T-1 frames).
+Sequences: every folder holding Navtech_Cartesian/ under `root` (or `root` itself) whose meta.json "set" is one of
+`split` (a name or a list of names; None = all). meta.json is read first: sequences of other splits are never read
+further. Each selected sequence's metadata (frames, timestamps, boxes, ids, poses) is read once at construction.
 
-Augmentation (augment=True or an AugmentConfig): one rafd.augment.Augmentation per window, drawn from a
-generator seeded by (seed, DataLoader worker seed, index, draw count), applied to the full scans before the
-crop and to boxes and poses; the crop protocol is applied to the augmented boxes.
+Ego poses come from each sequence's ego_poses.csv, prepared once by `rafd-odometry ROOT`; a sequence without one is
+an error naming that command, unless estimate_poses=True asks for radar odometry here (slow: ~150 ms per frame).
+
+Scans: from a prepared cache (`rafd-prepare ROOT CACHE`, rafd.data.cache: centre crops in one memory-mapped array
+per sequence, no PNG decode per window) when `cache` is given, else decoded from the PNGs per window (slow).
+
+Augmentation (augment=True or an AugmentConfig): one rafd.augment.Augmentation per window, applied to the scans
+before the crop and to boxes and poses; the crop protocol is applied to the augmented boxes. It is drawn from a
+generator seeded by (seed, epoch, window index): ask for dataset[(epoch, index)] (rafd.train.distributed's
+EpochSampler yields those keys) and the result depends on nothing else -- not on DataLoader workers, their number,
+or where a run was resumed. dataset[index] draws as epoch 0.
 """
 from __future__ import annotations
 
 import logging
 import os
-from collections import OrderedDict
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Sequence
@@ -26,7 +32,9 @@ import numpy as np
 
 from rafd.augment import AugmentConfig, Augmentation
 from rafd.config import RaFDConfig
-from rafd.data.reader import IMAGE_DIR, load_image, read_sequence
+from rafd.data.cache import CROPS_FILE, cache_folder, read_cached, required_crop
+from rafd.data.poses import POSES_FILE
+from rafd.data.reader import IMAGE_DIR, META_FILE, load_image, read_meta, read_sequence
 from rafd.geometry import metres_to_pixels
 
 try:  # a torch Dataset when torch is installed (DataLoader works with any __getitem__/__len__ object)
@@ -38,7 +46,34 @@ log = logging.getLogger(__name__)
 
 DROPPED_CLASSES = frozenset({"pedestrian", "group_of_pedestrians"})
 MERGED_CLASS = "vehicle"
-IMAGE_CACHE_SIZE = 8  # decoded full scans kept per process
+
+
+class MissingPosesError(ValueError):
+    """Selected sequences have no ego_poses.csv and odometry was not asked for."""
+
+
+def split_names(split: str | Sequence[str] | None) -> frozenset[str] | None:
+    """'a', 'a,b' or ['a', 'b'] -> {'a', 'b'}; None -> None (every split)."""
+    if split is None:
+        return None
+    names = split.split(",") if isinstance(split, str) else [n for part in split for n in str(part).split(",")]
+    names = frozenset(n.strip() for n in names if n.strip())
+    if not names:
+        raise ValueError("no split name given")
+    return names
+
+
+def select_sequences(root: str | Path, split: str | Sequence[str] | None) -> tuple[list[Path], dict[str | None, int]]:
+    """Sequence folders under `root` whose meta.json "set" is in `split` (only meta.json is read) ->
+    (folders, {split: count} of everything found)."""
+    wanted = split_names(split)
+    chosen, seen = [], {}
+    for folder in find_sequences(root):
+        name = read_meta(folder / META_FILE).get("set")
+        seen[name] = seen.get(name, 0) + 1
+        if wanted is None or name in wanted:
+            chosen.append(folder)
+    return chosen, seen
 
 
 def find_sequences(root: str | Path) -> list[Path]:
@@ -73,6 +108,7 @@ class _SequenceMeta:
     boxes: list[np.ndarray]  # N x [M, 5] float64, all annotated objects (protocol applied per window)
     ids: list[np.ndarray]  # N x [M] int64
     classes: list[list[str]]  # N x M RADIATE class names
+    cache: Path | None = None  # CACHE/<sequence> with crops.npy, when prepared
 
 
 def _protocol(boxes: np.ndarray, ids: np.ndarray, classes: list[str], crop: int, resolution: float):
@@ -86,8 +122,8 @@ def _protocol(boxes: np.ndarray, ids: np.ndarray, classes: list[str], crop: int,
 
 
 class RadarWindowDataset(_Base):
-    """Window k -> dict(frames uint8 [T, S, S], poses float64 [T, 3], boxes T x [M_t, 5], ids T x [M_t],
-    classes T x [M_t] original names, sequence, frame (newest frame number), timestamps [T],
+    """Window k (or key (epoch, k)) -> dict(frames uint8 [T, S, S], poses float64 [T, 3], boxes T x [M_t, 5],
+    ids T x [M_t], classes T x [M_t] original names, sequence, frame (newest frame number), timestamps [T],
     augmentation {flip, angle})."""
 
     def __init__(
@@ -98,6 +134,8 @@ class RadarWindowDataset(_Base):
         stride: int = 1,
         augment: bool | AugmentConfig = False,
         seed: int = 0,
+        cache: str | Path | None = None,
+        estimate_poses: bool = False,
     ) -> None:
         if cfg is None:
             raise ValueError("RadarWindowDataset needs cfg (input_size, num_frames, resolution)")
@@ -107,17 +145,19 @@ class RadarWindowDataset(_Base):
         self.augment_config: AugmentConfig | None = (
             augment if isinstance(augment, AugmentConfig) else (AugmentConfig() if augment else None)
         )
-        splits = None if split is None else ({split} if isinstance(split, str) else set(split))
-        self.sequences: list[_SequenceMeta] = []
-        seen_splits: dict[str | None, int] = {}
-        for folder in find_sequences(root):
-            sequence = read_sequence(folder)
-            seen_splits[sequence.split] = seen_splits.get(sequence.split, 0) + 1
-            if splits is not None and sequence.split not in splits:
-                continue
-            self.sequences.append(self._meta(sequence))
-        if splits is not None and not self.sequences:
-            log.warning("no sequence of split %s under %s (splits found: %s)", sorted(splits), root, seen_splits)
+        self.cache_root = None if cache is None else Path(cache)
+        folders, seen_splits = select_sequences(root, split)
+        if split is not None and not folders:
+            log.warning("no sequence of split %s under %s (splits found: %s)", sorted(split_names(split)), root, seen_splits)
+        sequences = [read_sequence(folder, estimate_poses=estimate_poses) for folder in folders]
+        missing = [s.path for s in sequences if s.poses is None]
+        if missing:
+            names = ", ".join(str(p) for p in missing[:3]) + (" ..." if len(missing) > 3 else "")
+            raise MissingPosesError(
+                f"{len(missing)} of {len(sequences)} sequences have no {POSES_FILE} ({names}): prepare them once with "
+                f"`rafd-odometry {root}` (radar odometry, in parallel, resumable), or ask for odometry now "
+                "with --estimate-poses (slow)")
+        self.sequences: list[_SequenceMeta] = [self._meta(sequence, Path(root)) for sequence in sequences]
         self.windows: list[tuple[int, int]] = []  # (sequence index, first frame position)
         span = cfg.num_frames
         skipped = 0
@@ -130,16 +170,14 @@ class RadarWindowDataset(_Base):
                 self.windows.append((s, start))
         if skipped:
             log.warning("skipped %d windows spanning gaps in the frame numbers", skipped)
-        self._cache: OrderedDict[Path, np.ndarray] = OrderedDict()
-        self._draws = 0
-        log.info("%d windows of %d frames from %d sequences (split %s) under %s",
-                 len(self.windows), span, len(self.sequences), split, root)
+        self._crops: dict[int, np.ndarray] = {}  # sequence index -> memory-mapped crops (opened per process)
+        log.info("%d windows of %d frames from %d sequences (split %s) under %s%s",
+                 len(self.windows), span, len(self.sequences), split, root,
+                 "" if self.cache_root is None else f", scans from the cache {self.cache_root}")
 
-    def _meta(self, sequence) -> _SequenceMeta:
+    def _meta(self, sequence, root: Path) -> _SequenceMeta:
         if not sequence.annotated:
             raise FileNotFoundError(f"{sequence.path}: annotations/annotations.json not found (a training/evaluation dataset needs them)")
-        if sequence.poses is None:  # read_sequence estimates them; None only if that was switched off
-            raise ValueError(f"{sequence.path}: no ego poses")
         if abs(sequence.resolution - self.cfg.resolution) > 1e-6 * self.cfg.resolution:
             raise ValueError(f"{sequence.path}: resolution {sequence.resolution} m/px, the config expects {self.cfg.resolution}")
         if sequence.image_size < self.cfg.input_size or (sequence.image_size - self.cfg.input_size) % 2:
@@ -147,51 +185,57 @@ class RadarWindowDataset(_Base):
                 f"{sequence.path}: {sequence.image_size} px scans cannot be centre-cropped to {self.cfg.input_size} px "
                 "around the radar (need a larger scan with an even difference)"
             )
+        numbers = np.array([f.number for f in sequence.frames], np.int64)
+        cache = None
+        if self.cache_root is not None:
+            rotates = self.augment_config is not None and self.augment_config.max_rotation_deg > 0
+            needed = min(required_crop(self.cfg.input_size, rotates), sequence.image_size)
+            cache = read_cached(cache_folder(self.cache_root, root, sequence.path), numbers, sequence.image_size,
+                                needed).folder
         return _SequenceMeta(
             name=sequence.name,
             image_paths=[f.image_path for f in sequence.frames],
-            numbers=np.array([f.number for f in sequence.frames], np.int64),
+            numbers=numbers,
             timestamps=np.array([f.timestamp for f in sequence.frames], np.float64),
             poses=np.asarray(sequence.poses, np.float64),
             image_size=sequence.image_size,
             boxes=[np.array([o.box for o in f.objects], np.float64).reshape(-1, 5) for f in sequence.frames],
             ids=[np.array([o.id for o in f.objects], np.int64) for f in sequence.frames],
             classes=[[o.class_name for o in f.objects] for f in sequence.frames],
+            cache=cache,
         )
 
     def __len__(self) -> int:
         return len(self.windows)
 
-    def _image(self, path: Path) -> np.ndarray:
-        image = self._cache.get(path)
-        if image is None:
-            image = load_image(path)
-            self._cache[path] = image
-            while len(self._cache) > IMAGE_CACHE_SIZE:
-                self._cache.popitem(last=False)
-        else:
-            self._cache.move_to_end(path)
-        return image
+    def __getstate__(self) -> dict[str, Any]:
+        state = dict(self.__dict__)
+        state["_crops"] = {}  # memory maps are reopened in each worker process
+        return state
 
-    def _draw(self, index: int) -> Augmentation:
-        """A fresh augmentation: seeded by (seed, worker seed, index, draw count) -> reproducible per process,
-        different across DataLoader workers and epochs (torch re-seeds workers every epoch)."""
-        try:
-            from torch.utils.data import get_worker_info
+    def _scan(self, sequence: int, position: int) -> np.ndarray:
+        """uint8 [N, N] scan (or its prepared centre crop) of one frame, radar at the centre."""
+        meta = self.sequences[sequence]
+        if meta.cache is None:
+            return load_image(meta.image_paths[position])
+        crops = self._crops.get(sequence)
+        if crops is None:
+            crops = self._crops[sequence] = np.load(meta.cache / CROPS_FILE, mmap_mode="r")
+        return crops[position]
 
-            info = get_worker_info()
-        except ImportError:  # pragma: no cover
-            info = None
-        stream = int(info.seed) % (2**63) if info is not None else 0
-        rng = np.random.default_rng([self.seed, stream, index, self._draws])
-        self._draws += 1
+    def augmentation(self, index: int, epoch: int = 0) -> Augmentation:
+        """The augmentation of window `index` in `epoch`: a function of (seed, epoch, index) only."""
+        if self.augment_config is None:
+            return Augmentation()
+        rng = np.random.default_rng([self.seed, int(epoch), int(index)])
         return Augmentation.sample(rng, self.augment_config)
 
-    def __getitem__(self, index: int) -> dict[str, Any]:
+    def __getitem__(self, key: int | tuple[int, int]) -> dict[str, Any]:
+        epoch, index = (key if isinstance(key, tuple) else (0, key))
         if not -len(self) <= index < len(self):
             raise IndexError(f"window {index} out of range ({len(self)} windows)")
-        augmentation = self._draw(index % len(self)) if self.augment_config is not None else Augmentation()
-        return self.window(index, augmentation)
+        index %= len(self)
+        return self.window(index, self.augmentation(index, epoch))
 
     def window(self, index: int, augmentation: Augmentation = Augmentation()) -> dict[str, Any]:
         """Window `index` with a given augmentation (identity by default)."""
@@ -199,7 +243,7 @@ class RadarWindowDataset(_Base):
         meta = self.sequences[s]
         span = range(start, start + self.cfg.num_frames)
         size, resolution = self.cfg.input_size, self.cfg.resolution
-        frames = np.stack([augmentation.image(self._image(meta.image_paths[k]), size) for k in span])
+        frames = np.stack([augmentation.image(self._scan(s, k), size) for k in span])
         boxes, ids, classes = [], [], []
         for k in span:
             b, i, c = _protocol(augmentation.boxes(meta.boxes[k]), meta.ids[k], meta.classes[k], size, resolution)

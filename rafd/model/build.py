@@ -81,6 +81,7 @@ def build_model(cfg: RaFDConfig) -> RaFD:
         centres.clone(),
         grid.clone(),
         cfg.cell_size,
+        head_cfg.box_encoding,
     )
     return RaFD(encoder, flow, propagation, head, cfg.num_frames)
 

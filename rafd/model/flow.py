@@ -16,15 +16,22 @@ from rafd.model.attention import AttentionLayer
 
 
 def global_correlation(current: Tensor, previous: Tensor) -> Tensor:
-    """Cost volume C = E_cur E_prev^T / sqrt(C): [B, N, C] x [B, N, C] -> [B, N, N] (rows: current cells)."""
-    return (current / math.sqrt(current.shape[-1])) @ previous.transpose(1, 2)  # [B, N, N] (scale the cheap side)
+    """Cost volume C = E_cur E_prev^T / sqrt(C): [B, N, C] x [B, N, C] -> [B, N, N] (rows: current cells).
+
+    Always float32, also under bf16/fp16 autocast: the softmax over N cells turns logit errors of a reduced
+    precision (~0.4% for bf16) into match-probability errors, i.e. flow errors of a good fraction of a cell."""
+    with torch.autocast(current.device.type, enabled=False):
+        current, previous = current.float(), previous.float()
+        return (current / math.sqrt(current.shape[-1])) @ previous.transpose(1, 2)  # [B, N, N] (scale the cheap side)
 
 
 def flow_from_correlation(correlation: Tensor, grid: Tensor) -> Tensor:
-    """GMFlow's global_correlation_softmax: V = G - softmax(C) G. [B, N, N], grid [N, 2] -> [B, N, 2]."""
-    probability = correlation.softmax(dim=-1)  # [B, N, N], a match distribution over previous cells
-    matched = probability @ grid  # [B, N, 2] expected previous position (aligned grid = current coords)
-    return grid[None] - matched  # [B, N, 2]
+    """GMFlow's global_correlation_softmax: V = G - softmax(C) G. [B, N, N], grid [N, 2] -> [B, N, 2] (float32)."""
+    with torch.autocast(correlation.device.type, enabled=False):
+        probability = correlation.float().softmax(dim=-1)  # [B, N, N], a match distribution over previous cells
+        grid = grid.float()
+        matched = probability @ grid  # [B, N, 2] expected previous position (aligned grid = current coords)
+        return grid[None] - matched  # [B, N, 2]
 
 
 def build_flow_encoder(channels: int) -> nn.Sequential:

@@ -74,6 +74,7 @@ class DetectionHead(nn.Module):
         centres: Tensor,
         grid: Tensor,
         cell_size: float,
+        box_encoding: str,
     ) -> None:
         super().__init__()
         self.heatmap = heatmap
@@ -82,6 +83,7 @@ class DetectionHead(nn.Module):
         self.regression = regression
         self.num_queries = num_queries
         self.cell_size = cell_size
+        self.box_encoding = box_encoding  # rafd.config.HeadConfig.box_encoding
         self.register_buffer("centres", centres, persistent=False)  # [Hf*Wf, 2] metres
         self.register_buffer("grid", grid, persistent=False)  # [Hf*Wf, 2] normalised (x, y down)
 
@@ -104,7 +106,8 @@ class DetectionHead(nn.Module):
             query_indices=indices,
             scores=torch.sigmoid(torch.gather(logits, 1, indices)),  # [B, K]
             boxes=decode_boxes(
-                centres, outputs["pred_offset"], outputs["pred_log_size"], outputs["pred_rotation"], self.cell_size
+                centres, outputs["pred_offset"], outputs["pred_log_size"], outputs["pred_rotation"], self.cell_size,
+                self.box_encoding,
             ),
         )
         return outputs

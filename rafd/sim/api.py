@@ -23,11 +23,15 @@ def simulate_sequence(
     split: str = "train_good_weather",
     size: int = RADIATE_SCAN_SIZE,
     difficulty: Difficulty = Difficulty(),
+    ambiguous: bool = True,
+    poses: bool = True,
 ) -> Path:
-    """Simulate and write one sequence into the folder `out_dir` (its name becomes meta.json "name")."""
+    """Simulate and write one sequence into the folder `out_dir` (its name becomes meta.json "name");
+    `ambiguous` labels as RADIATE's annotators do (rafd.sim.sequence.ambiguous_labels); poses=False writes no
+    ego_poses.csv (like a real RADIATE sequence before `rafd-odometry`)."""
     out_dir = Path(out_dir)
-    sequence = run_simulation(seed, num_frames, split, size, difficulty, name=out_dir.name)
-    return write_sequence(sequence, out_dir)
+    sequence = run_simulation(seed, num_frames, split, size, difficulty, name=out_dir.name, ambiguous=ambiguous)
+    return write_sequence(sequence, out_dir, poses=poses)
 
 
 def simulate_dataset(
@@ -38,12 +42,15 @@ def simulate_dataset(
     split: str = "train_good_weather",
     size: int = RADIATE_SCAN_SIZE,
     difficulty: Difficulty = Difficulty(),
+    ambiguous: bool = True,
+    poses: bool = True,
 ) -> list[Path]:
     """Write `sequences` folders root/sim_<seed>_<k>, each simulated from sequence_seed(seed, k)."""
     if sequences < 1:
         raise ValueError(f"sequences must be >= 1, got {sequences}")
     root = Path(root)
     return [
-        simulate_sequence(root / f"sim_{seed}_{k}", sequence_seed(seed, k), frames, split, size, difficulty)
+        simulate_sequence(root / f"sim_{seed}_{k}", sequence_seed(seed, k), frames, split, size, difficulty, ambiguous,
+                          poses)
         for k in range(sequences)
     ]

@@ -17,6 +17,11 @@ logger = logging.getLogger(__name__)
 
 SCAN_PERIOD = 0.2375  # seconds; RADIATE's Navtech delivers ~4.2 scans per second
 MIN_VISIBLE_POINTS = 3  # unshadowed outline points needed for an object to be annotated
+# RADIATE's annotators: a box's rotation is only defined modulo 180 degrees, and within one track the labels flip
+# yaw by 180 degrees and exchange width and length (turning by 90 degrees) from frame to frame. Each simulated
+# annotation does each independently with these probabilities (0.5 = no preferred labelling at all).
+LABEL_FLIP_PROBABILITY = 0.5
+LABEL_SWAP_PROBABILITY = 0.5
 
 
 @dataclass(frozen=True)
@@ -72,10 +77,26 @@ def _transient_returns(
     return np.mod(az_all[keep], azimuths), rg_all[keep], np.concatenate(pw)[keep]
 
 
+def ambiguous_labels(boxes: np.ndarray, rng: np.random.Generator) -> np.ndarray:
+    """[..., 5] boxes -> the same rectangles labelled as RADIATE's annotators do: yaw + 180 degrees and/or width and
+    length exchanged (yaw + 90 degrees), each independently per box (LABEL_*_PROBABILITY)."""
+    boxes = np.array(boxes, dtype=np.float64)
+    flip = rng.random(boxes.shape[:-1]) < LABEL_FLIP_PROBABILITY
+    swap = rng.random(boxes.shape[:-1]) < LABEL_SWAP_PROBABILITY
+    boxes[..., 4] += np.where(flip, np.pi, 0.0) + np.where(swap, np.pi / 2.0, 0.0)
+    width = boxes[..., 2].copy()
+    boxes[..., 2] = np.where(swap, boxes[..., 3], width)
+    boxes[..., 3] = np.where(swap, width, boxes[..., 3])
+    boxes[..., 4] = (boxes[..., 4] + np.pi) % (2.0 * np.pi) - np.pi
+    return boxes
+
+
 def run_simulation(
-    seed: int, num_frames: int, split: str, size: int, difficulty: Difficulty, name: str, resolution: float = RADIATE_RESOLUTION
+    seed: int, num_frames: int, split: str, size: int, difficulty: Difficulty, name: str,
+    resolution: float = RADIATE_RESOLUTION, ambiguous: bool = True,
 ) -> SimulatedSequence:
-    """Simulate `num_frames` scans of size x size pixels deterministically from `seed`."""
+    """Simulate `num_frames` scans of size x size pixels deterministically from `seed`. `ambiguous` labels boxes as
+    RADIATE's annotators do (ambiguous_labels); False keeps width across and yaw along each road user's travel."""
     if num_frames < 1:
         raise ValueError(f"num_frames must be >= 1, got {num_frames}")
     if size < 16 or size % 2:
@@ -123,6 +144,8 @@ def run_simulation(
             & (lit_counts >= MIN_VISIBLE_POINTS)
         )
         truth[in_view, t] = ego_boxes[in_view]
+    if ambiguous:  # its own generator: the scans do not depend on the labelling
+        truth = ambiguous_labels(truth, np.random.default_rng([seed, 1]))
     objects = [
         SimulatedObject(agent.id, agent.class_name, truth[k])
         for k, agent in enumerate(agents)

@@ -39,8 +39,9 @@ def _write_poses(path: Path, sequence: SimulatedSequence) -> None:
     write_ego_poses(path, frames, [format_timestamp(stamp) for stamp in sequence.timestamps_ns], sequence.poses)
 
 
-def write_sequence(sequence: SimulatedSequence, out_dir: Path) -> Path:
-    """Create `out_dir` (a sequence folder) with Navtech_Cartesian/, its .txt, annotations, meta.json, ego_poses.csv."""
+def write_sequence(sequence: SimulatedSequence, out_dir: Path, poses: bool = True) -> Path:
+    """Create `out_dir` (a sequence folder) with Navtech_Cartesian/, its .txt, annotations, meta.json and (unless
+    `poses` is False, like a real RADIATE sequence before `rafd-odometry`) ego_poses.csv with the true poses."""
     out_dir = Path(out_dir)
     image_dir = out_dir / "Navtech_Cartesian"
     image_dir.mkdir(parents=True, exist_ok=True)
@@ -63,5 +64,6 @@ def write_sequence(sequence: SimulatedSequence, out_dir: Path) -> Path:
         "image_size": int(sequence.images[0].shape[0]),
     }
     (out_dir / "meta.json").write_text(json.dumps(meta))
-    _write_poses(out_dir / "ego_poses.csv", sequence)
+    if poses:
+        _write_poses(out_dir / "ego_poses.csv", sequence)
     return out_dir

@@ -25,6 +25,17 @@ class Batch:
     def __len__(self) -> int:
         return int(self.frames.shape[0])
 
+    def pin_memory(self) -> "Batch":
+        """Page-locked copies (DataLoader(pin_memory=True) calls this), so .to(cuda, non_blocking=True) overlaps."""
+        return Batch(
+            frames=self.frames.pin_memory(),
+            poses=self.poses.pin_memory(),
+            targets={k: v.pin_memory() for k, v in self.targets.items()},
+            boxes=self.boxes,
+            sequences=self.sequences,
+            frame_numbers=self.frame_numbers,
+        )
+
     def to(self, device: torch.device) -> "Batch":
         return Batch(
             frames=self.frames.to(device, non_blocking=True),

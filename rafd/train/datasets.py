@@ -2,10 +2,12 @@
 from __future__ import annotations
 
 import logging
+from collections.abc import Sequence
 from pathlib import Path
+from typing import Any
 
 import numpy as np
-from torch.utils.data import Dataset, Subset
+from torch.utils.data import Dataset
 
 from rafd.config import RaFDConfig
 
@@ -13,14 +15,41 @@ log = logging.getLogger(__name__)
 
 
 class DatasetError(ValueError):
-    """A data root or split that cannot be used; the message names the path and split."""
+    """A data root or split that cannot be used; the message names the path, the split and the fix."""
+
+
+class WindowSubset(Dataset):
+    """The windows `indices` of a window dataset; passes (epoch, index) keys through (torch's Subset does not)."""
+
+    def __init__(self, dataset: Dataset, indices: Sequence[int]) -> None:
+        self.dataset = dataset
+        self.indices = list(indices)
+
+    def __len__(self) -> int:
+        return len(self.indices)
+
+    def __getitem__(self, key: int | tuple[int, int]) -> Any:
+        if isinstance(key, tuple):
+            epoch, index = key
+            return self.dataset[(epoch, self.indices[index])]
+        return self.dataset[self.indices[key]]
 
 
 def open_windows(
-    root: str | Path, split: str | None, cfg: RaFDConfig, max_windows: int | None = None, augment: bool = False
+    root: str | Path,
+    split: str | Sequence[str] | None,
+    cfg: RaFDConfig,
+    max_windows: int | None = None,
+    augment: bool = False,
+    cache: str | Path | None = None,
+    estimate_poses: bool = False,
+    seed: int = 0,
 ) -> Dataset:
-    """Windows of cfg.num_frames frames at cfg.input_size from the sequences of `split` under `root`."""
+    """Windows of cfg.num_frames frames at cfg.input_size from the sequences of `split` (one name, a comma-separated
+    list or a list) under `root`, scans from a prepared `cache` when given."""
     from rafd.data import RadarWindowDataset
+    from rafd.data.cache import CacheError
+    from rafd.data.dataset import MissingPosesError
 
     root = Path(root)
     if not root.exists():
@@ -28,7 +57,10 @@ def open_windows(
     if not root.is_dir():
         raise DatasetError(f"data root {root} is not a directory")
     try:
-        dataset = RadarWindowDataset(root, split=split, cfg=cfg, augment=augment)
+        dataset = RadarWindowDataset(root, split=split, cfg=cfg, augment=augment, cache=cache,
+                                     estimate_poses=estimate_poses, seed=seed)
+    except (MissingPosesError, CacheError) as error:
+        raise DatasetError(str(error)) from error
     except (FileNotFoundError, ValueError) as error:
         raise DatasetError(f"cannot open split {split!r} under {root}: {error}") from error
     if len(dataset) == 0:
@@ -37,5 +69,5 @@ def open_windows(
         # Evenly spaced, not the first N: keeps every sequence represented in a capped run.
         indices = np.linspace(0, len(dataset) - 1, max_windows).round().astype(int)
         log.info("using %d of %d windows", max_windows, len(dataset))
-        return Subset(dataset, sorted(set(indices.tolist())))
+        return WindowSubset(dataset, sorted(set(indices.tolist())))
     return dataset

@@ -8,6 +8,10 @@ from torch import Tensor, nn
 from torch.nn import functional as F
 
 
+# The terms RaFDLoss returns, in a fixed order (the trainer stacks them into one tensor).
+LOSS_TERMS = ("total", "det", "heatmap", "offset", "size", "rotation", "flow")
+
+
 @dataclass(frozen=True)
 class LossConfig:
     # Weights of the detection terms (CenterNet/CenterFormer use 1 for the heatmap and the offsets).

@@ -53,9 +53,14 @@ def predict(
     keep_flow: bool = False,
     progress: bool = True,
     num_workers: int = 0,
+    precision: str = "fp32",
 ) -> list[FrameResult]:
-    """Every window of `dataset` -> one FrameResult; all K queries kept by default (AP wants the tail)."""
+    """Every window of `dataset` -> one FrameResult; all K queries kept by default (AP wants the tail).
+    `precision` fp32 | bf16 | fp16 runs the forward under that autocast (rafd.train.precision)."""
+    from rafd.train.precision import autocast, check_precision
+
     device = torch.device(device)
+    check_precision(precision, device)
     was_training = model.training
     model.eval()
     loader = DataLoader(
@@ -65,7 +70,8 @@ def predict(
     try:
         for batch in tqdm(loader, desc="predict", disable=not progress, dynamic_ncols=True):
             batch = batch.to(device)
-            outputs = model(batch.frames, batch.poses)
+            with autocast(device, precision):
+                outputs = model(batch.frames, batch.poses)
             boxes = outputs["boxes"].float().cpu().numpy()  # [B, K, 5]
             scores = outputs["scores"].float().cpu().numpy()  # [B, K]
             flow = outputs.get("flow")

@@ -7,11 +7,20 @@ import math
 import numpy as np
 import pytest
 
-from rafd.config import HeadConfig, RaFDConfig
-from rafd.geometry import feature_cell_centres
-from rafd.targets import FLOW_MIN_RADIUS, build_targets, gaussian_radius
+import dataclasses
+
+import torch
+
+from rafd.config import HeadConfig, RaFDConfig, TargetConfig
+from rafd.geometry import box_corners, feature_cell_centres
+from rafd.model.boxes import decode_boxes
+from rafd.targets import build_targets, canonical_boxes, gaussian_radius
 
 CFG = RaFDConfig.tiny(input_size=128)  # 32 x 32 cells of 0.694 m, K = 32
+FLOW_MIN_RADIUS = CFG.targets.flow_min_radius
+# The targets before box_encoding / TargetConfig existed: (sin yaw, cos yaw), sizes as labelled, radius 0.7 / 1.
+LEGACY = CFG.replace(head=dataclasses.replace(CFG.head, box_encoding="as_labelled"),
+                     targets=TargetConfig(heatmap_min_overlap=0.7, heatmap_min_radius=1))
 
 
 def _centernet_radius(h: float, w: float, o: float = 0.7) -> float:
@@ -32,9 +41,9 @@ def test_gaussian_radius_matches_centernet() -> None:
         assert gaussian_radius(h, w) == pytest.approx(_centernet_radius(h, w), rel=1e-12)
 
 
-def test_heatmap_and_regression_targets() -> None:
+def test_heatmap_and_regression_targets_as_labelled() -> None:
     boxes = np.array([[3.1, 8.2, 1.8, 4.6, 0.3], [-10.0, -5.05, 2.5, 12.0, -2.0], [4.0, -3.0, 6.0, 9.0, 1.0]])
-    targets = build_targets([boxes], [np.array([4, 9, 2])], np.zeros((1, 3)), CFG)
+    targets = build_targets([boxes], [np.array([4, 9, 2])], np.zeros((1, 3)), LEGACY)
     size, cell = CFG.feature_size, CFG.cell_size
     heatmap = targets["heatmap"][0]
     assert targets["heatmap"].shape == (1, size, size) and heatmap.dtype == np.float32
@@ -61,6 +70,67 @@ def test_heatmap_and_regression_targets() -> None:
     assert heatmap[row, col + radius_big + 1] == 0.0  # the (2r+1)^2 window ends there
     assert targets["box_mask"][3:].sum() == 0 and np.all(targets["centre_index"][3:] == 0)
     assert targets["flow"].shape == (0, 2, size, size) and targets["flow_valid"].shape == (0, 1, size, size)
+
+
+def _same_rectangle(a: np.ndarray, b: np.ndarray) -> None:
+    """Two boxes cover the same rectangle: their corner sets agree (in any order)."""
+    ca, cb = box_corners(a)[0], box_corners(b)[0]
+    distances = np.linalg.norm(ca[:, None] - cb[None], axis=-1)
+    assert distances.min(axis=1).max() < 1e-6
+
+
+def test_canonical_boxes_keep_the_rectangle_with_width_at_most_length() -> None:
+    rng = np.random.default_rng(0)
+    boxes = np.column_stack([rng.normal(0, 5, (50, 2)), rng.uniform(0.5, 13, (50, 2)), rng.uniform(-7, 7, 50)])
+    canonical = canonical_boxes(boxes)
+    assert np.all(canonical[:, 2] <= canonical[:, 3])
+    assert np.all((canonical[:, 4] >= -np.pi / 2) & (canonical[:, 4] < np.pi / 2))
+    for a, b in zip(boxes, canonical):
+        _same_rectangle(a, b)
+
+
+def test_symmetric_targets_are_the_same_for_every_labelling_of_one_rectangle() -> None:
+    """RADIATE's annotators flip yaw by 180 degrees and swap width/length within a track: one target for all four."""
+    box = np.array([3.1, 8.2, 1.8, 4.6, 0.3])
+    labellings = [box, box + [0, 0, 0, 0, np.pi], [3.1, 8.2, 4.6, 1.8, 0.3 + np.pi / 2],
+                  [3.1, 8.2, 4.6, 1.8, 0.3 - np.pi / 2]]
+    targets = [build_targets([np.array([b])], [np.array([1])], np.zeros((1, 3)), CFG) for b in labellings]
+    for other in targets[1:]:
+        for key in ("heatmap", "offset", "log_size", "rotation"):
+            np.testing.assert_allclose(other[key], targets[0][key], atol=1e-6)
+    # ... and decoding the target (decode_boxes, "symmetric") gives that rectangle back, canonical
+    slot = targets[0]
+    size = CFG.feature_size
+    index = int(slot["centre_index"][0])
+    centre = torch.tensor(feature_cell_centres(size, CFG.input_size, CFG.resolution).reshape(-1, 2)[index])
+    decoded = decode_boxes(centre[None, None].float(), torch.tensor(slot["offset"][None, :1]),
+                           torch.tensor(slot["log_size"][None, :1]), torch.tensor(slot["rotation"][None, :1]),
+                           CFG.cell_size, "symmetric")[0, 0].double().numpy()
+    np.testing.assert_allclose(decoded, canonical_boxes(box)[0], atol=1e-5)
+    _same_rectangle(decoded, box)
+
+
+def test_decoding_a_longer_width_returns_the_canonical_box() -> None:
+    """The network may regress width > length: decoding swaps them and turns the box by 90 degrees."""
+    log_size = torch.log(torch.tensor([[[4.0, 2.0]]]))
+    angle = torch.tensor(0.8)  # 2 * yaw
+    rotation = torch.stack([torch.sin(angle), torch.cos(angle)])[None, None]
+    box = decode_boxes(torch.zeros(1, 1, 2), torch.zeros(1, 1, 2), log_size, rotation, 1.0, "symmetric")[0, 0]
+    assert box[2].item() == pytest.approx(2.0) and box[3].item() == pytest.approx(4.0)
+    assert box[4].item() == pytest.approx(0.4 + math.pi / 2 - math.pi)  # 0.4 + 90 deg, wrapped into [-90, 90)
+    _same_rectangle(box.double().numpy(), np.array([0.0, 0.0, 4.0, 2.0, 0.4]))
+
+
+def test_heatmap_radius_follows_centerpoint() -> None:
+    """CenterPoint / CenterFormer: radius max(2, int(gaussian_radius(l, w, 0.1))); the old 0.7 / 1 gave a car 1 cell."""
+    car = np.array([[0.0, 0.0, 1.9, 4.6, 0.0]])  # centre at a cell corner: cell (16, 16) of 32
+    new = build_targets([car], [np.array([1])], np.zeros((1, 3)), CFG)["heatmap"][0]
+    old = build_targets([car], [np.array([1])], np.zeros((1, 3)), LEGACY)["heatmap"][0]
+    cell = CFG.cell_size
+    expected = max(2, int(_centernet_radius(4.6 / cell, 1.9 / cell, 0.1)))
+    assert max(1, int(_centernet_radius(4.6 / cell, 1.9 / cell))) == 1  # the old radius
+    assert (old > 0).sum() == 9  # a 3 x 3 blob
+    assert (new > 0).sum() == (2 * expected + 1) ** 2 and expected >= 2
 
 
 def test_more_objects_than_queries_are_dropped_with_a_warning(caplog: pytest.LogCaptureFixture) -> None:

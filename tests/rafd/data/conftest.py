@@ -13,8 +13,9 @@ from rafd.sim.writer import write_sequence
 
 @pytest.fixture(scope="session")
 def sim_truth_and_folder(tmp_path_factory: pytest.TempPathFactory) -> tuple[SimulatedSequence, Path]:
-    """(in-memory simulation, its RADIATE-format folder): 10 frames of 384 px, split train_good_weather."""
-    truth = run_simulation(27, 10, "train_good_weather", 384, Difficulty(), name="sim_27_0")  # turning traffic
+    """(in-memory simulation, its RADIATE-format folder): 10 frames of 384 px, split train_good_weather. Exact labels
+    (yaw along each road user's travel): the flow test reads body orientations from them."""
+    truth = run_simulation(27, 10, "train_good_weather", 384, Difficulty(), name="sim_27_0", ambiguous=False)
     return truth, write_sequence(truth, tmp_path_factory.mktemp("data_sim") / "sim_27_0")
 
 

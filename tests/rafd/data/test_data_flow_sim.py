@@ -17,7 +17,7 @@ import numpy as np
 from rafd.config import RaFDConfig
 from rafd.data import RadarWindowDataset
 from rafd.geometry import feature_cell_centres
-from rafd.targets import FLOW_MIN_RADIUS, build_targets, gaussian_radius
+from rafd.targets import build_targets, flow_radius
 
 CFG = RaFDConfig.tiny(input_size=256)  # 64 x 64 cells of 0.694 m (+-22 m), 4 frames
 
@@ -52,7 +52,7 @@ def test_pseudo_gt_flow_matches_the_simulated_motion(sim_truth_and_folder) -> No
             regions = []
             for object_id, box in zip(window["ids"][pair + 1].tolist(), window["boxes"][pair + 1]):
                 row, col = int(math.floor(size / 2 - box[1] / cell)), int(math.floor(box[0] / cell + size / 2))
-                sigma = max(gaussian_radius(box[3] / cell, box[2] / cell), FLOW_MIN_RADIUS)
+                sigma = flow_radius(box, CFG)
                 regions.append((object_id, row, col, np.hypot(grid_i - row, grid_j - col) <= sigma))
             for object_id, row, col, region in regions:
                 if object_id not in ids_prev:

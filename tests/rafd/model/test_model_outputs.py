@@ -80,14 +80,14 @@ def test_gt_indices_drive_the_query_slots(make_config, make_inputs) -> None:
     assert chosen[0, :3].tolist() == gt[0, :3].tolist() and chosen[1, 5] == gt[1, 5]
 
 
-def test_box_decoding() -> None:
+@pytest.mark.parametrize("encoding, angle", [("as_labelled", 0.7), ("symmetric", 1.4)])
+def test_box_decoding(encoding: str, angle: float) -> None:
     centres = torch.tensor([[[1.0, 2.0]]])
     offset = torch.tensor([[[0.5, -0.25]]])  # cells, x right, y forward
     log_size = torch.log(torch.tensor([[[2.0, 4.5]]]))
-    yaw = 0.7
-    rotation = torch.tensor([[[math.sin(yaw), math.cos(yaw)]]])
-    box = decode_boxes(centres, offset, log_size, rotation, cell_size=0.5)[0, 0]
-    torch.testing.assert_close(box, torch.tensor([1.25, 1.875, 2.0, 4.5, yaw]))
+    rotation = torch.tensor([[[math.sin(angle), math.cos(angle)]]])  # (sin 2yaw, cos 2yaw) when symmetric
+    box = decode_boxes(centres, offset, log_size, rotation, cell_size=0.5, encoding=encoding)[0, 0]
+    torch.testing.assert_close(box, torch.tensor([1.25, 1.875, 2.0, 4.5, 0.7]))
 
 
 def test_float64_poses_and_lazy_top_level_import(make_config, make_inputs) -> None:

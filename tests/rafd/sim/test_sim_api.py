@@ -126,3 +126,28 @@ def test_traffic_mix_moving_parked_oncoming() -> None:
     assert np.any(moving & (directions > 0)) and np.any(moving & (directions < 0))  # same-way and oncoming
     assert speeds.max() <= 15.0 + 1e-6
     assert len({a.id for a in agents}) == len(agents)
+
+
+def test_labels_carry_the_annotators_ambiguity_and_cover_the_same_rectangles() -> None:
+    """Within one track, labels flip yaw by 180 degrees and swap width/length, as RADIATE's do; the rectangles (and
+    the scans) are those of the exact labelling."""
+    from rafd.geometry import box_corners
+    from rafd.sim import Difficulty
+    from rafd.sim.sequence import run_simulation
+
+    exact = run_simulation(27, 8, "test", 256, Difficulty(), name="a", ambiguous=False)
+    labelled = run_simulation(27, 8, "test", 256, Difficulty(), name="a", ambiguous=True)
+    assert all(np.array_equal(a, b) for a, b in zip(exact.images, labelled.images))
+    swaps = flips = 0
+    for e, a in zip(exact.objects, labelled.objects):
+        for box_e, box_a in zip(e.boxes, a.boxes):
+            if not np.isfinite(box_e[0]):
+                assert not np.isfinite(box_a[0])
+                continue
+            ce, ca = box_corners(box_e)[0], box_corners(box_a)[0]
+            assert np.linalg.norm(ce[:, None] - ca[None], axis=-1).min(axis=1).max() < 1e-9  # same rectangle
+            swapped = not np.isclose(box_e[2], box_a[2])
+            swaps += swapped
+            turn = (box_a[4] - box_e[4] - (np.pi / 2 if swapped else 0.0)) % (2 * np.pi)
+            flips += bool(np.isclose(turn, np.pi))
+    assert swaps > 5 and flips > 5

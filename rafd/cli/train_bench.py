@@ -1,0 +1,225 @@
+"""rafd-train-bench: what training at RADIATE scale costs, measured side by side in one run.
+
+    rafd-train-bench loader [--sequences N --frames M --windows W --workers 1,2]
+        A RADIATE-scale simulated root in RADIATE's format (1152 px scans, no pose files) through
+        `rafd-odometry ROOT` and `rafd-prepare ROOT CACHE`, then windows per second per worker process (dataset
+        + augmentation + targets + collate, the work one DataLoader worker does) from the cache and from the PNGs,
+        and a DataLoader with several workers over the cache.
+    rafd-train-bench precision [--steps N --curve-steps M]
+        Training step time (forward, loss, backward, optimizer) in fp32 and bf16 autocast, interleaved, for the tiny
+        config at 256 px and the paper config at batch 1; then the loss curves of a short fp32 and bf16 run from the
+        same seed and data, every 10 steps side by side.
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import logging
+import statistics
+import sys
+import tempfile
+import time
+from pathlib import Path
+from typing import Callable, Sequence
+
+import numpy as np
+
+log = logging.getLogger("rafd.train_bench")
+
+
+def _median_ms(samples: list[float]) -> float:
+    return 1e3 * statistics.median(samples)
+
+
+# ---------------------------------------------------------------- loader
+def windows_per_second(dataset, keys: list, collate: Callable) -> float:
+    """Windows per second of one process doing a DataLoader worker's job (getitem + collate) on `keys`."""
+    start = time.perf_counter()
+    for key in keys:
+        collate([dataset[key]])
+    return len(keys) / (time.perf_counter() - start)
+
+
+def dataloader_windows_per_second(dataset, collate: Callable, workers: int, windows: int, batch: int = 8) -> float:
+    """Windows per second through a torch DataLoader with `workers` processes (after a warm-up batch per worker)."""
+    from torch.utils.data import DataLoader
+
+    from rafd.train.distributed import DistContext, make_sampler
+
+    sampler = make_sampler(dataset, DistContext(), seed=0)
+    loader = DataLoader(dataset, batch_size=batch, sampler=sampler, num_workers=workers, collate_fn=collate,
+                        persistent_workers=workers > 0, prefetch_factor=4 if workers else None)
+    iterator = iter(loader)
+    for _ in range(max(1, workers)):
+        next(iterator)
+    start, seen = time.perf_counter(), 0
+    while seen < windows:
+        try:
+            seen += len(next(iterator))
+        except StopIteration:
+            iterator = iter(loader)
+    return seen / (time.perf_counter() - start)
+
+
+def run_loader(args: argparse.Namespace) -> int:
+    import torch
+
+    from rafd.cli.odometry import main as odometry_main
+    from rafd.cli.prepare import main as prepare_main
+    from rafd.config import RaFDConfig
+    from rafd.data import RadarWindowDataset
+    from rafd.sim import simulate_dataset
+    from rafd.train.collate import Collator
+
+    work = Path(args.work or tempfile.mkdtemp(prefix="rafd-loader-"))
+    root, cache = work / "root", work / "cache"
+    rows: list[tuple[str, str]] = []
+    start = time.perf_counter()
+    simulate_dataset(root, args.sequences, args.frames, seed=31, split="train_good_weather", size=1152, poses=False)
+    frames = args.sequences * args.frames
+    rows.append(("simulate (not part of training)", f"{frames / (time.perf_counter() - start):.1f} frames/s"))
+    start = time.perf_counter()
+    if odometry_main([str(root), "--workers", str(args.prepare_workers)]) != 0:
+        return 1
+    rows.append((f"rafd-odometry ROOT ({args.prepare_workers} processes)",
+                 f"{frames / (time.perf_counter() - start):.1f} frames/s"))
+    start = time.perf_counter()
+    if prepare_main([str(root), str(cache), "--workers", str(args.prepare_workers)]) != 0:
+        return 1
+    rows.append((f"rafd-prepare ROOT CACHE ({args.prepare_workers} processes)",
+                 f"{frames / (time.perf_counter() - start):.1f} frames/s"))
+
+    torch.set_num_threads(1)  # as in a DataLoader worker process
+    cfg = RaFDConfig.paper()  # the protocol's 256 px crop, 4 frames
+    collate = Collator(cfg)
+    rng = np.random.default_rng(0)
+    for source, cache_root, count in (("cache", cache, args.windows), ("PNG", None, max(8, args.windows // 10))):
+        for augment in (False, True):
+            dataset = RadarWindowDataset(root, cfg=cfg, augment=augment, cache=cache_root)
+            keys = [(0, int(i)) for i in rng.integers(0, len(dataset), count)]  # shuffled: no decode cache helps
+            rate = windows_per_second(dataset, keys, collate)
+            rows.append((f"1 worker, {source}, {'flip + rotation' if augment else 'no augmentation'}",
+                         f"{rate:.1f} windows/s per worker ({1e3 / rate:.1f} ms/window)"))
+    dataset = RadarWindowDataset(root, cfg=cfg, augment=True, cache=cache)
+    for workers in args.workers:
+        rate = dataloader_windows_per_second(dataset, collate, workers, args.windows)
+        rows.append((f"DataLoader, {workers} workers, cache, flip + rotation",
+                     f"{rate:.1f} windows/s ({rate / max(workers, 1):.1f} per worker)"))
+    print(f"\nloader benchmark: {args.sequences} sequences x {args.frames} frames of 1152 px, 256 px windows of 4 "
+          f"frames, targets and collate included ({work})")
+    width = max(len(name) for name, _ in rows)
+    for name, value in rows:
+        print(f"  {name:<{width}}  {value}")
+    return 0
+
+
+# ---------------------------------------------------------------- precision
+def _training_batch(cfg, batch_size: int):
+    """A batch of real simulated windows (objects, flow targets) at cfg's size."""
+    from rafd.data import RadarWindowDataset
+    from rafd.sim import simulate_dataset
+    from rafd.train.collate import Collator
+
+    with tempfile.TemporaryDirectory() as folder:
+        simulate_dataset(folder, 1, cfg.num_frames + batch_size, seed=3, split="train", size=cfg.input_size + 64)
+        dataset = RadarWindowDataset(folder, cfg=cfg)
+        return Collator(cfg)([dataset[i] for i in range(batch_size)])
+
+
+def step_times(cfg, batch_size: int, steps: int) -> dict[str, float]:
+    """Median ms per optimizer step in fp32 and bf16 (interleaved, so machine noise hits both alike)."""
+    from rafd.train.distributed import DistContext
+    from rafd.train.trainer import Trainer, TrainConfig
+
+    batch = _training_batch(cfg, batch_size)
+    trainers = {precision: Trainer(cfg, TrainConfig(batch_size=batch_size, precision=precision, progress=False,
+                                                    device="cpu", optimizer="adam"), [0], None, DistContext())
+                for precision in ("fp32", "bf16")}
+    samples: dict[str, list[float]] = {p: [] for p in trainers}
+    for step in range(steps + 1):
+        for precision, trainer in trainers.items():
+            start = time.perf_counter()
+            trainer.train_step(batch).tolist()  # .tolist(): wait for the step to finish
+            if step:  # the first step allocates and warms up
+                samples[precision].append(time.perf_counter() - start)
+    return {p: _median_ms(s) for p, s in samples.items()}
+
+
+def loss_curves(steps: int, log_every: int) -> dict[str, list[dict]]:
+    """The tiny recipe on a small simulated root for `steps` steps in fp32 and bf16 from one seed -> curves."""
+    from rafd.config import RaFDConfig
+    from rafd.sim import simulate_dataset
+    from rafd.train.datasets import open_windows
+    from rafd.train.distributed import DistContext
+    from rafd.train.trainer import Trainer, TrainConfig
+
+    cfg = RaFDConfig.tiny()
+    curves = {}
+    with tempfile.TemporaryDirectory() as folder:
+        simulate_dataset(folder, 4, 30, seed=12, split="train", size=256)
+        dataset = open_windows(folder, "train", cfg, augment=True)
+        for precision in ("fp32", "bf16"):
+            train_cfg = TrainConfig(epochs=1, batch_size=4, lr=1e-3, optimizer="adamw", precision=precision,
+                                    max_steps_per_epoch=steps, log_every=log_every, device="cpu", progress=False,
+                                    val_every=0, seed=0)
+            history = Trainer(cfg, train_cfg, dataset, None, DistContext()).fit()
+            curves[precision] = history[0]["curve"]
+    return curves
+
+
+def run_precision(args: argparse.Namespace) -> int:
+    import torch
+
+    from rafd.config import RaFDConfig
+    from rafd.train.precision import cpu_has_bf16
+
+    torch.set_num_threads(args.threads)
+    print(f"\nprecision benchmark: {args.threads} threads, CPU bf16 units: {cpu_has_bf16()}")
+    for name, cfg, batch in (("tiny, 256 px, batch 4", RaFDConfig.tiny(input_size=256), 4),
+                             ("paper, 256 px, batch 1", RaFDConfig.paper(), 1)):
+        times = step_times(cfg, batch, args.steps)
+        print(f"  {name:<24} fp32 {times['fp32']:8.0f} ms/step   bf16 {times['bf16']:8.0f} ms/step   "
+              f"bf16 speed-up {times['fp32'] / times['bf16']:.2f}x")
+    curves = loss_curves(args.curve_steps, 10)
+    print(f"\nloss curves, tiny recipe (128 px, batch 4, AdamW 1e-3), mean of every 10 steps, seed 0:")
+    print(f"  {'step':>5} {'fp32 total':>11} {'bf16 total':>11} {'rel. diff':>9}")
+    differences = []
+    for a, b in zip(curves["fp32"], curves["bf16"]):
+        difference = abs(b["loss_total"] - a["loss_total"]) / abs(a["loss_total"])
+        differences.append(difference)
+        print(f"  {a['step']:>5} {a['loss_total']:>11.4f} {b['loss_total']:>11.4f} {100 * difference:>8.1f}%")
+    first, last = curves["fp32"][0]["loss_total"], curves["fp32"][-1]["loss_total"]
+    print(f"  fp32 loss fell {first:.3f} -> {last:.3f}; largest bf16/fp32 difference {100 * max(differences):.1f}%")
+    if args.json:
+        Path(args.json).write_text(json.dumps(curves, indent=2))
+    return 0
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(prog="rafd-train-bench", description=__doc__,
+                                     formatter_class=argparse.RawDescriptionHelpFormatter)
+    commands = parser.add_subparsers(dest="command", required=True)
+    loader = commands.add_parser("loader", help="odometry, prepare and windows per second per worker")
+    loader.add_argument("--work", type=Path, help="folder for the simulated root and cache (default: a temp dir)")
+    loader.add_argument("--sequences", type=int, default=3)
+    loader.add_argument("--frames", type=int, default=40)
+    loader.add_argument("--windows", type=int, default=300, help="windows timed per configuration")
+    loader.add_argument("--workers", type=lambda t: [int(v) for v in t.split(",")], default=[1, 2],
+                        help="DataLoader worker counts to time (comma list)")
+    loader.add_argument("--prepare-workers", type=int, default=2, help="processes for rafd-odometry / rafd-prepare")
+    precision = commands.add_parser("precision", help="fp32 vs bf16 step time and loss curves")
+    precision.add_argument("--steps", type=int, default=5, help="timed steps per configuration and precision")
+    precision.add_argument("--curve-steps", type=int, default=100, help="steps of the loss-curve runs")
+    precision.add_argument("--threads", type=int, default=2)
+    precision.add_argument("--json", type=Path, help="write the two loss curves here")
+    return parser
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    args = build_parser().parse_args(argv)
+    logging.basicConfig(level=logging.WARNING, format="%(levelname)s %(name)s: %(message)s")
+    return run_loader(args) if args.command == "loader" else run_precision(args)
+
+
+if __name__ == "__main__":
+    sys.exit(main())
