@@ -28,6 +28,7 @@ def _parser() -> argparse.ArgumentParser:
     parser.add_argument("--clutter", type=float, default=1.0, help="clutter strength (1 = matched to real scans)")
     parser.add_argument("--ghosts", type=float, default=1.0, help="multipath ghost strength (1 = default)")
     parser.add_argument("--noise", type=float, default=1.0, help="noise floor power (1 = matched to real scans)")
+    parser.add_argument("--polar", action="store_true", help="also write the polar scans (Navtech_Polar/, RADIATE's layout)")
     parser.add_argument("--preview", type=Path, help="write a simulated-vs-real side-by-side PNG here instead")
     parser.add_argument("--sample", type=Path, help="real RADIATE sequence for --preview (default $RAFD_RADIATE_SAMPLE)")
     return parser
@@ -76,7 +77,8 @@ def main(argv: list[str] | None = None) -> int:
         return _fail(f"OUT_DIR {args.out_dir} is not writable")
     start = time.perf_counter()
     try:
-        paths = simulate_dataset(args.out_dir, args.sequences, args.frames, args.seed, args.split, args.size, difficulty)
+        paths = simulate_dataset(args.out_dir, args.sequences, args.frames, args.seed, args.split, args.size, difficulty,
+                                 polar=args.polar)
     except OSError as error:
         return _fail(str(error))
     for path in paths:

@@ -26,7 +26,7 @@ import numpy as np
 
 from rafd.augment import AugmentConfig, Augmentation
 from rafd.config import RaFDConfig
-from rafd.data.reader import IMAGE_DIR, load_image, read_sequence
+from rafd.data.reader import IMAGE_DIR, POLAR_DIR, load_image, read_sequence
 from rafd.geometry import metres_to_pixels
 
 try:  # a torch Dataset when torch is installed (DataLoader works with any __getitem__/__len__ object)
@@ -42,21 +42,23 @@ IMAGE_CACHE_SIZE = 8  # decoded full scans kept per process
 
 
 def find_sequences(root: str | Path) -> list[Path]:
-    """Sequence folders (holding Navtech_Cartesian/) at or under `root`, sorted; FileNotFoundError if none."""
+    """Sequence folders (holding Navtech_Cartesian/, or only the polar scans Navtech_Polar/) at or under `root`,
+    sorted; FileNotFoundError if none."""
     root = Path(root)
     if not root.is_dir():
         raise FileNotFoundError(f"data root {root} not found or not a directory")
-    if (root / IMAGE_DIR).is_dir():
+    scan_dirs = {IMAGE_DIR, POLAR_DIR}
+    if any((root / name).is_dir() for name in scan_dirs):
         return [root]
     found = []
     for current, folders, _ in os.walk(root):
-        if IMAGE_DIR in folders:
+        if scan_dirs & set(folders):
             found.append(Path(current))
             folders[:] = []  # a sequence folder holds no further sequences
         else:
             folders.sort()
     if not found:
-        raise FileNotFoundError(f"no RADIATE sequence folders (with {IMAGE_DIR}/) at or under {root}")
+        raise FileNotFoundError(f"no RADIATE sequence folders (with {IMAGE_DIR}/ or {POLAR_DIR}/) at or under {root}")
     return sorted(found)
 
 

@@ -23,11 +23,13 @@ def simulate_sequence(
     split: str = "train_good_weather",
     size: int = RADIATE_SCAN_SIZE,
     difficulty: Difficulty = Difficulty(),
+    polar: bool = False,
 ) -> Path:
-    """Simulate and write one sequence into the folder `out_dir` (its name becomes meta.json "name")."""
+    """Simulate and write one sequence into the folder `out_dir` (its name becomes meta.json "name"); polar=True
+    also writes the polar scans (Navtech_Polar/)."""
     out_dir = Path(out_dir)
     sequence = run_simulation(seed, num_frames, split, size, difficulty, name=out_dir.name)
-    return write_sequence(sequence, out_dir)
+    return write_sequence(sequence, out_dir, polar=polar)
 
 
 def simulate_dataset(
@@ -38,12 +40,13 @@ def simulate_dataset(
     split: str = "train_good_weather",
     size: int = RADIATE_SCAN_SIZE,
     difficulty: Difficulty = Difficulty(),
+    polar: bool = False,
 ) -> list[Path]:
     """Write `sequences` folders root/sim_<seed>_<k>, each simulated from sequence_seed(seed, k)."""
     if sequences < 1:
         raise ValueError(f"sequences must be >= 1, got {sequences}")
     root = Path(root)
     return [
-        simulate_sequence(root / f"sim_{seed}_{k}", sequence_seed(seed, k), frames, split, size, difficulty)
+        simulate_sequence(root / f"sim_{seed}_{k}", sequence_seed(seed, k), frames, split, size, difficulty, polar)
         for k in range(sequences)
     ]
