@@ -84,6 +84,15 @@ class RadarFrame:
     image_path: Path  # the Cartesian scan, or the polar scan when `polar` is set
     objects: list[RadarObject] = field(default_factory=list)
     polar: PolarSource | None = None  # set for polar-only folders: load() converts image_path
+    timestamp_text: str = ""  # canonical 'seconds.nnnnnnnnn' (parse_radiate_time): the exact time, all 9 digits
+
+    @property
+    def timestamp_ns(self) -> int:
+        """UNIX nanoseconds, exact when timestamp_text is known (a float64 keeps only ~0.2 us at today's dates)."""
+        if not self.timestamp_text:
+            return round(self.timestamp * 1e9)
+        seconds, fraction = self.timestamp_text.split(".")
+        return int(seconds) * 1_000_000_000 + int(fraction)
 
     def load(self) -> np.ndarray:
         """uint8 [H, W] Cartesian scan."""
@@ -427,7 +436,10 @@ def read_sequence(path: str | Path, estimate_poses: bool = True) -> RadarSequenc
     else:
         log.warning("%s not found: the %d frames carry no objects", annotations_path, len(numbers))
         objects = {n: [] for n in numbers}
-    frames = [RadarFrame(n, t, p, objects[n], listing.polar) for n, t, p in zip(numbers, stamps, listing.image_paths)]
+    frames = [
+        RadarFrame(n, t, p, objects[n], listing.polar, text)
+        for n, t, p, text in zip(numbers, stamps, listing.image_paths, listing.timestamp_texts)
+    ]
 
     poses_path = folder / POSES_FILE
     poses: np.ndarray | None = None
