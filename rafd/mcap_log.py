@@ -160,7 +160,8 @@ def _grid(frame: LoggedFrame, stamp: Timestamp) -> Grid:
     cells = np.ascontiguousarray(np.asarray(frame.crop_pixels, np.uint8)[::-1])  # [side, side], y up
     return Grid(timestamp=stamp, frame_id=FRAME_RADAR, pose=Pose(position=corner, orientation=_yaw_quaternion(0.0)),
                 column_count=side, cell_size=Vector2(x=frame.resolution, y=frame.resolution), row_stride=side,
-                cell_stride=1, fields=[PackedElementField(name="intensity", offset=0, type=PackedElementFieldNumericType.Uint8)],
+                cell_stride=1,
+                fields=[PackedElementField(name="intensity", offset=0, type=PackedElementFieldNumericType.Uint8)],
                 data=cells.tobytes())
 
 
@@ -169,11 +170,11 @@ def _cubes(boxes: np.ndarray, labels: list[str], prefix: str, rgba: tuple, stamp
     entities = []
     for k, (box, label) in enumerate(zip(np.asarray(boxes, np.float64).reshape(-1, 5), labels)):
         x, y, width, length, yaw = (float(v) for v in box)
-        cube = CubePrimitive(pose=Pose(position=Vector3(x=x, y=y, z=BOX_HEIGHT_M / 2), orientation=_yaw_quaternion(yaw)),
-                             size=Vector3(x=width, y=length, z=BOX_HEIGHT_M), color=_colour(rgba))
-        texts = [TextPrimitive(pose=Pose(position=Vector3(x=x, y=y, z=BOX_HEIGHT_M + 0.5), orientation=_yaw_quaternion(0.0)),
-                               billboard=True, font_size=14.0, scale_invariant=True, color=_colour((*rgba[:3], 1.0)),
-                               text=label)] if label else []
+        centre = Pose(position=Vector3(x=x, y=y, z=BOX_HEIGHT_M / 2), orientation=_yaw_quaternion(yaw))
+        cube = CubePrimitive(pose=centre, size=Vector3(x=width, y=length, z=BOX_HEIGHT_M), color=_colour(rgba))
+        above = Pose(position=Vector3(x=x, y=y, z=BOX_HEIGHT_M + 0.5), orientation=_yaw_quaternion(0.0))
+        texts = [TextPrimitive(pose=above, billboard=True, font_size=14.0, scale_invariant=True,
+                               color=_colour((*rgba[:3], 1.0)), text=label)] if label else []
         entities.append(SceneEntity(timestamp=stamp, frame_id=FRAME_RADAR, id=f"{prefix}-{k}", frame_locked=True,
                                     cubes=[cube], texts=texts, metadata=[KeyValuePair(key="label", value=label)]))
     return SceneUpdate(deletions=[SceneEntityDeletion(timestamp=stamp, type=SceneEntityDeletionType.All, id="")],
@@ -198,7 +199,8 @@ def _outlines(polygons: np.ndarray, labels: list[str], rgba: tuple, stamp: Times
 def _arrows(heads: np.ndarray, motions: np.ndarray, stamp: Timestamp) -> SceneUpdate:
     """Flow -> one entity of arrows from where each cell's content was to where it is (true length)."""
     arrows = []
-    for head, motion in zip(np.asarray(heads, np.float64).reshape(-1, 2), np.asarray(motions, np.float64).reshape(-1, 2)):
+    heads, motions = np.asarray(heads, np.float64).reshape(-1, 2), np.asarray(motions, np.float64).reshape(-1, 2)
+    for head, motion in zip(heads, motions):
         length = float(np.hypot(*motion))
         if length <= 0:
             continue

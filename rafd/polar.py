@@ -11,14 +11,14 @@ from them (README "Polar scans"; `rafd-polar` prints the agreement):
 - in the 1152 x 1152 Cartesian image the radar sits at continuous pixel (575.5, 576.5): half a pixel
   left of and below the geometric centre (576, 576) that rafd.geometry assumes (8.7 cm; RADIATE's labels
   were drawn on these images, so the converted image keeps RADIATE's grid);
-- bilinear interpolation (nearest: 5.0 instead of 3.1 grey levels off), interpolating across the 399 -> 0 seam
-  (RADIATE's images keep a hard seam there; it changes the mean difference by less than 0.01).
+- bilinear interpolation, interpolating across the 399 -> 0 seam (RADIATE's images keep a hard seam there).
 
 The sample offsets 0.41 / 0.21 (not the bin centres 0.5 / 0.5) and the radar's pixel come from a search that
-minimises the mean absolute grey difference on frame 1 (`rafd-polar ... --fit`; frame 2 gives the same within
-0.01 bins); they cut that difference from 4.3 to 3.1 grey levels on both frames. RADIATE's residual (correlation
-0.974) is its own resampling, which bilinear sampling does not reproduce exactly. The simulator's sensor has its
-own conventions (`NavtechSensor.polar_conventions`); `to_radiate_polar` resamples any polar scan onto RADIATE's.
+minimises the mean absolute grey difference (`rafd-polar ... --fit`: frame 1 gives 0.414 / 0.219, frame 2
+0.414 / 0.242, both the same centre); they cut that difference from 4.3 to 3.1 grey levels on both frames.
+RADIATE's residual (correlation 0.974) is its own resampling, which bilinear sampling does not reproduce. The
+simulator's sensor has its own conventions (`NavtechSensor.polar_conventions`); `to_radiate_polar` resamples
+any polar scan onto RADIATE's.
 """
 from __future__ import annotations
 
@@ -121,7 +121,8 @@ def to_radiate_polar(polar: np.ndarray, conventions: PolarConventions, range_bin
     target = RADIATE_POLAR
     metres = (np.arange(range_bins, dtype=np.float64) + target.range_offset) * target.range_bin  # [R_t]
     turns = (np.arange(azimuths, dtype=np.float64) + target.azimuth_offset) / azimuths  # [A_t] fraction of a turn
-    rows = np.maximum(metres / conventions.range_bin - conventions.range_offset, 0.0)  # inside the first sample: the first bin
+    # Inside the first sample's range there is no data: take the first bin.
+    rows = np.maximum(metres / conventions.range_bin - conventions.range_offset, 0.0)
     columns = np.mod(turns * source_azimuths - conventions.azimuth_offset, source_azimuths)
     map_x, map_y = np.meshgrid(columns.astype(np.float32), rows.astype(np.float32), indexing="xy")  # [R_t, A_t]
     image = cv2.remap(_wrapped(polar), map_x, map_y, cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT, borderValue=0)

@@ -78,14 +78,13 @@ def _flow_scale(px_per_m: float, chosen: float | None) -> float:
 
 
 def _status_lines(answer: dict[str, Any], title: str | None) -> list[str]:
-    lines = [title] if title else []
-    lines += [
+    warming = " (warming up)" if answer.get("warming_up") else ""
+    return ([title] if title else []) + [
         f"t = {answer['timestamp']:.3f} s",
-        f"frames {answer['frames_used']}/{answer['num_frames']}" + (" (warming up)" if answer.get("warming_up") else ""),
+        f"frames {answer['frames_used']}/{answer['num_frames']}{warming}",
         f"pose: {answer['pose_source']}",
         f"{len(answer['boxes'])} boxes, model {answer['timing']['model_ms']:.0f} ms",
     ]
-    return lines
 
 
 def draw_answer(
@@ -152,8 +151,9 @@ def _side_panel(scan: np.ndarray, answer: dict[str, Any], truth: np.ndarray | No
         draw_polygons(overview, truth, GT_COLOUR, scale)
     draw_polygons(overview, predicted, PRED_COLOUR, scale)
     offset, size = crop
-    corner = np.array([[offset, offset], [offset + size, offset], [offset + size, offset + size], [offset, offset + size]])
-    draw_polygons(overview, corner[None].astype(np.float64), TEXT_COLOUR, scale)
+    end = offset + size
+    outline = np.array([[[offset, offset], [end, offset], [end, end], [offset, end]]], dtype=np.float64)  # [1, 4, 2]
+    draw_polygons(overview, outline, TEXT_COLOUR, scale)
     panel = np.full((max(min_height, 4000), width, 3), PANEL_COLOUR, np.uint8)  # cut to what is used below
     y = margin
     cv2.putText(panel, "whole scan, crop outlined", (margin, y + line - 6), FONT, view.font_scale, TEXT_COLOUR, 1,

@@ -3,8 +3,9 @@
     rafd-polar POLAR_SEQ --compare CARTESIAN_SEQ    per frame: mean absolute grey difference and correlation
                                                     inside the disc, RADIATE's conventions vs bin centres
     rafd-polar POLAR_SEQ --compare CARTESIAN_SEQ --fit
-                                                    also search the sample offsets and the radar's pixel that
-                                                    best reproduce the first frame (how RADIATE_POLAR was set)
+                                                    also search, frame by frame, the sample offsets and the
+                                                    radar's pixel that best reproduce RADIATE's image (how
+                                                    RADIATE_POLAR was set: frame 1's values, rounded)
     rafd-polar POLAR_SEQ --out DIR                  write DIR/Navtech_Cartesian/NNNNNN.png (+ the timestamps)
 """
 from __future__ import annotations
@@ -26,7 +27,8 @@ FIT_STEPS = (0.25, 0.25, 0.5, 0.5)  # first step of (azimuth offset, range offse
 FIT_HALVINGS = 6  # final step 1/64 of the first: below 0.01 bins / pixels
 
 
-def fit_conventions(polar: np.ndarray, reference: np.ndarray, start: PolarConventions = NOMINAL_POLAR) -> PolarConventions:
+def fit_conventions(polar: np.ndarray, reference: np.ndarray,
+                    start: PolarConventions = NOMINAL_POLAR) -> PolarConventions:
     """The sample offsets and radar pixel that minimise the mean absolute grey difference between the converted
     `polar` and the Cartesian `reference` (coordinate search, halving the step until it stops improving)."""
     size = reference.shape[0]
@@ -51,8 +53,9 @@ def fit_conventions(polar: np.ndarray, reference: np.ndarray, start: PolarConven
                     if value < best:
                         best, params, improved = value, trial, True
         steps /= 2.0
-    return dataclasses.replace(start, azimuth_offset=round(float(params[0]), 3), range_offset=round(float(params[1]), 3),
-                               centre_offset=(round(float(params[2]), 3), round(float(params[3]), 3)))
+    rounded = [round(float(p), 3) for p in params]
+    return dataclasses.replace(start, azimuth_offset=rounded[0], range_offset=rounded[1],
+                               centre_offset=(rounded[2], rounded[3]))
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -60,7 +63,7 @@ def build_parser() -> argparse.ArgumentParser:
                                      formatter_class=argparse.RawDescriptionHelpFormatter, epilog=__doc__)
     parser.add_argument("sequence", type=Path, help=f"folder holding {POLAR_DIR}/ and {POLAR_TIMESTAMPS_FILE}")
     parser.add_argument("--compare", type=Path, help="RADIATE folder with the same frames' Navtech_Cartesian/")
-    parser.add_argument("--fit", action="store_true", help="with --compare: fit the conventions on the first frame")
+    parser.add_argument("--fit", action="store_true", help="with --compare: fit the conventions on each frame")
     parser.add_argument("--out", type=Path, help="write the converted scans as DIR/Navtech_Cartesian/ + .txt")
     parser.add_argument("--size", type=int, default=None, help="Cartesian side in pixels (default: the whole disc)")
     parser.add_argument("--repeats", type=int, default=20, help="conversions timed per run (median reported)")
@@ -94,15 +97,14 @@ def main(argv: list[str] | None = None) -> int:
                 mad, correlation = scan_agreement(polar_to_cartesian(polar, args.size, conventions=conventions), reference)
                 print(f"{number:>6} {name:>12} {mad:>9.3f} {correlation:>12.4f}")
         if args.fit:
-            number = listed[0][0]
-            fitted = fit_conventions(polars[number], load_image(args.compare / "Navtech_Cartesian" / f"{number:06d}.png"))
-            print(f"fitted on frame {number}: azimuth_offset {fitted.azimuth_offset} range_offset {fitted.range_offset} "
-                  f"centre_offset {fitted.centre_offset} (RADIATE_POLAR: {RADIATE_POLAR.azimuth_offset}, "
-                  f"{RADIATE_POLAR.range_offset}, {RADIATE_POLAR.centre_offset})")
-            for other, polar in polars.items():
-                reference = load_image(args.compare / "Navtech_Cartesian" / f"{other:06d}.png")
-                mad, correlation = scan_agreement(polar_to_cartesian(polar, args.size, conventions=fitted), reference)
-                print(f"{other:>6} {'fitted':>12} {mad:>9.3f} {correlation:>12.4f}")
+            for number, polar in polars.items():
+                reference = load_image(args.compare / "Navtech_Cartesian" / f"{number:06d}.png")
+                fitted = fit_conventions(polar, reference)
+                converted = polar_to_cartesian(polar, args.size, conventions=fitted)
+                mad, correlation = scan_agreement(converted, reference)
+                print(f"{number:>6} {'fitted':>12} {mad:>9.3f} {correlation:>12.4f}   azimuth_offset "
+                      f"{fitted.azimuth_offset} range_offset {fitted.range_offset} "
+                      f"centre_offset {fitted.centre_offset}")
     elif args.fit:
         return _fail("--fit needs --compare CARTESIAN_SEQ")
     first = next(iter(polars.values()))

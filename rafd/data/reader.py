@@ -394,7 +394,8 @@ def list_frames(path: str | Path) -> FrameList:
     timestamps_path = folder / (POLAR_TIMESTAMPS_FILE if polar_only else TIMESTAMPS_FILE)
     listed = read_timestamps(timestamps_path)
     numbers, stamps = [n for n, _, _ in listed], [t for _, t, _ in listed]
-    image_paths, (width, height) = _check_images(folder, numbers, timestamps_path, POLAR_DIR if polar_only else IMAGE_DIR)
+    image_dir = POLAR_DIR if polar_only else IMAGE_DIR
+    image_paths, (width, height) = _check_images(folder, numbers, timestamps_path, image_dir)
     meta_path = folder / META_FILE
     meta = read_meta(meta_path)
     resolution = RADIATE_RESOLUTION

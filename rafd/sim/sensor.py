@@ -86,7 +86,8 @@ class NavtechSensor:
     @property
     def polar_conventions(self) -> PolarConventions:
         """Where to_cartesian places the samples of the transposed [R, A] polar: bin centres, radar at S/2."""
-        return PolarConventions(azimuth_offset=0.5, range_offset=0.5, range_bin=self.config.range_bin, centre_offset=(0.0, 0.0))
+        return PolarConventions(azimuth_offset=0.5, range_offset=0.5, range_bin=self.config.range_bin,
+                                centre_offset=(0.0, 0.0))
 
     def polar_coordinates(self, xy: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """[N, 2] ego metres -> ([N] continuous azimuth bins in [0, A), [N] ranges in metres)."""

@@ -37,7 +37,7 @@ class SimulatedSequence:
     timestamps_ns: np.ndarray  # [T] int64 UNIX nanoseconds
     poses: np.ndarray  # [T, 3] true world poses of the radar's ego frame
     objects: list[SimulatedObject]  # only objects annotated in at least one frame
-    polar_scans: list[np.ndarray] | None = None  # T x uint8 [576, 400]: the same scans in RADIATE's Navtech_Polar layout
+    polar_scans: list[np.ndarray] | None = None  # T x uint8 [576, 400]: the scans in RADIATE's Navtech_Polar layout
 
 
 def frame_times(rng: np.random.Generator, num_frames: int) -> np.ndarray:

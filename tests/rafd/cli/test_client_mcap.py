@@ -40,7 +40,7 @@ SCHEMAS = {
 def read_log(path: Path) -> tuple[dict[str, str], dict[str, int], dict[str, list], dict[str, dict[str, str]]]:
     """-> ({topic: schema}, {topic: message count}, {topic: [(log_time, decoded message)]}, {metadata name: values})."""
     with path.open("rb") as handle:
-        reader = make_reader(handle, decoder_factories=[DecoderFactory()])
+        reader = make_reader(handle, validate_crcs=True, decoder_factories=[DecoderFactory()])
         summary = reader.get_summary()
         assert all(channel.message_encoding == "protobuf" for channel in summary.channels.values())
         schemas = {c.topic: summary.schemas[c.schema_id].name for c in summary.channels.values()}

@@ -18,7 +18,7 @@ from rafd.cli.evaluate import main  # noqa: E402
 
 def read_log(path: Path) -> tuple[dict[str, str], dict[str, int], dict[str, list]]:
     with path.open("rb") as handle:
-        reader = make_reader(handle, decoder_factories=[DecoderFactory()])
+        reader = make_reader(handle, validate_crcs=True, decoder_factories=[DecoderFactory()])
         summary = reader.get_summary()
         schemas = {c.topic: summary.schemas[c.schema_id].name for c in summary.channels.values()}
         counts = {c.topic: summary.statistics.channel_message_counts[c.id] for c in summary.channels.values()}
