@@ -2,20 +2,13 @@
 from __future__ import annotations
 
 import json
-import sys
 from pathlib import Path
 
 import cv2
 import numpy as np
 import pytest
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[2] / "service"))  # the service tests' FakeRunner and helpers
-from fake_runner import FakeRunner  # noqa: E402
-from service_testing import FakeOdometry, serve_in_thread, wait_ready  # noqa: E402
-
-from rafd.cli.client import main  # noqa: E402
-from service.app import create_app  # noqa: E402
-from service.settings import Settings  # noqa: E402
+from rafd.cli.client import main
 
 POSES = np.array([[0.0, 0.0, 0.0], [0.5, 1.0, 0.01], [1.0, 2.0, 0.02]])
 
@@ -50,16 +43,6 @@ def sequence(tmp_path: Path) -> Path:
     (root / "annotations").mkdir()
     (root / "annotations" / "annotations.json").write_text("[]")
     return root
-
-
-@pytest.fixture
-def service_url():
-    with serve_in_thread(create_app(Settings(threads=1), runner=FakeRunner(), odometry=FakeOdometry())) as url:
-        import httpx
-
-        with httpx.Client(base_url=url) as http:
-            wait_ready(http)
-        yield url
 
 
 def test_client_streams_a_sequence_and_writes_drawings_and_video(sequence, service_url, tmp_path, capsys):

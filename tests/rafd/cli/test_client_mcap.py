@@ -13,8 +13,7 @@ import numpy as np
 import pytest
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[2] / "service"))  # the service tests' FakeRunner and helpers
-from fake_runner import FakeRunner  # noqa: E402
-from service_testing import FakeOdometry, serve_in_thread, wait_ready  # noqa: E402
+from service_testing import serve_in_thread, wait_ready  # noqa: E402
 
 from rafd.cli.client import main  # noqa: E402
 from rafd.data import read_sequence  # noqa: E402
@@ -56,16 +55,6 @@ def yaw_of(quaternion) -> float:
     """Rotation about z of a z-only quaternion."""
     assert abs(quaternion.x) < 1e-12 and abs(quaternion.y) < 1e-12
     return 2.0 * math.atan2(quaternion.z, quaternion.w)
-
-
-@pytest.fixture
-def service_url():
-    with serve_in_thread(create_app(Settings(threads=1), runner=FakeRunner(), odometry=FakeOdometry())) as url:
-        import httpx
-
-        with httpx.Client(base_url=url) as http:
-            wait_ready(http)
-        yield url
 
 
 @pytest.fixture(scope="module")
