@@ -1,8 +1,11 @@
-"""`rafd-client SEQ_DIR --url URL [--out DIR]`: stream a RADIATE-format sequence to a running rafd-serve.
+"""`rafd-client SEQ_DIR --url URL [--out DIR] [--mcap FILE]`: stream a RADIATE-format sequence to a running rafd-serve.
 
 Posts every radar frame in timestamp order (with its pose from ego_poses.csv when present, else the
-service estimates ego motion), then writes each frame with its boxes and flow drawn, the answers as
-JSON lines, and an MP4 of the whole sequence. Uses only the standard library for HTTP.
+service estimates ego motion). A folder with only the sensor's polar scans (Navtech_Polar/) is converted
+to RADIATE's Cartesian grid first (rafd.polar). With --out: each frame's picture (rafd.viz_answer: the
+model's crop zoomed, predictions with scores, ground truth where labelled, flow, legend), the answers as
+JSON lines and an MP4. With --mcap: a Foxglove/MCAP log of scans, poses, boxes, flow and ground truth
+(rafd.mcap_log, `logs` extra). Uses only the standard library for HTTP.
 """
 from __future__ import annotations
 
@@ -19,17 +22,37 @@ from typing import Any
 import cv2
 import numpy as np
 
+from rafd.data.reader import RadarFrame
+
 
 @dataclass(frozen=True)
 class ClientFrame:
     number: int
     timestamp: float
-    image_path: Path
+    source: RadarFrame  # the reader's frame: its scan (Cartesian, or polar converted on load) and labels
     pose: np.ndarray | None  # [3] world pose, None to let the service use odometry
 
+    def scan_and_png(self) -> tuple[np.ndarray, bytes]:
+        """(uint8 [N, N] scan, PNG bytes to post): a Cartesian PNG is posted as it is on disk."""
+        scan = self.source.load()
+        if self.source.polar is None:
+            return scan, self.source.image_path.read_bytes()
+        ok, encoded = cv2.imencode(".png", scan)
+        if not ok:
+            raise OSError(f"could not encode the converted scan of {self.source.image_path}")
+        return scan, encoded.tobytes()
 
-def read_frames(sequence_dir: Path) -> tuple[str, list[ClientFrame]]:
-    """(sequence name, frames sorted by timestamp); poses only from the folder's ego_poses.csv.
+
+@dataclass(frozen=True)
+class ClientSequence:
+    name: str
+    resolution: float
+    annotated: bool  # the folder has annotations/annotations.json: draw and log ground truth
+    frames: list[ClientFrame]  # sorted by timestamp
+
+
+def read_frames(sequence_dir: Path) -> ClientSequence:
+    """Frames sorted by timestamp; poses only from the folder's ego_poses.csv.
 
     No odometry here: without a pose file the service estimates ego motion itself (and says so).
     """
@@ -37,23 +60,24 @@ def read_frames(sequence_dir: Path) -> tuple[str, list[ClientFrame]]:
 
     sequence = read_sequence(sequence_dir, estimate_poses=False)
     frames = [
-        ClientFrame(f.number, float(f.timestamp), Path(f.image_path),
-                    None if sequence.poses is None else sequence.poses[i])
+        ClientFrame(f.number, float(f.timestamp), f, None if sequence.poses is None else sequence.poses[i])
         for i, f in enumerate(sequence.frames)
     ]
-    return sequence.name or sequence_dir.name, sorted(frames, key=lambda f: f.timestamp)
+    return ClientSequence(sequence.name or sequence_dir.name, sequence.resolution, sequence.annotated,
+                          sorted(frames, key=lambda f: f.timestamp))
 
 
 class ServiceError(RuntimeError):
     pass
 
 
-def post_frame(url: str, stream_id: str, frame: ClientFrame, use_pose: bool, timeout: float) -> dict[str, Any]:
-    """One POST /detect with the PNG file's bytes as they are on disk."""
+def post_frame(url: str, stream_id: str, frame: ClientFrame, png: bytes, use_pose: bool,
+               timeout: float) -> dict[str, Any]:
+    """One POST /detect (JSON body, base64 PNG)."""
     body: dict[str, Any] = {
         "stream_id": stream_id,
         "timestamp": frame.timestamp,
-        "image": base64.b64encode(frame.image_path.read_bytes()).decode("ascii"),
+        "image": base64.b64encode(png).decode("ascii"),
     }
     if use_pose and frame.pose is not None:
         body["pose"] = {"x": float(frame.pose[0]), "y": float(frame.pose[1]), "yaw": float(frame.pose[2])}
@@ -72,36 +96,38 @@ def post_frame(url: str, stream_id: str, frame: ClientFrame, use_pose: bool, tim
         raise ServiceError(f"cannot reach {url}: {exc.reason}") from exc
 
 
-def draw_answer(image: np.ndarray, answer: dict[str, Any], flow_scale: float, flow_step: int) -> np.ndarray:
-    """Grey scan [H, W] -> BGR [H, W, 3] with the model crop, flow arrows (cyan) and boxes (green)."""
-    canvas = cv2.cvtColor(image, cv2.COLOR_GRAY2BGR) if image.ndim == 2 else image.copy()
-    crop = answer["input"]
-    top_left = crop["crop_offset_px"]
-    bottom_right = top_left + crop["model_size"] - 1
-    cv2.rectangle(canvas, (top_left, top_left), (bottom_right, bottom_right), (80, 80, 80), 1)
-    flow = answer.get("flow")
-    if flow and flow["encoding"] == "list":
-        values = np.asarray(flow["values"])  # [2, Hf, Wf] metres, x right / y forward
-        grid = flow["grid"]
-        metres_per_px = grid["cell_size_m"] / grid["stride_px"]
-        for i in range(0, grid["height"], flow_step):
-            for j in range(0, grid["width"], flow_step):
-                dx, dy = values[0, i, j], values[1, i, j]
-                if np.hypot(dx, dy) < 0.05:  # below 5 cm: nothing moved
-                    continue
-                u = grid["origin_px"][0] + (j + 0.5) * grid["stride_px"]
-                v = grid["origin_px"][1] + (i + 0.5) * grid["stride_px"]
-                end = (u + flow_scale * dx / metres_per_px, v - flow_scale * dy / metres_per_px)  # y forward = up
-                cv2.arrowedLine(canvas, (round(u), round(v)), (round(end[0]), round(end[1])), (255, 255, 0), 1,
-                                tipLength=0.3)
-    for box in answer["boxes"]:
-        polygon = np.round(np.asarray(box["polygon"])).astype(np.int32)  # [4, 2] posted pixels
-        cv2.polylines(canvas, [polygon], True, (0, 255, 0), 1)
-        cv2.putText(canvas, f"{box['score']:.2f}", tuple(polygon[0]), cv2.FONT_HERSHEY_SIMPLEX, 0.35, (0, 255, 0), 1)
-    status = f"frames {answer['frames_used']}/{answer['num_frames']} pose {answer['pose_source']} " \
-             f"{len(answer['boxes'])} boxes {answer['timing']['model_ms']:.0f} ms"
-    cv2.putText(canvas, status, (5, 15), cv2.FONT_HERSHEY_SIMPLEX, 0.45, (0, 200, 255), 1)
-    return canvas
+def truth_polygons(frame: ClientFrame, annotated: bool) -> np.ndarray | None:
+    """[M, 4, 2] ground-truth corners in the scan's pixels; None for an unlabelled folder."""
+    if not annotated:
+        return None
+    return np.array([o.polygon for o in frame.source.objects], dtype=np.float64).reshape(-1, 4, 2)
+
+
+def logged_frame(frame: ClientFrame, scan: np.ndarray, png: bytes, answer: dict[str, Any], resolution: float,
+                 annotated: bool):
+    """One answer -> rafd.mcap_log.LoggedFrame (boxes, polygons and flow as the service answered them)."""
+    from rafd.mcap_log import LoggedFrame
+    from rafd.viz_answer import flow_arrows
+
+    size, offset, model_size = scan.shape[0], answer["input"]["crop_offset_px"], answer["input"]["model_size"]
+    boxes = np.array([[b[k] for k in ("x", "y", "width", "length", "yaw")] for b in answer["boxes"]],
+                     dtype=np.float64).reshape(-1, 5)
+    heads = motions = None
+    if answer.get("flow"):
+        heads_px, motions = flow_arrows(answer["flow"], min_m=0.05)
+        heads = np.stack([(heads_px[:, 0] - size / 2.0) * resolution, (size / 2.0 - heads_px[:, 1]) * resolution], -1)
+    truth = None
+    if annotated:
+        truth = np.array([o.box for o in frame.source.objects], dtype=np.float64).reshape(-1, 5)
+    return LoggedFrame(
+        timestamp_ns=frame.source.timestamp_ns, scan_png=png, scan_size=size, resolution=resolution,
+        crop=(offset, model_size), crop_pixels=scan[offset : offset + model_size, offset : offset + model_size],
+        pose=np.array([answer["pose"][k] for k in ("x", "y", "yaw")], dtype=np.float64), boxes=boxes,
+        scores=np.array([b["score"] for b in answer["boxes"]], dtype=np.float64),
+        classes=[b["class"] for b in answer["boxes"]],
+        polygons=np.array([b["polygon"] for b in answer["boxes"]], dtype=np.float64).reshape(-1, 4, 2),
+        flow_heads=heads, flow_motions=motions, truth_boxes=truth, truth_polygons=truth_polygons(frame, annotated),
+    )
 
 
 def frame_rate(frames: list[ClientFrame]) -> float:
@@ -114,14 +140,18 @@ def frame_rate(frames: list[ClientFrame]) -> float:
 
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="rafd-client", description=__doc__.splitlines()[0])
-    parser.add_argument("sequence", type=Path, help="RADIATE-format sequence folder (Navtech_Cartesian/ + .txt)")
+    parser.add_argument("sequence", type=Path,
+                        help="RADIATE-format sequence folder (Navtech_Cartesian/ + .txt, or Navtech_Polar/ + .txt)")
     parser.add_argument("--url", required=True, help="service base URL, e.g. http://127.0.0.1:8000")
     parser.add_argument("--out", type=Path, default=None, help="where to write frames/, answers.jsonl, sequence.mp4")
+    parser.add_argument("--mcap", type=Path, default=None, help="write a Foxglove/MCAP log of the run to this file")
     parser.add_argument("--stream-id", default=None, help="stream id (default: the sequence name)")
     parser.add_argument("--no-pose", action="store_true", help="do not send ego_poses.csv: the service uses odometry")
     parser.add_argument("--limit", type=int, default=None, help="only the first N frames")
-    parser.add_argument("--flow-scale", type=float, default=3.0, help="arrow length multiplier for the flow")
-    parser.add_argument("--flow-step", type=int, default=2, help="draw every n-th flow cell")
+    parser.add_argument("--flow-scale", type=float, default=None,
+                        help="draw flow arrows this many times their true length (default: 1, or more when zoomed out)")
+    parser.add_argument("--flow-step", type=int, default=2, help="draw every n-th flow cell (default 2)")
+    parser.add_argument("--view", type=int, default=768, help="side in pixels of the zoomed model view (default 768)")
     parser.add_argument("--timeout", type=float, default=30.0, help="seconds per request")
     return parser
 
@@ -129,41 +159,54 @@ def build_parser() -> argparse.ArgumentParser:
 def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     try:
-        name, frames = read_frames(args.sequence)
+        sequence = read_frames(args.sequence)
+        from rafd.viz_answer import AnswerView, draw_answer
+
+        view = AnswerView(view_px=args.view, flow_step=args.flow_step, flow_scale=args.flow_scale)
     except (OSError, ValueError) as exc:
         print(f"rafd-client: {exc}", file=sys.stderr)
         return 2
-    frames = frames[: args.limit] if args.limit else frames
+    frames = sequence.frames[: args.limit] if args.limit else sequence.frames
     if not frames:
         print(f"rafd-client: {args.sequence} holds no radar frames", file=sys.stderr)
         return 2
-    stream_id = args.stream_id or "".join(c if c.isalnum() or c in "._-" else "_" for c in name)[:128]
+    if args.mcap is not None and not args.mcap.parent.is_dir():
+        print(f"rafd-client: folder of --mcap {args.mcap} does not exist", file=sys.stderr)
+        return 2
+    stream_id = args.stream_id or "".join(c if c.isalnum() or c in "._-" else "_" for c in sequence.name)[:128]
     out = args.out
-    writer = None
-    answers = None
+    writer = answers = log = last_answer = None
     if out is not None:
         (out / "frames").mkdir(parents=True, exist_ok=True)
         answers = (out / "answers.jsonl").open("w")
     try:
+        if args.mcap is not None:
+            try:
+                from rafd.mcap_log import RadarMcapLog
+            except ImportError as exc:
+                raise ServiceError(f"--mcap needs the logs extra (pip install 'rafd[logs]'): {exc}") from exc
+            log = RadarMcapLog(args.mcap)
         for frame in frames:
-            answer = post_frame(args.url, stream_id, frame, not args.no_pose, args.timeout)
+            scan, png = frame.scan_and_png()
+            answer = last_answer = post_frame(args.url, stream_id, frame, png, not args.no_pose, args.timeout)
             print(f"frame {frame.number:06d} t={frame.timestamp:.3f}: {len(answer['boxes'])} boxes, "
                   f"frames_used {answer['frames_used']}, pose {answer['pose_source']}, "
                   f"{answer['timing']['total_ms']:.1f} ms")
+            if log is not None:
+                log.write(logged_frame(frame, scan, png, answer, sequence.resolution, sequence.annotated))
             if out is None:
                 continue
             answers.write(json.dumps(answer) + "\n")
-            image = cv2.imread(str(frame.image_path), cv2.IMREAD_GRAYSCALE)
-            if image is None:
-                raise ServiceError(f"cannot read {frame.image_path}")
-            canvas = draw_answer(image, answer, args.flow_scale, args.flow_step)
-            cv2.imwrite(str(out / "frames" / f"{frame.number:06d}.png"), canvas)
+            canvas = draw_answer(scan, answer, truth_polygons(frame, sequence.annotated), sequence.resolution, view,
+                                 title=f"{sequence.name} frame {frame.number}")
+            if not cv2.imwrite(str(out / "frames" / f"{frame.number:06d}.png"), canvas):
+                raise OSError(f"could not write {out / 'frames' / f'{frame.number:06d}.png'}")
             if writer is None:
                 size = (canvas.shape[1], canvas.shape[0])
                 writer = cv2.VideoWriter(str(out / "sequence.mp4"), cv2.VideoWriter_fourcc(*"mp4v"),
                                          frame_rate(frames), size)
             writer.write(canvas)
-    except (ServiceError, OSError) as exc:
+    except (ServiceError, OSError, ValueError) as exc:
         print(f"rafd-client: {exc}", file=sys.stderr)
         return 1
     finally:
@@ -171,8 +214,18 @@ def main(argv: list[str] | None = None) -> int:
             writer.release()
         if answers is not None:
             answers.close()
+        if log is not None:
+            if last_answer is not None:
+                log.write_metadata("rafd-client", {
+                    "sequence": sequence.name, "stream_id": stream_id, "url": args.url, "frames": log.frames,
+                    "model_version": last_answer["model"]["version"],
+                    "checkpoint_sha256": last_answer["model"]["checkpoint_sha256"],
+                })
+            log.close()
     if out is not None:
         print(f"wrote {len(frames)} frames, answers.jsonl and sequence.mp4 to {out}")
+    if log is not None:
+        print(f"wrote {log.frames} frames to the MCAP log {args.mcap}")
     return 0
 
 

@@ -25,6 +25,7 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--json", type=Path, help="write the metrics here")
     parser.add_argument("--plots", type=Path, help="folder for the precision-recall plot and example frames")
     parser.add_argument("--examples", type=int, default=4, help="example frames drawn into --plots")
+    parser.add_argument("--mcap", type=Path, help="folder for Foxglove/MCAP logs, one <sequence>.mcap per sequence")
     parser.add_argument("--batch-size", type=int, default=8)
     parser.add_argument("--device", default="auto", help="cpu | cuda | cuda:N | auto")
     parser.add_argument("--max-windows", type=int, help="evaluate at most N (evenly spaced) windows")
@@ -112,6 +113,12 @@ def main(argv: Sequence[str] | None = None) -> int:
     from rafd.train.distributed import resolve_device
     from rafd.train.predict import predict, summarise, summarise_by_sequence
 
+    if args.mcap is not None:
+        try:
+            from rafd.mcap_eval import write_evaluation_logs
+        except ImportError as error:
+            print(f"rafd-eval: error: --mcap needs the logs extra (pip install 'rafd[logs]'): {error}", file=sys.stderr)
+            return 2
     if not args.checkpoint.is_file():
         print(f"rafd-eval: error: checkpoint {args.checkpoint} does not exist", file=sys.stderr)
         return 2
@@ -128,7 +135,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     model = model.to(device).eval()
     try:
         results = predict(model, dataset, cfg, device, batch_size=args.batch_size, progress=not args.no_progress,
-                          precision=args.precision)
+                          precision=args.precision, keep_flow=args.mcap is not None)
     except ValueError as error:
         print(f"rafd-eval: error: {error}", file=sys.stderr)
         return 2
@@ -149,6 +156,10 @@ def main(argv: Sequence[str] | None = None) -> int:
         paths = write_plots(args.plots, model, cfg, dataset, results, args.examples, device)
         report["plots"] = [str(p) for p in paths]
         print(f"plots: {args.plots} ({len(paths)} files)")
+    if args.mcap is not None:
+        paths = write_evaluation_logs(args.mcap, dataset, results, cfg, str(args.checkpoint))
+        report["mcap"] = [str(p) for p in paths]
+        print(f"MCAP logs: {args.mcap} ({len(paths)} files)")
     if args.json is not None:
         args.json.parent.mkdir(parents=True, exist_ok=True)
         args.json.write_text(json.dumps(_jsonable(report), indent=2))

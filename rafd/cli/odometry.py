@@ -27,7 +27,7 @@ from tqdm import tqdm
 from rafd.cli.prepare import default_workers
 from rafd.data.dataset import select_sequences
 from rafd.data.poses import POSES_FILE, read_ego_poses, write_ego_poses
-from rafd.data.reader import list_frames, load_image
+from rafd.data.reader import list_frames
 from rafd.geometry import compose_poses, relative_pose, wrap_angle
 from rafd.odometry import estimate_relative_pose
 
@@ -60,9 +60,9 @@ def estimate(seq_dir: Path) -> tuple[list[int], list[str], np.ndarray, np.ndarra
     if len(listing.numbers) < 2:
         raise ValueError(f"{seq_dir} has {len(listing.numbers)} frame(s); odometry needs at least 2")
     relatives, seconds = [], []
-    previous = load_image(listing.image_paths[0])
-    for path in listing.image_paths[1:]:
-        current = load_image(path)
+    previous = listing.load(0)
+    for index in range(1, len(listing.numbers)):
+        current = listing.load(index)  # a Cartesian scan (converted from the polar one in polar-only folders)
         start = time.perf_counter()
         relatives.append(estimate_relative_pose(previous, current, listing.resolution))
         seconds.append(time.perf_counter() - start)

@@ -33,6 +33,7 @@ def _parser() -> argparse.ArgumentParser:
                              "annotators' 180-degree and width/length ambiguity)")
     parser.add_argument("--no-poses", action="store_true",
                         help="write no ego_poses.csv, like a real RADIATE sequence (prepare with rafd-odometry)")
+    parser.add_argument("--polar", action="store_true", help="also write the polar scans (Navtech_Polar/, RADIATE's layout)")
     parser.add_argument("--preview", type=Path, help="write a simulated-vs-real side-by-side PNG here instead")
     parser.add_argument("--sample", type=Path, help="real RADIATE sequence for --preview (default $RAFD_RADIATE_SAMPLE)")
     return parser
@@ -82,7 +83,7 @@ def main(argv: list[str] | None = None) -> int:
     start = time.perf_counter()
     try:
         paths = simulate_dataset(args.out_dir, args.sequences, args.frames, args.seed, args.split, args.size, difficulty,
-                                 ambiguous=not args.exact_labels, poses=not args.no_poses)
+                                 ambiguous=not args.exact_labels, poses=not args.no_poses, polar=args.polar)
     except OSError as error:
         return _fail(str(error))
     for path in paths:

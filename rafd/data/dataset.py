@@ -22,6 +22,7 @@ or where a run was resumed. dataset[index] draws as epoch 0.
 """
 from __future__ import annotations
 
+import dataclasses
 import logging
 import os
 from dataclasses import dataclass
@@ -34,7 +35,7 @@ from rafd.augment import AugmentConfig, Augmentation
 from rafd.config import RaFDConfig
 from rafd.data.cache import CROPS_FILE, cache_folder, read_cached, required_crop
 from rafd.data.poses import POSES_FILE
-from rafd.data.reader import IMAGE_DIR, META_FILE, load_image, read_meta, read_sequence
+from rafd.data.reader import IMAGE_DIR, META_FILE, POLAR_DIR, read_meta, read_sequence
 from rafd.geometry import metres_to_pixels
 
 try:  # a torch Dataset when torch is installed (DataLoader works with any __getitem__/__len__ object)
@@ -77,21 +78,23 @@ def select_sequences(root: str | Path, split: str | Sequence[str] | None) -> tup
 
 
 def find_sequences(root: str | Path) -> list[Path]:
-    """Sequence folders (holding Navtech_Cartesian/) at or under `root`, sorted; FileNotFoundError if none."""
+    """Sequence folders (holding Navtech_Cartesian/, or only the polar scans Navtech_Polar/) at or under `root`,
+    sorted; FileNotFoundError if none."""
     root = Path(root)
     if not root.is_dir():
         raise FileNotFoundError(f"data root {root} not found or not a directory")
-    if (root / IMAGE_DIR).is_dir():
+    scan_dirs = {IMAGE_DIR, POLAR_DIR}
+    if any((root / name).is_dir() for name in scan_dirs):
         return [root]
     found = []
     for current, folders, _ in os.walk(root):
-        if IMAGE_DIR in folders:
+        if scan_dirs & set(folders):
             found.append(Path(current))
             folders[:] = []  # a sequence folder holds no further sequences
         else:
             folders.sort()
     if not found:
-        raise FileNotFoundError(f"no RADIATE sequence folders (with {IMAGE_DIR}/) at or under {root}")
+        raise FileNotFoundError(f"no RADIATE sequence folders (with {IMAGE_DIR}/ or {POLAR_DIR}/) at or under {root}")
     return sorted(found)
 
 
@@ -100,7 +103,7 @@ class _SequenceMeta:
     """What windows need from one sequence, in compact arrays (picklable for DataLoader workers)."""
 
     name: str
-    image_paths: list[Path]
+    frames: list  # N rafd.data.reader.RadarFrame (load() decodes a Cartesian scan or converts a polar one)
     numbers: np.ndarray  # [N] int64 frame numbers
     timestamps: np.ndarray  # [N] float64
     poses: np.ndarray  # [N, 3]
@@ -194,7 +197,7 @@ class RadarWindowDataset(_Base):
                                 needed).folder
         return _SequenceMeta(
             name=sequence.name,
-            image_paths=[f.image_path for f in sequence.frames],
+            frames=[dataclasses.replace(f, objects=[]) for f in sequence.frames],  # objects live in boxes/ids below
             numbers=numbers,
             timestamps=np.array([f.timestamp for f in sequence.frames], np.float64),
             poses=np.asarray(sequence.poses, np.float64),
@@ -217,7 +220,7 @@ class RadarWindowDataset(_Base):
         """uint8 [N, N] scan (or its prepared centre crop) of one frame, radar at the centre."""
         meta = self.sequences[sequence]
         if meta.cache is None:
-            return load_image(meta.image_paths[position])
+            return meta.frames[position].load()
         crops = self._crops.get(sequence)
         if crops is None:
             crops = self._crops[sequence] = np.load(meta.cache / CROPS_FILE, mmap_mode="r")

@@ -3,6 +3,8 @@
 Folder layout (DESIGN.md section 2):
     Navtech_Cartesian/000001.png ...   uint8 grey Cartesian scans, radar at the image centre
     Navtech_Cartesian.txt              `Frame: 000001 Time: 1574859771.744660272`, one line per scan
+    Navtech_Polar/000001.png ...       or, instead of the two above, the sensor's polar scans uint8 [576, 400]
+    Navtech_Polar.txt                  (+ their timestamps), converted to the Cartesian grid on load (rafd.polar)
     annotations/annotations.json      [{"id", "class_name", "bboxes"}], bboxes[k] = frame k + 1 ([] if absent)
     meta.json                          {"name", "set" (the split), ...; simulated: "image_size", "resolution"}
     ego_poses.csv                      optional, ours (rafd.data.poses): frame, timestamp, x, y, yaw
@@ -12,7 +14,9 @@ polygons follow the RADIATE SDK (corners of [x0, y0, w, h] rotated about the cen
 R(deg2rad(-rotation)) in pixels); boxes are metres in the ego frame via geometry.radiate_to_box with the
 image's own size. Bad data raises FileNotFoundError/ValueError naming the file; anything skipped is
 counted in a log warning. Poses come from ego_poses.csv ("file"), else from radar odometry ("odometry",
-logged), never silently identity.
+logged), never silently identity. A folder with both Cartesian and polar scans (RADIATE ships both) is read
+from its Cartesian scans; a polar-only folder gives scans of meta.json "image_size" pixels (default: the whole
+polar disc, 1152 for RADIATE), and RadarFrame.load() / FrameList.load() convert each on load.
 """
 from __future__ import annotations
 
@@ -30,11 +34,14 @@ import numpy as np
 
 from rafd.data.poses import POSES_FILE, read_ego_poses
 from rafd.geometry import RADIATE_RESOLUTION, radiate_polygon, radiate_to_box
+from rafd.polar import RADIATE_POLAR, cartesian_size, polar_to_cartesian
 
 log = logging.getLogger(__name__)
 
 IMAGE_DIR = "Navtech_Cartesian"
 TIMESTAMPS_FILE = "Navtech_Cartesian.txt"
+POLAR_DIR = "Navtech_Polar"
+POLAR_TIMESTAMPS_FILE = "Navtech_Polar.txt"
 ANNOTATIONS_FILE = "annotations/annotations.json"
 META_FILE = "meta.json"
 RADIATE_CLASSES = ("car", "van", "truck", "bus", "motorbike", "bicycle", "pedestrian", "group_of_pedestrians")
@@ -54,16 +61,42 @@ class RadarObject:
     box: np.ndarray  # [5] (x, y, width, length, yaw) metres / radians in this frame's ego frame
 
 
+@dataclass(frozen=True)
+class PolarSource:
+    """How a polar-only folder's scans become Cartesian ones: the side and resolution of the converted scan."""
+
+    size: int  # pixels per side
+    resolution: float  # metres per pixel
+
+    def load(self, path: Path) -> np.ndarray:
+        """Navtech_Polar PNG -> uint8 [size, size] Cartesian scan (RADIATE's conventions)."""
+        polar = load_image(path)
+        try:
+            return polar_to_cartesian(polar, self.size, self.resolution)
+        except ValueError as error:
+            raise ValueError(f"polar scan {path}: {error}") from error
+
+
 @dataclass(frozen=True, eq=False)
 class RadarFrame:
     number: int  # RADIATE frame number (the N of 00000N.png)
     timestamp: float  # UNIX seconds
-    image_path: Path
+    image_path: Path  # the Cartesian scan, or the polar scan when `polar` is set
     objects: list[RadarObject] = field(default_factory=list)
+    polar: PolarSource | None = None  # set for polar-only folders: load() converts image_path
+    timestamp_text: str = ""  # canonical 'seconds.nnnnnnnnn' (parse_radiate_time): the exact time, all 9 digits
+
+    @property
+    def timestamp_ns(self) -> int:
+        """UNIX nanoseconds, exact when timestamp_text is known (a float64 keeps only ~0.2 us at today's dates)."""
+        if not self.timestamp_text:
+            return round(self.timestamp * 1e9)
+        seconds, fraction = self.timestamp_text.split(".")
+        return int(seconds) * 1_000_000_000 + int(fraction)
 
     def load(self) -> np.ndarray:
-        """uint8 [H, W] scan."""
-        return load_image(self.image_path)
+        """uint8 [H, W] Cartesian scan."""
+        return load_image(self.image_path) if self.polar is None else self.polar.load(self.image_path)
 
 
 @dataclass(frozen=True, eq=False)
@@ -152,7 +185,8 @@ def parse_radiate_time(text: str) -> tuple[float, str]:
 
 
 def read_timestamps(path: Path) -> list[tuple[int, float, str]]:
-    """Navtech_Cartesian.txt -> [(frame number, UNIX seconds, canonical 9-digit text)] in file order, validated.
+    """Navtech_Cartesian.txt (or Navtech_Polar.txt) -> [(frame number, UNIX seconds, canonical 9-digit text)] in
+    file order, validated.
 
     Times are read as the RADIATE SDK reads them (parse_radiate_time: a short fraction is zero-padded nanoseconds).
     """
@@ -265,9 +299,12 @@ def read_annotations(
     return objects
 
 
-def _check_images(folder: Path, numbers: list[int], timestamps_path: Path) -> tuple[list[Path], int]:
-    """Image path per listed frame, checked against the folder (both ways) and the PNG headers -> (paths, size)."""
-    image_dir = folder / IMAGE_DIR
+def _check_images(
+    folder: Path, numbers: list[int], timestamps_path: Path, image_dir_name: str = IMAGE_DIR
+) -> tuple[list[Path], tuple[int, int]]:
+    """Image path per listed frame, checked against the folder (both ways) and the PNG headers -> (paths, (width,
+    height)). Cartesian scans must be square; polar scans ([range bins, azimuths]) need not."""
+    image_dir = folder / image_dir_name
     if not image_dir.is_dir():
         raise FileNotFoundError(f"image folder {image_dir} not found (not a RADIATE sequence folder?)")
     on_disk: dict[int, Path] = {}
@@ -292,11 +329,11 @@ def _check_images(folder: Path, numbers: list[int], timestamps_path: Path) -> tu
     sizes = {}
     for path in paths:
         width, height = png_size(path)
-        if width != height:
+        if width != height and image_dir_name == IMAGE_DIR:
             raise ValueError(f"radar image {path} is {width}x{height}; scans must be square with the radar at the centre")
-        sizes.setdefault(width, path)
+        sizes.setdefault((width, height), path)
     if len(sizes) > 1:
-        detail = ", ".join(f"{size} px ({path.name})" for size, path in sizes.items())
+        detail = ", ".join(f"{w}x{h} px ({path.name})" for (w, h), path in sizes.items())
         raise ValueError(f"{image_dir}: scans differ in size: {detail}")
     return paths, next(iter(sizes))
 
@@ -310,7 +347,7 @@ def _file_poses(path: Path, numbers: list[int], stamps: list[float]) -> np.ndarr
         if abs(table[number][0] - stamp) > POSE_TIMESTAMP_TOLERANCE:
             raise ValueError(
                 f"{path}: frame {number} has timestamp {table[number][0]:.6f}, "
-                f"{TIMESTAMPS_FILE} says {stamp:.6f} (pose file of another sequence?)"
+                f"the scans' timestamp file says {stamp:.6f} (pose file of another sequence?)"
             )
     extra = len(table) - len(numbers)
     if extra:
@@ -326,32 +363,64 @@ class FrameList:
     numbers: list[int]
     timestamps: list[float]
     timestamp_texts: list[str]  # canonical 'seconds.nnnnnnnnn' texts (parse_radiate_time), all nanosecond digits
-    image_paths: list[Path]
-    image_size: int
+    image_paths: list[Path]  # Cartesian scans, or polar scans when `polar` is set
+    image_size: int  # pixels per side of the (converted) Cartesian scans
     resolution: float
     meta: dict
+    polar: PolarSource | None = None  # set for polar-only folders: load() converts
+
+    def load(self, index: int) -> np.ndarray:
+        """uint8 [S, S] Cartesian scan of image_paths[index] (converted from the polar scan in polar-only folders)."""
+        path = self.image_paths[index]
+        return load_image(path) if self.polar is None else self.polar.load(path)
+
+
+def is_polar_only(folder: Path) -> bool:
+    """True when a folder holds the polar scans (Navtech_Polar/ or its .txt) and no Cartesian ones."""
+    cartesian = (folder / IMAGE_DIR).is_dir() or (folder / TIMESTAMPS_FILE).is_file()
+    return not cartesian and ((folder / POLAR_DIR).is_dir() or (folder / POLAR_TIMESTAMPS_FILE).is_file())
 
 
 def list_frames(path: str | Path) -> FrameList:
     """Frame numbers, timestamps and image paths of a sequence folder, checked against each other, and
-    meta.json (split, optional image_size / resolution)."""
+    meta.json (split, optional image_size / resolution). Polar-only folders list their Navtech_Polar scans."""
     folder = Path(path)
     if not folder.is_dir():
-        raise FileNotFoundError(f"sequence folder {folder} not found (expected {folder / TIMESTAMPS_FILE} and {folder / IMAGE_DIR}/)")
-    timestamps_path = folder / TIMESTAMPS_FILE
+        raise FileNotFoundError(
+            f"sequence folder {folder} not found (expected {folder / TIMESTAMPS_FILE} and {folder / IMAGE_DIR}/, "
+            f"or {POLAR_TIMESTAMPS_FILE} and {POLAR_DIR}/)"
+        )
+    polar_only = is_polar_only(folder)
+    timestamps_path = folder / (POLAR_TIMESTAMPS_FILE if polar_only else TIMESTAMPS_FILE)
     listed = read_timestamps(timestamps_path)
     numbers, stamps = [n for n, _, _ in listed], [t for _, t, _ in listed]
-    image_paths, image_size = _check_images(folder, numbers, timestamps_path)
+    image_dir = POLAR_DIR if polar_only else IMAGE_DIR
+    image_paths, (width, height) = _check_images(folder, numbers, timestamps_path, image_dir)
     meta_path = folder / META_FILE
     meta = read_meta(meta_path)
-    if "image_size" in meta and meta["image_size"] != image_size:
-        raise ValueError(f"{meta_path}: image_size {meta['image_size']!r} but the scans are {image_size} px")
     resolution = RADIATE_RESOLUTION
     if "resolution" in meta:
         resolution = _number(meta["resolution"], meta_path, "resolution")
         if resolution <= 0:
             raise ValueError(f"{meta_path}: resolution must be positive, got {resolution}")
-    return FrameList(folder, numbers, stamps, [text for _, _, text in listed], image_paths, image_size, resolution, meta)
+    polar: PolarSource | None = None
+    if polar_only:
+        # PNG width x height = azimuths x range bins. meta.json's image_size (a simulated folder) names the
+        # Cartesian scans the annotations were made on; RADIATE's polar disc fills 1152 px.
+        image_size = cartesian_size(height, resolution, RADIATE_POLAR)
+        if "image_size" in meta:
+            image_size = meta["image_size"]
+            if isinstance(image_size, bool) or not isinstance(image_size, int) or image_size < 2 or image_size % 2:
+                raise ValueError(f"{meta_path}: image_size must be an even number of pixels, got {image_size!r}")
+        polar = PolarSource(image_size, resolution)
+        log.info("%s: polar-only sequence (%d range bins x %d azimuths): scans are converted to %d px on load",
+                 folder, height, width, image_size)
+    else:
+        image_size = width
+        if "image_size" in meta and meta["image_size"] != image_size:
+            raise ValueError(f"{meta_path}: image_size {meta['image_size']!r} but the scans are {image_size} px")
+    return FrameList(folder, numbers, stamps, [text for _, _, text in listed], image_paths, image_size, resolution,
+                     meta, polar)
 
 
 def read_sequence(path: str | Path, estimate_poses: bool = True) -> RadarSequence:
@@ -368,7 +437,10 @@ def read_sequence(path: str | Path, estimate_poses: bool = True) -> RadarSequenc
     else:
         log.warning("%s not found: the %d frames carry no objects", annotations_path, len(numbers))
         objects = {n: [] for n in numbers}
-    frames = [RadarFrame(n, t, p, objects[n]) for n, t, p in zip(numbers, stamps, listing.image_paths)]
+    frames = [
+        RadarFrame(n, t, p, objects[n], listing.polar, text)
+        for n, t, p, text in zip(numbers, stamps, listing.image_paths, listing.timestamp_texts)
+    ]
 
     poses_path = folder / POSES_FILE
     poses: np.ndarray | None = None

@@ -25,13 +25,15 @@ def simulate_sequence(
     difficulty: Difficulty = Difficulty(),
     ambiguous: bool = True,
     poses: bool = True,
+    polar: bool = False,
 ) -> Path:
     """Simulate and write one sequence into the folder `out_dir` (its name becomes meta.json "name");
     `ambiguous` labels as RADIATE's annotators do (rafd.sim.sequence.ambiguous_labels); poses=False writes no
-    ego_poses.csv (like a real RADIATE sequence before `rafd-odometry`)."""
+    ego_poses.csv (like a real RADIATE sequence before `rafd-odometry`); polar=True also writes the polar scans
+    (Navtech_Polar/)."""
     out_dir = Path(out_dir)
     sequence = run_simulation(seed, num_frames, split, size, difficulty, name=out_dir.name, ambiguous=ambiguous)
-    return write_sequence(sequence, out_dir, poses=poses)
+    return write_sequence(sequence, out_dir, poses=poses, polar=polar)
 
 
 def simulate_dataset(
@@ -44,6 +46,7 @@ def simulate_dataset(
     difficulty: Difficulty = Difficulty(),
     ambiguous: bool = True,
     poses: bool = True,
+    polar: bool = False,
 ) -> list[Path]:
     """Write `sequences` folders root/sim_<seed>_<k>, each simulated from sequence_seed(seed, k)."""
     if sequences < 1:
@@ -51,6 +54,6 @@ def simulate_dataset(
     root = Path(root)
     return [
         simulate_sequence(root / f"sim_{seed}_{k}", sequence_seed(seed, k), frames, split, size, difficulty, ambiguous,
-                          poses)
+                          poses, polar)
         for k in range(sequences)
     ]

@@ -8,6 +8,7 @@ import cv2
 import numpy as np
 
 from rafd.geometry import RADIATE_RESOLUTION, RADIATE_SCAN_SIZE
+from rafd.polar import PolarConventions
 from rafd.sim.scene import Scatterers
 
 
@@ -81,6 +82,12 @@ class NavtechSensor:
         map_x[r > cfg.disc_radius_pixels * self.resolution] = -10.0  # outside the disc -> border (0)
         map_y = theta / (2 * np.pi) * cfg.azimuths - 0.5 + 1.0  # +1: one wrapped row padded on top
         return map_x.astype(np.float32), map_y.astype(np.float32)
+
+    @property
+    def polar_conventions(self) -> PolarConventions:
+        """Where to_cartesian places the samples of the transposed [R, A] polar: bin centres, radar at S/2."""
+        return PolarConventions(azimuth_offset=0.5, range_offset=0.5, range_bin=self.config.range_bin,
+                                centre_offset=(0.0, 0.0))
 
     def polar_coordinates(self, xy: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """[N, 2] ego metres -> ([N] continuous azimuth bins in [0, A), [N] ranges in metres)."""

@@ -8,6 +8,7 @@ from pathlib import Path
 import numpy as np
 
 from rafd.geometry import RADIATE_RESOLUTION, invert_pose, rotation_matrix, transform_boxes
+from rafd.polar import to_radiate_polar
 from rafd.sim.road import LANE_WIDTH, drive_ego, make_road
 from rafd.sim.scene import Scatterers, body_model, build_static_world
 from rafd.sim.sensor import Difficulty, NavtechSensor
@@ -41,6 +42,7 @@ class SimulatedSequence:
     timestamps_ns: np.ndarray  # [T] int64 UNIX nanoseconds
     poses: np.ndarray  # [T, 3] true world poses of the radar's ego frame
     objects: list[SimulatedObject]  # only objects annotated in at least one frame
+    polar_scans: list[np.ndarray] | None = None  # T x uint8 [576, 400]: the scans in RADIATE's Navtech_Polar layout
 
 
 def frame_times(rng: np.random.Generator, num_frames: int) -> np.ndarray:
@@ -115,7 +117,7 @@ def run_simulation(
     world_boxes = np.stack([agent.world_boxes(road) for agent in agents]) if agents else np.zeros((0, num_frames, 5))
     half_extent = size / 2.0 * resolution
     truth = np.full((len(agents), num_frames, 5), np.nan)
-    images = []
+    images, polar_scans = [], []
     for t in range(num_frames):
         to_ego = invert_pose(ego.poses[t])
         rotation, translation = rotation_matrix(to_ego[2]), to_ego[:2]
@@ -135,7 +137,9 @@ def run_simulation(
             ghosts_from.append((echoes.azimuth[mine], echoes.ranges[mine], echoes.power[mine]))
         t_az, t_rg, t_pw = _transient_returns(rng, sensor, difficulty, ghosts_from)
         signal = sensor.accumulate(np.concatenate([echoes.azimuth, t_az]), np.concatenate([echoes.ranges, t_rg]), np.concatenate([echoes.power, t_pw]))
-        images.append(sensor.to_cartesian(sensor.receive(signal, rng, difficulty)))
+        received = sensor.receive(signal, rng, difficulty)  # [A, R] grey levels
+        images.append(sensor.to_cartesian(received))
+        polar_scans.append(to_radiate_polar(received.T, sensor.polar_conventions))
         # Annotated: centre inside the image and the scan disc, and enough of the outline lit.
         in_view = (
             (np.abs(ego_boxes[:, 0]) < half_extent)
@@ -152,4 +156,4 @@ def run_simulation(
         if np.isfinite(truth[k, :, 0]).any()
     ]
     logger.info("simulated %s: %d frames, %d annotated objects of %d road users", name, num_frames, len(objects), len(agents))
-    return SimulatedSequence(name, split, seed, resolution, images, stamps, ego.poses, objects)
+    return SimulatedSequence(name, split, seed, resolution, images, stamps, ego.poses, objects, polar_scans)

@@ -1,4 +1,5 @@
-"""Write a simulated sequence in RADIATE's on-disk layout (+ our ego_poses.csv with the true poses)."""
+"""Write a simulated sequence in RADIATE's on-disk layout (+ our ego_poses.csv with the true poses; optionally the
+polar scans as Navtech_Polar/ + Navtech_Polar.txt, RADIATE's layout and bin size)."""
 from __future__ import annotations
 
 import json
@@ -39,20 +40,30 @@ def _write_poses(path: Path, sequence: SimulatedSequence) -> None:
     write_ego_poses(path, frames, [format_timestamp(stamp) for stamp in sequence.timestamps_ns], sequence.poses)
 
 
-def write_sequence(sequence: SimulatedSequence, out_dir: Path, poses: bool = True) -> Path:
-    """Create `out_dir` (a sequence folder) with Navtech_Cartesian/, its .txt, annotations, meta.json and (unless
-    `poses` is False, like a real RADIATE sequence before `rafd-odometry`) ego_poses.csv with the true poses."""
-    out_dir = Path(out_dir)
-    image_dir = out_dir / "Navtech_Cartesian"
+def _write_scans(out_dir: Path, name: str, scans: list[np.ndarray], stamps: np.ndarray) -> None:
+    """`name`/000001.png ... and `name`.txt (RADIATE's `Frame: 000001 Time: s.nnnnnnnnn` lines)."""
+    image_dir = out_dir / name
     image_dir.mkdir(parents=True, exist_ok=True)
-    (out_dir / "annotations").mkdir(exist_ok=True)
     lines = []
-    for index, (image, stamp) in enumerate(zip(sequence.images, sequence.timestamps_ns), start=1):
+    for index, (image, stamp) in enumerate(zip(scans, stamps), start=1):
         path = image_dir / f"{index:06d}.png"
         if not cv2.imwrite(str(path), image):
             raise OSError(f"could not write {path}")
         lines.append(f"Frame: {index:06d} Time: {format_timestamp(stamp)}\n")
-    (out_dir / "Navtech_Cartesian.txt").write_text("".join(lines))
+    (out_dir / f"{name}.txt").write_text("".join(lines))
+
+
+def write_sequence(sequence: SimulatedSequence, out_dir: Path, poses: bool = True, polar: bool = False) -> Path:
+    """Create `out_dir` (a sequence folder) with Navtech_Cartesian/, its .txt, annotations, meta.json and (unless
+    `poses` is False, like a real RADIATE sequence before `rafd-odometry`) ego_poses.csv with the true poses;
+    polar=True adds Navtech_Polar/ + Navtech_Polar.txt (the same scans, uint8 [576 range bins, 400 azimuths])."""
+    out_dir = Path(out_dir)
+    if polar and (sequence.polar_scans is None or len(sequence.polar_scans) != len(sequence.images)):
+        raise ValueError(f"sequence {sequence.name} carries no polar scan per frame; cannot write Navtech_Polar")
+    _write_scans(out_dir, "Navtech_Cartesian", sequence.images, sequence.timestamps_ns)
+    if polar:
+        _write_scans(out_dir, "Navtech_Polar", sequence.polar_scans, sequence.timestamps_ns)
+    (out_dir / "annotations").mkdir(exist_ok=True)
     (out_dir / "annotations" / "annotations.json").write_text(json.dumps(annotations_json(sequence)))
     meta = {
         "name": sequence.name,

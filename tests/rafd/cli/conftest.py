@@ -1,6 +1,8 @@
-"""Fixtures for the CLI tests: a tiny simulated data root and a checkpoint trained on it for two steps."""
+"""Fixtures for the CLI tests: a tiny simulated data root, a checkpoint trained on it for two steps, and a
+loopback rafd-serve with the service tests' FakeRunner (for rafd-client)."""
 from __future__ import annotations
 
+import sys
 from pathlib import Path
 
 import pytest
@@ -27,3 +29,20 @@ def trained_checkpoint(sim_root: Path, tmp_path_factory: pytest.TempPathFactory)
     ]
     assert main(argv) == 0
     return out
+
+
+@pytest.fixture
+def service_url():
+    """A real uvicorn server on loopback running the service with the FakeRunner and a fake odometry."""
+    sys.path.insert(0, str(Path(__file__).resolve().parents[2] / "service"))  # the service tests' helpers
+    import httpx
+    from fake_runner import FakeRunner
+    from service_testing import FakeOdometry, serve_in_thread, wait_ready
+
+    from service.app import create_app
+    from service.settings import Settings
+
+    with serve_in_thread(create_app(Settings(threads=1), runner=FakeRunner(), odometry=FakeOdometry())) as url:
+        with httpx.Client(base_url=url) as http:
+            wait_ready(http)
+        yield url

@@ -2,22 +2,26 @@
 from __future__ import annotations
 
 import json
-import sys
 from pathlib import Path
 
 import cv2
 import numpy as np
 import pytest
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[2] / "service"))  # the service tests' FakeRunner and helpers
-from fake_runner import FakeRunner  # noqa: E402
-from service_testing import FakeOdometry, serve_in_thread, wait_ready  # noqa: E402
-
-from rafd.cli.client import main  # noqa: E402
-from service.app import create_app  # noqa: E402
-from service.settings import Settings  # noqa: E402
+from rafd.cli.client import main
 
 POSES = np.array([[0.0, 0.0, 0.0], [0.5, 1.0, 0.01], [1.0, 2.0, 0.02]])
+
+
+def red_pixels_along(picture: np.ndarray, polygon: np.ndarray) -> float:
+    """Fraction of points sampled along a [4, 2] outline whose pixel (or a neighbour) is prediction red."""
+    red = (picture[..., 2] > 180) & (picture[..., 1] < 90) & (picture[..., 0] < 90)
+    hits = []
+    for a, b in zip(polygon, np.roll(polygon, -1, axis=0)):
+        for t in np.linspace(0.1, 0.9, 9):
+            u, v = np.floor(a + t * (b - a)).astype(int)
+            hits.append(red[max(v - 1, 0) : v + 2, max(u - 1, 0) : u + 2].any())
+    return float(np.mean(hits))
 
 
 @pytest.fixture
@@ -41,16 +45,6 @@ def sequence(tmp_path: Path) -> Path:
     return root
 
 
-@pytest.fixture
-def service_url():
-    with serve_in_thread(create_app(Settings(threads=1), runner=FakeRunner(), odometry=FakeOdometry())) as url:
-        import httpx
-
-        with httpx.Client(base_url=url) as http:
-            wait_ready(http)
-        yield url
-
-
 def test_client_streams_a_sequence_and_writes_drawings_and_video(sequence, service_url, tmp_path, capsys):
     out = tmp_path / "out"
     assert main([str(sequence), "--url", service_url, "--out", str(out)]) == 0
@@ -60,10 +54,10 @@ def test_client_streams_a_sequence_and_writes_drawings_and_video(sequence, servi
     assert all(a["pose_source"] == "request" for a in answers)
     np.testing.assert_allclose([[a["pose"][k] for k in ("x", "y", "yaw")] for a in answers], POSES, atol=1e-9)
     drawn = cv2.imread(str(out / "frames" / "000003.png"))
-    assert drawn.shape == (1152, 1152, 3)
-    polygon = np.round(np.asarray(answers[2]["boxes"][0]["polygon"])).astype(int)
-    u, v = polygon[0]
-    assert tuple(drawn[v, u]) == (0, 255, 0)  # the box outline is drawn at its posted-pixel corner
+    assert drawn.shape == (768, 768 + 300, 3)  # the 128 px model crop zoomed 6x, beside the side panel
+    offset, zoom = answers[2]["input"]["crop_offset_px"], 6
+    polygon = (np.asarray(answers[2]["boxes"][0]["polygon"]) - offset) * zoom  # [4, 2] in the zoomed view
+    assert red_pixels_along(drawn, polygon) > 0.8  # the best box is outlined in the prediction colour
     video = cv2.VideoCapture(str(out / "sequence.mp4"))
     assert video.isOpened() and int(video.get(cv2.CAP_PROP_FRAME_COUNT)) == 3
     assert "frame 000003" in capsys.readouterr().out

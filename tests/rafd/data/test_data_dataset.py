@@ -170,7 +170,7 @@ def test_augmented_windows_are_seeded_and_consistent(root: Path) -> None:
         expected = plain.window(k, augmentation)
         np.testing.assert_array_equal(window["frames"], expected["frames"])
         np.testing.assert_array_equal(window["poses"], augmentation.poses(plain[k]["poses"]))
-        full = [plain.sequences[0].image_paths[k + t] for t in range(4)]
+        full = [plain.sequences[0].frames[k + t].image_path for t in range(4)]
         for t in range(4):
             np.testing.assert_array_equal(window["frames"][t], augmentation.image(load_image(full[t]), 128))
             # Every kept box is an augmented original (same id), inside the crop.
@@ -189,3 +189,22 @@ def test_unusable_sequences_fail_clearly(root: Path, tmp_path: Path) -> None:
     (bare / "annotations" / "annotations.json").unlink()
     with pytest.raises(FileNotFoundError, match="annotations.json"):
         RadarWindowDataset(bare, split=None, cfg=CFG)
+
+
+def test_polar_only_folders_give_the_windows_of_their_cartesian_twin(tmp_path: Path) -> None:
+    """A folder holding only Navtech_Polar/ trains like the Cartesian one, via the reader's conversion and the cache."""
+    from rafd.cli.odometry import main as odometry_main
+    from rafd.cli.prepare import main as prepare_main
+
+    twin = simulate_sequence(tmp_path / "twin" / "seq", seed=4, num_frames=6, split="test", size=1152, polar=True,
+                             poses=False)
+    polar_only = Path(shutil.copytree(twin, tmp_path / "polar" / "seq"))
+    shutil.rmtree(polar_only / "Navtech_Cartesian")
+    (polar_only / "Navtech_Cartesian.txt").unlink()
+    assert odometry_main([str(tmp_path / "polar")]) == 0  # poses from the converted scans
+    assert prepare_main([str(tmp_path / "polar"), str(tmp_path / "cache"), "--crop", "256"]) == 0
+    decoded = RadarWindowDataset(tmp_path / "polar", split="test", cfg=CFG)
+    cached = RadarWindowDataset(tmp_path / "polar", split="test", cfg=CFG, cache=tmp_path / "cache")
+    assert len(decoded) == len(cached) == 3
+    np.testing.assert_array_equal(decoded[2]["frames"], cached[2]["frames"])
+    assert decoded[2]["frames"].shape == (4, 128, 128) and decoded[2]["frames"].mean() > 1
