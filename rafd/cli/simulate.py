@@ -34,6 +34,12 @@ def _parser() -> argparse.ArgumentParser:
     parser.add_argument("--no-poses", action="store_true",
                         help="write no ego_poses.csv, like a real RADIATE sequence (prepare with rafd-odometry)")
     parser.add_argument("--polar", action="store_true", help="also write the polar scans (Navtech_Polar/, RADIATE's layout)")
+    parser.add_argument("--realism", type=Path, nargs="+", metavar="REAL_SEQ",
+                        help="instead of writing: compare simulated scans with these real sequences' scans (no labels "
+                             "used) and print the realism table (rafd.sim.realism)")
+    parser.add_argument("--realism-sim", type=Path,
+                        help="with --realism: take the simulated scans from this data root instead of simulating")
+    parser.add_argument("--json", type=Path, help="with --realism: also write the table as JSON here")
     parser.add_argument("--preview", type=Path, help="write a simulated-vs-real side-by-side PNG here instead")
     parser.add_argument("--sample", type=Path, help="real RADIATE sequence for --preview (default $RAFD_RADIATE_SAMPLE)")
     return parser
@@ -52,6 +58,8 @@ def main(argv: list[str] | None = None) -> int:
         difficulty = Difficulty(clutter=args.clutter, ghosts=args.ghosts, noise=args.noise)
     except ValueError as error:
         return _fail(str(error))
+    if args.realism is not None:
+        return _realism(args, difficulty)
     if args.preview is not None:
         sample = args.sample or (Path(os.environ["RAFD_RADIATE_SAMPLE"]) if os.environ.get("RAFD_RADIATE_SAMPLE") else None)
         if sample is None:
@@ -89,6 +97,51 @@ def main(argv: list[str] | None = None) -> int:
     for path in paths:
         print(path)
     print(f"simulated {len(paths)} sequence(s) x {args.frames} frames in {time.perf_counter() - start:.1f} s")
+    return 0
+
+
+def _scans_of(root: Path, limit: int | None = None) -> list:
+    """uint8 Cartesian scans of every sequence at or under `root` (polar-only folders converted), in order."""
+    from rafd.data.dataset import find_sequences
+    from rafd.data.reader import read_sequence
+
+    scans = []
+    for folder in find_sequences(root):
+        scans += [frame.load() for frame in read_sequence(folder, estimate_poses=False).frames]
+    return scans[:limit]
+
+
+def _realism(args: argparse.Namespace, difficulty: Difficulty) -> int:
+    """Simulated vs real scans, label-free: one table (rafd.sim.realism)."""
+    import json
+
+    from rafd.sim.realism import format_table, realism_table
+    from rafd.sim.sequence import run_simulation
+    from rafd.sim.api import sequence_seed
+
+    try:
+        real = [scan for root in args.realism for scan in _scans_of(root)]
+        if args.realism_sim is not None:
+            simulated = _scans_of(args.realism_sim)
+        else:  # RADIATE-sized scans, a few frames from each of several drives
+            simulated = []
+            for k in range(args.sequences if args.sequences > 1 else 6):
+                seed = sequence_seed(args.seed, k)
+                simulated += run_simulation(seed, min(args.frames, 3), "realism", RADIATE_SCAN_SIZE, difficulty,
+                                            name=f"realism_{k}").images
+    except (FileNotFoundError, ValueError) as error:
+        return _fail(str(error))
+    sizes = {scan.shape for scan in real + simulated}
+    if sizes != {(RADIATE_SCAN_SIZE, RADIATE_SCAN_SIZE)}:
+        return _fail(f"the realism measures compare {RADIATE_SCAN_SIZE} px RADIATE scans; got shapes {sorted(sizes)}")
+    try:
+        rows = realism_table(real, simulated, seed=args.seed)
+    except ImportError:
+        return _fail("the patch classifier needs torch: install the train extra")
+    print(f"{len(real)} real scans, {len(simulated)} simulated scans")
+    print(format_table(rows))
+    if args.json is not None:
+        args.json.write_text(json.dumps([row.__dict__ for row in rows], indent=2))
     return 0
 
 
