@@ -1,4 +1,4 @@
-"""Window-consistent geometric augmentation: mirror (x -> -x) and rotation about the radar.
+"""Window-consistent augmentation: mirror (x -> -x) and rotation about the radar, and radar intensity changes.
 
 One `Augmentation` is drawn per window and applied identically to every frame, so images, boxes, poses and
 therefore the pseudo-GT flow built from them stay consistent. It acts on ego coordinates as the linear map
@@ -16,6 +16,17 @@ cv2.warpAffine (bilinear, zeros outside the scan): a rotated crop is filled with
 whenever the full scan is at least S * sqrt(2) wide (RADIATE 1152 >= 362 for S = 256). Pure flips and the
 identity are exact pixel copies. The crop protocol (centre inside the crop) is applied afterwards to the
 transformed boxes, by rafd.data.dataset.
+
+Tile shift (AugmentConfig.shift_max_m > 0): the crop is cut around a point away from the radar, as the full-scan
+tiles of rafd.tiled are, so a model also learns what vehicles at 50-90 m look like. The crop's frame is the ego frame
+shifted by `shift_m` (whole pixels): boxes and points move by -shift_m and poses become the shifted frame's world
+poses (pose o (shift_m, 0)), before the flip/rotation, which then turns about the crop's centre.
+
+Intensity (Augmentation.intensity, off unless AugmentConfig.intensity_probability > 0): what another receiver gain,
+weather or sensor does to the grey levels, applied to the cropped uint8 frames, the same for the whole window (up to a
+small per-frame gain jitter): g = gain * jitter_t * (grey / 255) ** gamma, a speckled floor added in power,
+sqrt(g^2 + (floor / 255)^2 E) with E ~ Exp(1) per pixel, then a Gaussian blur (coarser speckle and point spread).
+Boxes, poses and flow are unchanged.
 """
 from __future__ import annotations
 
@@ -26,7 +37,7 @@ from functools import cached_property
 import cv2
 import numpy as np
 
-from rafd.geometry import rotation_matrix, wrap_angle
+from rafd.geometry import RADIATE_RESOLUTION, rotation_matrix, wrap_angle
 from rafd.preprocess import model_crop, rotation_crop
 
 
@@ -34,8 +45,26 @@ from rafd.preprocess import model_crop, rotation_crop
 class AugmentConfig:
     flip_probability: float = 0.5  # chance of mirroring x -> -x
     max_rotation_deg: float = 15.0  # rotation angle uniform in +-this (0 disables rotation)
+    intensity_probability: float = 0.0  # chance a window's intensities change (0: geometry only)
+    gain_range: tuple[float, float] = (0.6, 1.6)  # grey levels scale by a log-uniform factor in this range
+    gamma_range: tuple[float, float] = (0.8, 1.25)  # log-uniform
+    floor_max: float = 14.0  # grey level of the speckled floor added in power (uniform in [0, this])
+    blur_max: float = 0.9  # pixels: Gaussian blur sigma (uniform in [0, this])
+    frame_gain_jitter: float = 0.05  # per-frame gain factor exp(N(0, this)) within a window
+    shift_probability: float = 0.0  # chance a window is cut away from the radar (a full-scan tile)
+    shift_max_m: float = 0.0  # the crop's centre lies uniformly in a disc of this radius around the radar
 
     def __post_init__(self) -> None:
+        if not 0.0 <= self.intensity_probability <= 1.0:
+            raise ValueError(f"intensity_probability must be in [0, 1], got {self.intensity_probability}")
+        for name in ("gain_range", "gamma_range"):
+            lo, hi = getattr(self, name)
+            if not 0.0 < lo <= hi:
+                raise ValueError(f"{name} must be (lo, hi) with 0 < lo <= hi, got {(lo, hi)}")
+        if self.floor_max < 0 or self.blur_max < 0 or self.frame_gain_jitter < 0:
+            raise ValueError("floor_max, blur_max and frame_gain_jitter must be >= 0")
+        if not 0.0 <= self.shift_probability <= 1.0 or self.shift_max_m < 0:
+            raise ValueError("shift_probability must be in [0, 1] and shift_max_m >= 0")
         if not 0.0 <= self.flip_probability <= 1.0:
             raise ValueError(f"flip_probability must be in [0, 1], got {self.flip_probability}")
         if not (math.isfinite(self.max_rotation_deg) and 0.0 <= self.max_rotation_deg <= 180.0):
@@ -46,17 +75,63 @@ class AugmentConfig:
 class Augmentation:
     flip: bool = False  # mirror x -> -x first
     angle: float = 0.0  # then rotate counter-clockwise (ego metres) about the radar, radians
+    gain: float = 1.0  # intensity (see the module docstring); all at their neutral values = no change
+    gamma: float = 1.0
+    floor: float = 0.0  # grey
+    blur: float = 0.0  # pixels
+    jitter: float = 0.0  # per-frame gain jitter sigma
+    noise_seed: int = 0  # the floor's speckle and the jitter are drawn from this
+    shift_px: tuple[int, int] = (0, 0)  # crop centre (right, down) in pixels from the radar
+    shift_m: tuple[float, float] = (0.0, 0.0)  # the same in ego metres (x right, y forward)
 
     @classmethod
-    def sample(cls, rng: np.random.Generator, config: AugmentConfig = AugmentConfig()) -> "Augmentation":
+    def sample(cls, rng: np.random.Generator, config: AugmentConfig = AugmentConfig(),
+               resolution: float = RADIATE_RESOLUTION) -> "Augmentation":
         flip = bool(rng.random() < config.flip_probability)
         limit = math.radians(config.max_rotation_deg)
         angle = float(rng.uniform(-limit, limit)) if limit > 0 else 0.0
-        return cls(flip=flip, angle=angle)
+        shift: dict = {}
+        if config.shift_max_m > 0 and rng.random() < config.shift_probability:
+            radius, direction = config.shift_max_m * math.sqrt(rng.random()), rng.uniform(0, 2 * math.pi)
+            du, dv = (int(round(v / resolution)) for v in (radius * math.cos(direction), -radius * math.sin(direction)))
+            shift = {"shift_px": (du, dv), "shift_m": (du * resolution, -dv * resolution)}
+        if not rng.random() < config.intensity_probability:
+            return cls(flip=flip, angle=angle, **shift)
+        log_uniform = lambda lo_hi: float(math.exp(rng.uniform(math.log(lo_hi[0]), math.log(lo_hi[1]))))  # noqa: E731
+        return cls(flip=flip, angle=angle, gain=log_uniform(config.gain_range), gamma=log_uniform(config.gamma_range),
+                   floor=float(rng.uniform(0.0, config.floor_max)), blur=float(rng.uniform(0.0, config.blur_max)),
+                   jitter=config.frame_gain_jitter, noise_seed=int(rng.integers(2**31)), **shift)
 
     @property
     def is_identity(self) -> bool:
-        return not self.flip and self.angle == 0.0
+        return not self.flip and self.angle == 0.0 and not self.changes_intensity and self.shift_px == (0, 0)
+
+    @property
+    def changes_intensity(self) -> bool:
+        return (self.gain, self.gamma, self.floor, self.blur, self.jitter) != (1.0, 1.0, 0.0, 0.0, 0.0)
+
+    def as_dict(self) -> dict[str, float | bool]:
+        """The parameters (what a window records of its augmentation)."""
+        return {"flip": self.flip, "angle": self.angle, "gain": self.gain, "gamma": self.gamma, "floor": self.floor,
+                "blur": self.blur, "shift_px": self.shift_px, "shift_m": self.shift_m}
+
+    def intensity(self, frames: np.ndarray) -> np.ndarray:
+        """uint8 [T, S, S] window frames -> the same frames under this augmentation's intensity change."""
+        frames = np.asarray(frames)
+        if not self.changes_intensity:
+            return frames
+        rng = np.random.default_rng(self.noise_seed)
+        gains = self.gain * np.exp(rng.normal(0.0, self.jitter, len(frames)))
+        out = np.empty(frames.shape, np.uint8)
+        for t, frame in enumerate(frames):
+            grey = gains[t] * (frame.astype(np.float32) / 255.0) ** self.gamma
+            if self.floor > 0:
+                floor = (self.floor / 255.0) ** 2 * rng.standard_exponential(frame.shape).astype(np.float32)
+                grey = np.sqrt(grey * grey + floor)
+            if self.blur > 0:
+                grey = cv2.GaussianBlur(grey, (0, 0), self.blur)
+            out[t] = np.clip(np.rint(grey * 255.0), 0, 255)
+        return out
 
     @cached_property
     def matrix(self) -> np.ndarray:
@@ -68,8 +143,12 @@ class Augmentation:
         return -yaw if self.flip else yaw
 
     def points(self, points: np.ndarray) -> np.ndarray:
-        """[..., 2] ego metres (or displacement vectors) -> [..., 2]."""
-        return np.asarray(points, dtype=np.float64) @ self.matrix.T
+        """[..., 2] ego metres -> [..., 2] in the augmented crop's frame."""
+        return (np.asarray(points, dtype=np.float64) - np.asarray(self.shift_m)) @ self.matrix.T
+
+    def vectors(self, vectors: np.ndarray) -> np.ndarray:
+        """[..., 2] displacements (flow) -> [..., 2]: turned and mirrored, not shifted."""
+        return np.asarray(vectors, dtype=np.float64) @ self.matrix.T
 
     def boxes(self, boxes: np.ndarray) -> np.ndarray:
         """[N, 5] (x, y, width, length, yaw) -> [N, 5]."""
@@ -80,10 +159,12 @@ class Augmentation:
         return out
 
     def poses(self, poses: np.ndarray) -> np.ndarray:
-        """[T, 3] world poses -> [T, 3] in the transformed world (relative motions map by G)."""
+        """[T, 3] world poses -> [T, 3] world poses of the crop's (shifted) frame in the transformed world (relative
+        motions map by G)."""
         poses = np.asarray(poses, dtype=np.float64).reshape(-1, 3)
         out = poses.copy()
-        out[:, :2] = self.points(poses[:, :2])
+        shifted = poses[:, :2] + np.einsum("tij,j->ti", rotation_matrix(poses[:, 2]), np.asarray(self.shift_m))
+        out[:, :2] = self.vectors(shifted)  # the world turns and mirrors like displacements (no shift)
         out[:, 2] = wrap_angle(self._yaw(poses[:, 2]))
         return out
 
@@ -95,6 +176,13 @@ class Augmentation:
             raise ValueError(f"expected a square 2-D scan, got shape {image.shape}")
         if size > height:
             raise ValueError(f"cannot crop {size}x{size} from a {height}x{height} scan")
+        if self.shift_px != (0, 0):  # re-centre on the shifted point: the largest square around it
+            du, dv = self.shift_px
+            side = height - 2 * max(abs(du), abs(dv))
+            if side < size:
+                raise ValueError(f"a crop {self.shift_px} px from the centre of a {height} px scan leaves {side} px")
+            top, left = (height - side) // 2 + dv, (height - side) // 2 + du
+            image, height = image[top : top + side, left : left + side], side
         if self.angle == 0.0:
             crop = model_crop(image, size)
             return np.ascontiguousarray(crop[:, ::-1]) if self.flip else crop.copy()

@@ -13,6 +13,20 @@ BOX_ENCODINGS = ("symmetric", "as_labelled")
 
 
 @dataclass(frozen=True)
+class InputConfig:
+    # The network's first module (rafd.model.normalise): "none" = grey / 255 as the paper; "local_contrast" = log grey
+    # standardised over a window x window pixel box, robust to the receiver's gain, gamma and range-dependent floor.
+    normalisation: str = "none"
+    window: int = 47  # pixels (8.2 m at RADIATE's resolution), odd
+
+    def __post_init__(self) -> None:
+        if self.normalisation not in ("none", "local_contrast"):
+            raise ValueError(f"input.normalisation must be 'none' or 'local_contrast', got {self.normalisation!r}")
+        if self.window < 3 or self.window % 2 == 0:
+            raise ValueError(f"input.window must be an odd number of pixels >= 3, got {self.window}")
+
+
+@dataclass(frozen=True)
 class BackboneConfig:
     # Basic-block ResNet: blocks per stage. (3, 4, 6, 3) is ResNet-34 as in the paper.
     blocks: tuple[int, ...] = (3, 4, 6, 3)
@@ -96,6 +110,7 @@ class RaFDConfig:
     output_stride: int = 4  # feature map is input_size / output_stride (TempoRadar: 256 -> 64)
     resolution: float = RADIATE_RESOLUTION  # metres per input pixel (RADIATE Navtech)
     class_names: tuple[str, ...] = ("vehicle",)
+    input: InputConfig = field(default_factory=InputConfig)
     backbone: BackboneConfig = field(default_factory=BackboneConfig)
     neck: NeckConfig = field(default_factory=NeckConfig)
     enhance: EnhanceConfig = field(default_factory=EnhanceConfig)
@@ -173,6 +188,7 @@ class RaFDConfig:
         take the value they had before they existed (LEGACY_DEFAULTS), never today's default."""
         sub_types = {f.name: f.type for f in dataclasses.fields(cls)}
         nested = {
+            "input": InputConfig,
             "backbone": BackboneConfig,
             "neck": NeckConfig,
             "enhance": EnhanceConfig,

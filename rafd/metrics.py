@@ -16,6 +16,8 @@ from __future__ import annotations
 
 from collections.abc import Sequence
 
+from dataclasses import dataclass
+
 import numpy as np
 import shapely
 
@@ -182,6 +184,65 @@ def mean_average_precision(
         precision, recall = _pr_from_overlaps(frames, best_gt, best_iou, num_gt_per_frame, float(threshold))
         result[float(threshold)] = voc_ap(recall, precision, use_07_metric) if sum(num_gt_per_frame) else 0.0
     return result
+
+
+# ---------------------------------------------------------------- centre-distance matching
+@dataclass(frozen=True)
+class CentreMatches:
+    """Every detection of a set of frames ranked by score, greedily matched to the nearest unmatched GT centre."""
+
+    scores: np.ndarray  # [D] descending
+    true_positive: np.ndarray  # [D] bool
+    num_gt: int
+    num_frames: int
+
+    def at_threshold(self, score_threshold: float) -> tuple[float, float]:
+        """(recall, false positives per frame) of the detections scoring >= the threshold."""
+        keep = self.scores >= score_threshold
+        recall = float(self.true_positive[keep].sum() / self.num_gt) if self.num_gt else float("nan")
+        return recall, float((~self.true_positive[keep]).sum() / max(self.num_frames, 1))
+
+    def recall_at_fp_rate(self, fp_per_frame: float = 1.0) -> tuple[float, float]:
+        """(highest recall reached with at most `fp_per_frame` false positives per frame, the score threshold that
+        reaches it; inf when even the best detection is a false positive beyond the budget)."""
+        false_positives = np.cumsum(~self.true_positive)
+        allowed = np.flatnonzero(false_positives <= fp_per_frame * self.num_frames)
+        if not len(allowed) or not self.num_gt:
+            return 0.0, float("inf")
+        last = allowed[-1]
+        return float(self.true_positive[: last + 1].sum() / self.num_gt), float(self.scores[last])
+
+    def average_precision(self, use_07_metric: bool = True) -> float:
+        if not self.num_gt:
+            return 0.0
+        tp = np.cumsum(self.true_positive)
+        precision = tp / np.arange(1, len(tp) + 1)
+        return voc_ap(tp / self.num_gt, precision, use_07_metric) if len(tp) else 0.0
+
+
+def match_centres(predictions: Sequence[np.ndarray], ground_truths: Sequence[np.ndarray],
+                  max_distance: float = 2.0) -> CentreMatches:
+    """Per-frame predictions [N_f, 6] and GT [M_f, 5] -> CentreMatches: in descending score order, a detection is a
+    true positive when the nearest GT centre of its frame that is still unmatched lies within max_distance metres."""
+    preds, gts = _prepare(predictions, ground_truths)
+    order_scores = [(p[:, 5], f) for f, p in enumerate(preds)]
+    scores = np.concatenate([s for s, _ in order_scores] + [np.zeros(0)])
+    frames = np.concatenate([np.full(len(s), f) for s, f in order_scores] + [np.zeros(0, int)]).astype(int)
+    rows = np.concatenate([np.arange(len(p)) for p in preds] + [np.zeros(0, int)]).astype(int)
+    order = np.argsort(-scores, kind="stable")
+    matched = [np.zeros(len(g), bool) for g in gts]
+    true_positive = np.zeros(len(order), bool)
+    for rank, d in enumerate(order):
+        gt = gts[frames[d]]
+        if not len(gt):
+            continue
+        distance = np.hypot(*(gt[:, :2] - preds[frames[d]][rows[d], :2]).T)
+        distance[matched[frames[d]]] = np.inf
+        best = int(np.argmin(distance))
+        if distance[best] <= max_distance:
+            matched[frames[d]][best] = True
+            true_positive[rank] = True
+    return CentreMatches(scores[order], true_positive, sum(len(g) for g in gts), len(gts))
 
 
 # ---------------------------------------------------------------- flow

@@ -22,6 +22,12 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--estimate-poses", action="store_true",
                         help="run radar odometry for sequences without ego_poses.csv (slow; prefer rafd-odometry)")
     parser.add_argument("--precision", choices=("fp32", "bf16", "fp16"), default="fp32", help="inference autocast")
+    parser.add_argument("--full-scan", action="store_true",
+                        help="score whole scans (tiles of the model's input, merged at their borders) on every "
+                             "annotated vehicle instead of the protocol's centre crop")
+    parser.add_argument("--score-threshold", type=float,
+                        help="operating threshold for recall and false positives per frame (default: the "
+                             "checkpoint's documented operating threshold, else 0.3)")
     parser.add_argument("--json", type=Path, help="write the metrics here")
     parser.add_argument("--plots", type=Path, help="folder for the precision-recall plot and example frames")
     parser.add_argument("--examples", type=int, default=4, help="example frames drawn into --plots")
@@ -45,8 +51,9 @@ def _jsonable(value: Any) -> Any:
 
 def format_table(overall: dict[str, Any], per_sequence: dict[str, dict[str, Any]]) -> str:
     """Plain-text table: one row per sequence plus the overall row."""
-    columns = ("mAP@0.3", "mAP@0.5", "mAP@0.7", "epe_all", "epe_foreground", "frames")
-    lines = [f"{'sequence':<28}" + "".join(f"{c:>15}" for c in columns)]
+    columns = ("mAP@0.3", "mAP@0.5", "mAP@0.7", "centre_AP", "recall_at_1fp", "recall_at_threshold",
+               "fp_per_frame_at_threshold", "epe_all", "frames")
+    lines = [f"{'sequence':<28}" + "".join(f"{c[:14]:>15}" for c in columns)]
     for name, row in [*per_sequence.items(), ("OVERALL", overall)]:
         cells = []
         for column in columns:
@@ -122,10 +129,18 @@ def main(argv: Sequence[str] | None = None) -> int:
     if not args.checkpoint.is_file():
         print(f"rafd-eval: error: checkpoint {args.checkpoint} does not exist", file=sys.stderr)
         return 2
+    if args.full_scan and (args.plots is not None or args.mcap is not None):
+        print("rafd-eval: error: --plots and --mcap draw the model's crop; run them without --full-scan", file=sys.stderr)
+        return 2
     try:
         device = resolve_device(args.device)
         model, cfg, meta = load_checkpoint(args.checkpoint, map_location="cpu")
-        dataset = open_windows(args.data, args.split, cfg, args.max_windows, augment=False, cache=args.cache,
+        data_cfg = cfg
+        if args.full_scan:
+            from rafd.train.fullscan import scan_config, scan_size_of
+
+            data_cfg = scan_config(cfg, scan_size_of(args.data, args.split))
+        dataset = open_windows(args.data, args.split, data_cfg, args.max_windows, augment=False, cache=args.cache,
                                estimate_poses=args.estimate_poses)
     except (DatasetError, ValueError, RuntimeError) as error:
         print(f"rafd-eval: error: {error}", file=sys.stderr)
@@ -133,20 +148,29 @@ def main(argv: Sequence[str] | None = None) -> int:
     if args.threads:
         torch.set_num_threads(args.threads)
     model = model.to(device).eval()
+    threshold = args.score_threshold if args.score_threshold is not None else float(
+        (meta or {}).get("operating_threshold", 0.3))
     try:
-        results = predict(model, dataset, cfg, device, batch_size=args.batch_size, progress=not args.no_progress,
-                          precision=args.precision, keep_flow=args.mcap is not None)
+        if args.full_scan:
+            from rafd.train.fullscan import predict_full_scan
+
+            results = predict_full_scan(model, dataset, cfg, device, precision=args.precision,
+                                        progress=not args.no_progress)
+        else:
+            results = predict(model, dataset, cfg, device, batch_size=args.batch_size, progress=not args.no_progress,
+                              precision=args.precision, keep_flow=args.mcap is not None)
     except ValueError as error:
         print(f"rafd-eval: error: {error}", file=sys.stderr)
         return 2
-    overall = summarise(results)
-    per_sequence = summarise_by_sequence(results)
+    overall = summarise(results, score_threshold=threshold)
+    per_sequence = summarise_by_sequence(results, score_threshold=threshold)
     report = {
         "checkpoint": str(args.checkpoint),
         "data": str(args.data),
         "split": args.split,
         "num_frames": cfg.num_frames,
         "input_size": cfg.input_size,
+        "full_scan": args.full_scan,
         "overall": overall,
         "per_sequence": per_sequence,
         "checkpoint_meta": {k: meta.get(k) for k in ("epoch", "step") if isinstance(meta, dict)},

@@ -40,6 +40,7 @@ def _parser() -> argparse.ArgumentParser:
     parser.add_argument("--realism-sim", type=Path,
                         help="with --realism: take the simulated scans from this data root instead of simulating")
     parser.add_argument("--json", type=Path, help="with --realism: also write the table as JSON here")
+    parser.add_argument("--realism-steps", type=int, default=400, help="with --realism: classifier training steps")
     parser.add_argument("--preview", type=Path, help="write a simulated-vs-real side-by-side PNG here instead")
     parser.add_argument("--sample", type=Path, help="real RADIATE sequence for --preview (default $RAFD_RADIATE_SAMPLE)")
     return parser
@@ -64,8 +65,8 @@ def main(argv: list[str] | None = None) -> int:
         sample = args.sample or (Path(os.environ["RAFD_RADIATE_SAMPLE"]) if os.environ.get("RAFD_RADIATE_SAMPLE") else None)
         if sample is None:
             return _fail("--preview needs a real sequence: pass --sample DIR or set RAFD_RADIATE_SAMPLE")
-        if not (sample / "Navtech_Cartesian").is_dir() or not (sample / "annotations" / "annotations.json").is_file():
-            return _fail(f"{sample} is not a RADIATE sequence folder (needs Navtech_Cartesian/ and annotations/annotations.json)")
+        if not (sample / "Navtech_Cartesian").is_dir():
+            return _fail(f"{sample} is not a RADIATE sequence folder (needs Navtech_Cartesian/)")
         if not args.preview.parent.is_dir():
             return _fail(f"folder of --preview does not exist: {args.preview.parent}")
         try:
@@ -100,6 +101,9 @@ def main(argv: list[str] | None = None) -> int:
     return 0
 
 
+REALISM_DRIVES = 12  # simulated drives of --realism (3 frames each unless --frames is smaller)
+
+
 def _scans_of(root: Path, limit: int | None = None) -> list:
     """uint8 Cartesian scans of every sequence at or under `root` (polar-only folders converted), in order."""
     from rafd.data.dataset import find_sequences
@@ -125,7 +129,7 @@ def _realism(args: argparse.Namespace, difficulty: Difficulty) -> int:
             simulated = _scans_of(args.realism_sim)
         else:  # RADIATE-sized scans, a few frames from each of several drives
             simulated = []
-            for k in range(args.sequences if args.sequences > 1 else 6):
+            for k in range(args.sequences if args.sequences > 1 else REALISM_DRIVES):
                 seed = sequence_seed(args.seed, k)
                 simulated += run_simulation(seed, min(args.frames, 3), "realism", RADIATE_SCAN_SIZE, difficulty,
                                             name=f"realism_{k}").images
@@ -135,7 +139,7 @@ def _realism(args: argparse.Namespace, difficulty: Difficulty) -> int:
     if sizes != {(RADIATE_SCAN_SIZE, RADIATE_SCAN_SIZE)}:
         return _fail(f"the realism measures compare {RADIATE_SCAN_SIZE} px RADIATE scans; got shapes {sorted(sizes)}")
     try:
-        rows = realism_table(real, simulated, seed=args.seed)
+        rows = realism_table(real, simulated, seed=args.seed, classifier_steps=args.realism_steps)
     except ImportError:
         return _fail("the patch classifier needs torch: install the train extra")
     print(f"{len(real)} real scans, {len(simulated)} simulated scans")

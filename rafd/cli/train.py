@@ -16,6 +16,7 @@ import sys
 from pathlib import Path
 from typing import Sequence
 
+from rafd.augment import AugmentConfig
 from rafd.config import BOX_ENCODINGS, RaFDConfig
 
 log = logging.getLogger("rafd.train")
@@ -48,6 +49,8 @@ def build_parser() -> argparse.ArgumentParser:
     recipe.add_argument("--optimizer", choices=("adam", "adamw"))
     recipe.add_argument("--lr-schedule", choices=("constant", "cosine"))
     recipe.add_argument("--augment", action=argparse.BooleanOptionalAction, help="window-consistent flip + rotation")
+    recipe.add_argument("--flow-stride", type=int, help="input pixels per flow cell (4 = the paper's)")
+    recipe.add_argument("--enhance-window", type=int, help="attention window side in cells (0 = the paper's Hf/2)")
     recipe.add_argument("--box-encoding", choices=BOX_ENCODINGS,
                         help="symmetric: 180-degree periodic orientation, width <= length; as_labelled: the old targets")
     recipe.add_argument("--heatmap-min-overlap", type=float, help="heatmap radius overlap (CenterPoint 0.1)")
@@ -88,6 +91,10 @@ def model_config(args: argparse.Namespace, base: RaFDConfig) -> RaFDConfig:
         changes["enhance"] = dataclasses.replace(base.enhance, enabled=False)
     if args.no_flow_guidance:
         changes["propagation"] = dataclasses.replace(base.propagation, flow_guided=False)
+    if args.flow_stride is not None:
+        changes["flow"] = dataclasses.replace(base.flow, stride=args.flow_stride)
+    if args.enhance_window is not None:
+        changes["enhance"] = dataclasses.replace(changes.get("enhance", base.enhance), window=args.enhance_window)
     if args.box_encoding is not None:
         changes["head"] = dataclasses.replace(base.head, box_encoding=args.box_encoding)
     targets = {k: v for k, v in (("heatmap_min_overlap", args.heatmap_min_overlap),
@@ -139,7 +146,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         train_cfg = train_config(args, recipe.train)
         check_precision(train_cfg.precision, resolve_device(args.device))  # fail before reading any data
         plan_batches(train_cfg.batch_size, world_size, train_cfg.micro_batch_size)
-        augment = recipe.augment if args.augment is None else args.augment
+        augment = recipe.augment if args.augment is None else (recipe.augment or AugmentConfig()) if args.augment else None
         loss_cfg = LossConfig(flow_weight=0.0 if args.no_flow_supervision else 1.0)
         if args.resume is not None and not args.resume.is_file():
             raise DatasetError(f"--resume {args.resume} does not exist")
@@ -161,8 +168,8 @@ def main(argv: Sequence[str] | None = None) -> int:
     except RuntimeError as error:
         print(f"rafd-train: error: {error}", file=sys.stderr)
         return 2
-    run_meta = {"recipe": recipe.name, "data": str(args.data), "splits": args.split, "augment": augment,
-                "precision": train_cfg.precision}
+    run_meta = {"recipe": recipe.name, "data": str(args.data), "splits": args.split,
+                "augment": None if augment is None else dataclasses.asdict(augment), "precision": train_cfg.precision}
     try:
         trainer = Trainer(cfg, train_cfg, train_set, args.out, ctx, loss_cfg=loss_cfg, val_set=val_set,
                           run_meta=run_meta)

@@ -10,6 +10,7 @@ it records the frame numbers, the crop, the source folder and the scan size, whi
 from __future__ import annotations
 
 import json
+import math
 import os
 from dataclasses import dataclass
 from pathlib import Path
@@ -24,9 +25,11 @@ CACHE_VERSION = 1
 DEFAULT_CROP = 384  # covers a 256 px input turned by any angle (needs 364)
 
 
-def required_crop(input_size: int, rotates: bool) -> int:
-    """Smallest even crop from which rafd.augment can cut an input_size crop (turned by any angle when `rotates`)."""
-    return rotation_crop(input_size) if rotates else input_size
+def required_crop(input_size: int, rotates: bool, shift_m: float = 0.0, resolution: float = 1.0) -> int:
+    """Smallest even crop from which rafd.augment can cut an input_size crop (turned by any angle when `rotates`,
+    centred up to shift_m metres from the radar)."""
+    side = rotation_crop(input_size) if rotates else input_size
+    return side + 2 * math.ceil(shift_m / resolution) + 2 if shift_m > 0 else side
 
 
 class CacheError(ValueError):

@@ -191,8 +191,10 @@ class RadarWindowDataset(_Base):
         numbers = np.array([f.number for f in sequence.frames], np.int64)
         cache = None
         if self.cache_root is not None:
-            rotates = self.augment_config is not None and self.augment_config.max_rotation_deg > 0
-            needed = min(required_crop(self.cfg.input_size, rotates), sequence.image_size)
+            augment = self.augment_config
+            rotates = augment is not None and augment.max_rotation_deg > 0
+            shift = 0.0 if augment is None or augment.shift_probability == 0 else augment.shift_max_m
+            needed = min(required_crop(self.cfg.input_size, rotates, shift, self.cfg.resolution), sequence.image_size)
             cache = read_cached(cache_folder(self.cache_root, root, sequence.path), numbers, sequence.image_size,
                                 needed).folder
         return _SequenceMeta(
@@ -231,7 +233,7 @@ class RadarWindowDataset(_Base):
         if self.augment_config is None:
             return Augmentation()
         rng = np.random.default_rng([self.seed, int(epoch), int(index)])
-        return Augmentation.sample(rng, self.augment_config)
+        return Augmentation.sample(rng, self.augment_config, self.cfg.resolution)
 
     def __getitem__(self, key: int | tuple[int, int]) -> dict[str, Any]:
         epoch, index = (key if isinstance(key, tuple) else (0, key))
@@ -246,7 +248,7 @@ class RadarWindowDataset(_Base):
         meta = self.sequences[s]
         span = range(start, start + self.cfg.num_frames)
         size, resolution = self.cfg.input_size, self.cfg.resolution
-        frames = np.stack([augmentation.image(self._scan(s, k), size) for k in span])
+        frames = augmentation.intensity(np.stack([augmentation.image(self._scan(s, k), size) for k in span]))
         boxes, ids, classes = [], [], []
         for k in span:
             b, i, c = _protocol(augmentation.boxes(meta.boxes[k]), meta.ids[k], meta.classes[k], size, resolution)
@@ -262,5 +264,5 @@ class RadarWindowDataset(_Base):
             "sequence": meta.name,
             "frame": int(meta.numbers[start + self.cfg.num_frames - 1]),
             "timestamps": meta.timestamps[start : start + self.cfg.num_frames].copy(),
-            "augmentation": {"flip": augmentation.flip, "angle": augmentation.angle},
+            "augmentation": augmentation.as_dict(),
         }

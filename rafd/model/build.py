@@ -14,6 +14,7 @@ from rafd.model.enhance import build_enhancement
 from rafd.model.flow import FlowEstimator, build_flow_encoder
 from rafd.model.head import DetectionHead, HeatmapHead
 from rafd.model.neck import FPNNeck
+from rafd.model.normalise import build_normalisation
 from rafd.model.position import sine_position_encoding
 from rafd.model.propagation import FlowGuidedPropagation
 
@@ -35,6 +36,7 @@ def build_model(cfg: RaFDConfig) -> RaFD:
 
     backbone = ResNet(cfg.backbone.blocks, cfg.backbone.channels)
     encoder = FrameEncoder(
+        build_normalisation(cfg.input.normalisation, cfg.input.window),
         backbone,
         FPNNeck(backbone.out_channels, channels),
         build_enhancement(channels, size, cfg.enhance.num_blocks, cfg.enhance.ffn_ratio, cfg.enhance.enabled, window),

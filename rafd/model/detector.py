@@ -10,16 +10,17 @@ from rafd.model.propagation import FlowGuidedPropagation
 
 
 class FrameEncoder(nn.Module):
-    """Backbone + neck + enhancement: frame [B, 1, S, S] -> S features [B, C, Hf, Wf]."""
+    """Input normalisation + backbone + neck + enhancement: frame [B, 1, S, S] -> S features [B, C, Hf, Wf]."""
 
-    def __init__(self, backbone: nn.Module, neck: nn.Module, enhancement: nn.Module) -> None:
+    def __init__(self, normalise: nn.Module, backbone: nn.Module, neck: nn.Module, enhancement: nn.Module) -> None:
         super().__init__()
+        self.normalise = normalise  # rafd.model.normalise (identity for the paper's grey / 255)
         self.backbone = backbone
         self.neck = neck
         self.enhancement = enhancement
 
     def forward(self, frame: Tensor) -> Tensor:
-        return self.enhancement(self.neck(self.backbone(frame)))
+        return self.enhancement(self.neck(self.backbone(self.normalise(frame))))
 
 
 class RaFD(nn.Module):

@@ -1,7 +1,8 @@
-"""Side-by-side picture: a simulated scan and a real RADIATE scan, same crop and scale, boxes drawn."""
+"""Side-by-side picture: a simulated scan (its boxes drawn) and a real RADIATE scan (image only), same crop and scale.
+
+The real sample's labels are a frozen test set: the preview shows its scan, never its boxes."""
 from __future__ import annotations
 
-import json
 from pathlib import Path
 
 import cv2
@@ -25,18 +26,12 @@ def draw_boxes(image: np.ndarray, polygons: list[np.ndarray], crop: int) -> np.n
 
 
 def real_panel(sample_dir: Path, frame: int, crop: int) -> np.ndarray:
-    """A real RADIATE frame (1-based number) with its annotation polygons, centre-cropped."""
+    """A real RADIATE frame (1-based number), centre-cropped, without its labels."""
     path = sample_dir / "Navtech_Cartesian" / f"{frame:06d}.png"
     image = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
     if image is None:
         raise FileNotFoundError(f"cannot read the real scan {path}")
-    annotations = json.loads((sample_dir / "annotations" / "annotations.json").read_text())
-    polygons = [
-        radiate_polygon(o["bboxes"][frame - 1]["position"], o["bboxes"][frame - 1]["rotation"])
-        for o in annotations
-        if frame - 1 < len(o["bboxes"]) and o["bboxes"][frame - 1]
-    ]
-    return draw_boxes(image, polygons, crop)
+    return draw_boxes(image, [], crop)
 
 
 def simulated_panel(seed: int, frame: int, crop: int, difficulty: Difficulty) -> np.ndarray:

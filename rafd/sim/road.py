@@ -1,12 +1,13 @@
-"""A winding road centreline in a world frame and the ego vehicle's drive along it."""
+"""The ego's route through the town (a street, possibly turning at a junction) and its drive along it."""
 from __future__ import annotations
 
 from dataclasses import dataclass
 
 import numpy as np
 
+from rafd.sim.city import LANE_WIDTH
+
 ROAD_STEP = 0.5  # metres between centreline samples
-LANE_WIDTH = 3.5  # metres (UK urban lane)
 
 
 @dataclass(frozen=True)
@@ -34,31 +35,26 @@ class Road:
         return np.stack([x, y], -1), heading
 
 
-def make_road(rng: np.random.Generator, s_min: float, s_max: float, start_offset: float) -> Road:
-    """Piecewise-constant curvature (straights and bends, smoothed into clothoid-like transitions),
-    placed so that the point at s = 0, lateral `start_offset`, is the world origin heading along +y."""
+def make_route(street_x: float, s_min: float, s_max: float, lanes: int, turn: int = 0, junction_y: float = 0.0,
+               radius: float = 10.0) -> Road:
+    """The centreline of the ego's street (world x = street_x, heading +y, arc length s = world y before any turn);
+    turn +1 (left) / -1 (right) leaves it on a quarter circle of `radius` into the crossing street at world
+    y = junction_y, whose centreline the route then follows; 0 keeps straight on."""
     s = np.arange(s_min, s_max + ROAD_STEP, ROAD_STEP)
-    curvature = np.zeros_like(s)
-    position = s_min
-    while position < s_max:
-        length = rng.uniform(40.0, 140.0)
-        if rng.random() < 0.45:
-            value = 0.0
-        else:
-            value = rng.choice([-1.0, 1.0]) * rng.uniform(1.0 / 250.0, 1.0 / 40.0)
-        curvature[(s >= position) & (s < position + length)] = value
-        position += length
-    window = int(25.0 / ROAD_STEP)  # 25 m transition between curvatures
-    curvature = np.convolve(np.pad(curvature, window // 2, mode="edge"), np.ones(window) / window, "valid")[: len(s)]
-    heading = np.cumsum(curvature) * ROAD_STEP
-    heading = heading - np.interp(0.0, s, heading) + np.pi / 2.0  # heading +y (ego forward) at s = 0
-    steps = np.stack([np.cos(heading), np.sin(heading)], -1) * ROAD_STEP  # [K, 2]
-    points = np.cumsum(steps, 0)
-    points -= np.array([np.interp(0.0, s, points[:, 0]), np.interp(0.0, s, points[:, 1])])
-    road = Road(s=s, points=points, heading=heading, lanes_per_direction=int(rng.choice([1, 2], p=[0.65, 0.35])))
-    # Shift so the ego's start (s = 0 at its lane offset) is the world origin.
-    start, _ = road.frame_at(np.array(0.0), start_offset)
-    return Road(s=s, points=points - start, heading=heading, lanes_per_direction=road.lanes_per_direction)
+    heading = np.full_like(s, np.pi / 2.0)
+    points = np.stack([np.full_like(s, street_x), s], -1)  # straight on along +y
+    if turn:
+        start, length = junction_y - radius, radius * np.pi / 2.0  # the arc ends on the crossing street's centreline
+        angle = np.clip(s - start, 0.0, length) / radius  # turned so far, [0, pi/2]
+        centre = np.array([street_x - turn * radius, start])
+        on_arc = s > start
+        points[on_arc, 0] = centre[0] + turn * radius * np.cos(angle[on_arc])
+        points[on_arc, 1] = centre[1] + radius * np.sin(angle[on_arc])
+        heading[on_arc] = np.pi / 2.0 + turn * angle[on_arc]
+        beyond = s > start + length  # then straight on along the crossing street
+        points[beyond] += (s[beyond] - start - length)[:, None] * np.stack(
+            [np.cos(heading[beyond]), np.sin(heading[beyond])], -1)
+    return Road(s=s, points=points, heading=heading, lanes_per_direction=lanes)
 
 
 def speed_profile(

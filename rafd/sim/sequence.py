@@ -1,28 +1,41 @@
-"""One simulated drive: world, traffic and sensor stepped frame by frame into scans and ground truth."""
+"""One simulated drive through a town: world, traffic and sensor stepped frame by frame into scans and labels.
+
+Scan timing: a Navtech scan is a sweep of SCAN_PERIOD seconds, clockwise from straight ahead. Each scatterer is seen
+when the beam passes its azimuth, from where the ego is at that moment, and each road user where it is then: moving
+things and the static world are smeared by the motion during the sweep, and the sweep's start and end meet in a seam
+straight ahead, displaced by the ego's motion during one rotation. A frame's timestamp and pose are those of the
+middle of its sweep; each label is where its road user was seen (rafd.sim.vehicles.annotation_box).
+"""
 from __future__ import annotations
 
 import logging
+import math
 from dataclasses import dataclass
-from pathlib import Path
 
 import numpy as np
 
-from rafd.geometry import RADIATE_RESOLUTION, invert_pose, rotation_matrix, transform_boxes
+from rafd.geometry import RADIATE_RESOLUTION, rotation_matrix
 from rafd.polar import to_radiate_polar
-from rafd.sim.road import LANE_WIDTH, drive_ego, make_road
-from rafd.sim.scene import Scatterers, body_model, build_static_world
-from rafd.sim.sensor import Difficulty, NavtechSensor
+from rafd.sim.city import LANE_WIDTH, Street, build_city
+from rafd.sim.road import drive_ego, make_route
+from rafd.sim.scene import Scatterers
+from rafd.sim.sensor import Conditions, Difficulty, NavtechSensor
 from rafd.sim.traffic import spawn_traffic
+from rafd.sim.vehicles import annotation_box, diffuse_returns, sample_look
 
 logger = logging.getLogger(__name__)
 
 SCAN_PERIOD = 0.2375  # seconds; RADIATE's Navtech delivers ~4.2 scans per second
-MIN_VISIBLE_POINTS = 3  # unshadowed outline points needed for an object to be annotated
+FINE_STEPS = 4  # samples of the world per scan period (motion within a sweep is interpolated between them)
+MIN_LIT_FRACTION = 0.2  # share of a road user's beams in which its nearest return is unshadowed, to be annotated
 # RADIATE's annotators: a box's rotation is only defined modulo 180 degrees, and within one track the labels flip
 # yaw by 180 degrees and exchange width and length (turning by 90 degrees) from frame to frame. Each simulated
 # annotation does each independently with these probabilities (0.5 = no preferred labelling at all).
 LABEL_FLIP_PROBABILITY = 0.5
 LABEL_SWAP_PROBABILITY = 0.5
+TURN_PROBABILITY = 0.35  # drives that turn at a junction
+EMPTY_STREETS_PROBABILITY = 0.12  # drives without moving traffic
+DENSITY_RANGE = (0.04, 1.6)  # moving vehicles per lane per 45 m, log-uniform: from empty to ~10 per 44 m crop
 
 
 @dataclass(frozen=True)
@@ -39,10 +52,11 @@ class SimulatedSequence:
     seed: int
     resolution: float
     images: list[np.ndarray]  # T x uint8 [S, S]
-    timestamps_ns: np.ndarray  # [T] int64 UNIX nanoseconds
-    poses: np.ndarray  # [T, 3] true world poses of the radar's ego frame
+    timestamps_ns: np.ndarray  # [T] int64 UNIX nanoseconds (middle of each sweep)
+    poses: np.ndarray  # [T, 3] true world poses of the radar's ego frame (middle of each sweep)
     objects: list[SimulatedObject]  # only objects annotated in at least one frame
     polar_scans: list[np.ndarray] | None = None  # T x uint8 [576, 400]: the scans in RADIATE's Navtech_Polar layout
+    conditions: Conditions | None = None
 
 
 def frame_times(rng: np.random.Generator, num_frames: int) -> np.ndarray:
@@ -93,6 +107,51 @@ def ambiguous_labels(boxes: np.ndarray, rng: np.random.Generator) -> np.ndarray:
     return boxes
 
 
+def _interpolate(times: np.ndarray, values: np.ndarray, at: np.ndarray | float, angle_column: int | None = None):
+    """Linear interpolation of [F, D] samples at times [F]; angle_column is unwrapped first."""
+    values = np.array(values, dtype=np.float64)
+    if angle_column is not None:
+        values[:, angle_column] = np.unwrap(values[:, angle_column])
+    at = np.atleast_1d(np.asarray(at, np.float64))
+    return np.stack([np.interp(at, times, values[:, d]) for d in range(values.shape[1])], -1)
+
+
+def _to_ego(poses: np.ndarray, points: np.ndarray) -> np.ndarray:
+    """World points [N, 2] -> ego coordinates under poses [N, 3] (one pose per point)."""
+    c, s = np.cos(poses[:, 2]), np.sin(poses[:, 2])
+    d = points - poses[:, :2]
+    return np.stack([c * d[:, 0] + s * d[:, 1], -s * d[:, 0] + c * d[:, 1]], -1)
+
+
+def _sweep_fraction(xy: np.ndarray) -> np.ndarray:
+    """[N, 2] ego points -> [N] fraction of the sweep (clockwise from straight ahead) at which the beam sees them."""
+    return np.mod(np.arctan2(xy[:, 0], xy[:, 1]), 2 * np.pi) / (2 * np.pi)
+
+
+def sweep_positions(start: np.ndarray, end: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Ego-frame positions of points at the sweep's start [N, 2] and end [N, 2] -> (where the beam sees them [N, 2],
+    the sweep fraction then [N]); two fixed-point steps of linear motion within the sweep."""
+    fraction = _sweep_fraction(start)
+    for _ in range(2):
+        seen = start + fraction[:, None] * (end - start)
+        fraction = _sweep_fraction(seen)
+    return start + fraction[:, None] * (end - start), fraction
+
+
+def visible_beams(echoes, owners: int, azimuths: int) -> tuple[np.ndarray, np.ndarray]:
+    """Per road user: (beams in which its nearest return is outside every other occluder's shadow, beams it occupies).
+    Its own far side is shadowed by its near side, which is what partly filled returns are; that is not occlusion."""
+    mine = np.flatnonzero(echoes.owner >= 0)
+    if len(mine) == 0:
+        return np.zeros(owners, np.int64), np.zeros(owners, np.int64)
+    keys = echoes.owner[mine] * azimuths + np.minimum(echoes.azimuth[mine].astype(np.int64), azimuths - 1)
+    order = np.lexsort((echoes.ranges[mine], keys))  # by beam key, nearest first
+    first = order[np.r_[True, keys[order][1:] != keys[order][:-1]]]  # each (owner, beam)'s nearest return
+    owner = echoes.owner[mine][first]
+    return (np.bincount(owner[echoes.lit[mine][first]], minlength=owners),
+            np.bincount(owner, minlength=owners))
+
+
 def run_simulation(
     seed: int, num_frames: int, split: str, size: int, difficulty: Difficulty, name: str,
     resolution: float = RADIATE_RESOLUTION, ambiguous: bool = True,
@@ -104,56 +163,90 @@ def run_simulation(
     if size < 16 or size % 2:
         raise ValueError(f"size must be an even number of pixels >= 16, got {size}")
     rng = np.random.default_rng(seed)
+    label_rng = np.random.default_rng([seed, 1])  # its own generator: the scans do not depend on the labelling
     sensor = NavtechSensor(size, resolution)
+    conditions = Conditions.sample(rng)
     stamps = frame_times(rng, num_frames)
     times = (stamps - stamps[0]) / 1e9
+    fine = np.arange(-SCAN_PERIOD, times[-1] + 1.5 * SCAN_PERIOD, SCAN_PERIOD / FINE_STEPS)
     view = sensor.max_range
-    lane = LANE_WIDTH / 2.0
-    road = make_road(rng, -view - 250.0, 16.0 * times[-1] + view + 250.0, lane)
-    ego = drive_ego(rng, road, times, lane)
-    agents = spawn_traffic(rng, road, times, ego.s, lane, view, density=1.0)
-    world = build_static_world(rng, road, ego.s.min() - view - 15.0, ego.s.max() + view + 15.0, difficulty.clutter)
-    bodies = [body_model(rng, agent, index) for index, agent in enumerate(agents)]
-    world_boxes = np.stack([agent.world_boxes(road) for agent in agents]) if agents else np.zeros((0, num_frames, 5))
+    reach = 15.0 * (fine[-1] - fine[0]) + 30.0  # farthest the ego can drive
+    lanes = int(rng.choice([1, 2], p=[0.7, 0.3]))
+    ego_offset = LANE_WIDTH * (int(rng.integers(lanes)) + 0.5)
+    ego_street = Street(axis=1, position=ego_offset, lanes=lanes, pavement=float(rng.uniform(2.0, 4.5)))
+    density = 0.0 if rng.random() < EMPTY_STREETS_PROBABILITY else math.exp(rng.uniform(*np.log(DENSITY_RANGE)))
+    parked_density = float(rng.uniform(0.0, 1.5))
+    city = build_city(rng, (-view - reach - 60.0, view + reach + 60.0, -view - 60.0, view + reach + 60.0), ego_street,
+                      difficulty.clutter, parked_density)
+    turn, junction = 0, 0.0
+    ahead = [st.position for st in city.y_streets if 12.0 < st.position < reach - 15.0]
+    if ahead and rng.random() < TURN_PROBABILITY:
+        turn, junction = int(rng.choice([-1, 1])), float(rng.choice(ahead))
+    route = make_route(ego_street.position, -view - 100.0, reach + view + 100.0, lanes, turn, junction,
+                       radius=float(rng.uniform(7.0, 14.0)))
+    ego = drive_ego(rng, route, fine, ego_offset)
+    agents = spawn_traffic(rng, city, route, fine, ego.s, ego_offset, view, density)
+    looks = [sample_look(rng, agent.class_name, conditions.vehicle_gain) for agent in agents]
+    world = city.scatterers
     half_extent = size / 2.0 * resolution
+    azimuth_bin = 2.0 * math.pi / sensor.config.azimuths
     truth = np.full((len(agents), num_frames, 5), np.nan)
-    images, polar_scans = [], []
+    images, polar_scans, poses = [], [], _interpolate(fine, ego.poses, times, angle_column=2)
     for t in range(num_frames):
-        to_ego = invert_pose(ego.poses[t])
-        rotation, translation = rotation_matrix(to_ego[2]), to_ego[:2]
-        near = np.hypot(*(world.xy - ego.poses[t, :2]).T) < view + 2.0
-        parts = [Scatterers(world.xy[near], world.amplitude[near], world.normal[near], world.occluder[near], world.owner[near]).transformed(rotation, translation)]
-        ego_boxes = transform_boxes(to_ego, world_boxes[:, t]) if agents else np.zeros((0, 5))
-        close = np.flatnonzero(np.hypot(ego_boxes[:, 0], ego_boxes[:, 1]) < view + 15.0)
-        for k in close:
-            box = ego_boxes[k]
-            parts.append(bodies[k].local.transformed(rotation_matrix(box[4]), box[:2]))
-        echoes = sensor.illuminate(Scatterers.concat(parts))
-        lit_owner = echoes.owner[echoes.lit & (echoes.owner >= 0)]
-        lit_counts = np.bincount(lit_owner, minlength=len(agents))
+        sweep = (times[t] - SCAN_PERIOD / 2.0, times[t] + SCAN_PERIOD / 2.0)
+        ego_start, ego_end = _interpolate(fine, ego.poses, np.array(sweep), angle_column=2)
+        near = np.hypot(*(world.xy - poses[t, :2]).T) < view + 5.0
+        static = world.subset(near)
+        seen, _ = sweep_positions(_to_ego(np.broadcast_to(ego_start, (len(static), 3)), static.xy),
+                                  _to_ego(np.broadcast_to(ego_end, (len(static), 3)), static.xy))
+        turn_by = rotation_matrix(-poses[t, 2])  # normals: the world's orientation in this frame's ego axes
+        parts = [Scatterers(seen, static.amplitude, static.normal @ turn_by.T, static.occluder, static.owner)]
+        ego_boxes = np.full((len(agents), 5), np.nan)
+        for k, agent in enumerate(agents):
+            at_start, at_end = _interpolate(fine, agent.boxes, np.array(sweep), angle_column=4)
+            if min(np.hypot(*(at_start[:2] - ego_start[:2])), np.hypot(*(at_end[:2] - ego_end[:2]))) > view + 15.0:
+                continue
+            _, fraction = sweep_positions(_to_ego(ego_start[None], at_start[None, :2]),
+                                          _to_ego(ego_end[None], at_end[None, :2]))
+            moment = sweep[0] + fraction[0] * SCAN_PERIOD
+            box = _interpolate(fine, agent.boxes, moment, angle_column=4)[0]
+            pose = _interpolate(fine, ego.poses, moment, angle_column=2)[0]
+            ego_boxes[k, :2] = _to_ego(pose[None], box[None, :2])[0]
+            ego_boxes[k, 2:4] = box[2:4]
+            ego_boxes[k, 4] = (box[4] - pose[2] + math.pi) % (2 * math.pi) - math.pi
+            parts.append(diffuse_returns(ego_boxes[k], looks[k], rng, k, azimuth_bin, sensor.config.range_bin))
+        echoes = sensor.illuminate(Scatterers.concat(parts), conditions)
+        lit, seen_count = visible_beams(echoes, len(agents), sensor.config.azimuths)
         ghosts_from = []
-        for k in np.flatnonzero(lit_counts >= MIN_VISIBLE_POINTS):
-            mine = echoes.owner == k
-            ghosts_from.append((echoes.azimuth[mine], echoes.ranges[mine], echoes.power[mine]))
+        for k in np.flatnonzero(seen_count > 0):
+            own = echoes.owner == k
+            ghosts_from.append((echoes.azimuth[own], echoes.ranges[own], echoes.power[own]))
         t_az, t_rg, t_pw = _transient_returns(rng, sensor, difficulty, ghosts_from)
-        signal = sensor.accumulate(np.concatenate([echoes.azimuth, t_az]), np.concatenate([echoes.ranges, t_rg]), np.concatenate([echoes.power, t_pw]))
-        received = sensor.receive(signal, rng, difficulty)  # [A, R] grey levels
+        signal = sensor.accumulate(np.concatenate([echoes.azimuth, t_az]), np.concatenate([echoes.ranges, t_rg]),
+                                   np.concatenate([echoes.power, t_pw]),
+                                   np.concatenate([echoes.diffuse, np.zeros(len(t_az), bool)]))
+        received = sensor.receive(signal, rng, difficulty, conditions)
         images.append(sensor.to_cartesian(received))
         polar_scans.append(to_radiate_polar(received.T, sensor.polar_conventions))
-        # Annotated: centre inside the image and the scan disc, and enough of the outline lit.
+        # Annotated: centre inside the image and the scan disc, and enough of its return outside radar shadows.
         in_view = (
-            (np.abs(ego_boxes[:, 0]) < half_extent)
+            np.isfinite(ego_boxes[:, 0])
+            & (np.abs(ego_boxes[:, 0]) < half_extent)
             & (np.abs(ego_boxes[:, 1]) < half_extent)
             & (np.hypot(ego_boxes[:, 0], ego_boxes[:, 1]) < sensor.max_range)
-            & (lit_counts >= MIN_VISIBLE_POINTS)
+            & (lit >= MIN_LIT_FRACTION * np.maximum(seen_count, 1))
+            & (seen_count > 0)
         )
-        truth[in_view, t] = ego_boxes[in_view]
-    if ambiguous:  # its own generator: the scans do not depend on the labelling
-        truth = ambiguous_labels(truth, np.random.default_rng([seed, 1]))
+        for k in np.flatnonzero(in_view):
+            truth[k, t] = annotation_box(ego_boxes[k], agents[k].class_name, looks[k], label_rng,
+                                         sensor.beam_sigma_rad, sensor.range_sigma_m)
+    if ambiguous:
+        truth = ambiguous_labels(truth, label_rng)
     objects = [
         SimulatedObject(agent.id, agent.class_name, truth[k])
         for k, agent in enumerate(agents)
         if np.isfinite(truth[k, :, 0]).any()
     ]
-    logger.info("simulated %s: %d frames, %d annotated objects of %d road users", name, num_frames, len(objects), len(agents))
-    return SimulatedSequence(name, split, seed, resolution, images, stamps, ego.poses, objects, polar_scans)
+    logger.info("simulated %s: %d frames, %d annotated objects of %d road users (%s, density %.2f)", name, num_frames,
+                len(objects), len(agents), conditions.weather, density)
+    return SimulatedSequence(name, split, seed, resolution, images, stamps, poses, objects, polar_scans, conditions)

@@ -40,7 +40,7 @@ def open_windows(
     split: str | Sequence[str] | None,
     cfg: RaFDConfig,
     max_windows: int | None = None,
-    augment: bool = False,
+    augment=False,
     cache: str | Path | None = None,
     estimate_poses: bool = False,
     seed: int = 0,

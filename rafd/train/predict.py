@@ -13,7 +13,7 @@ from tqdm import tqdm
 
 from rafd.config import RaFDConfig
 from rafd.detections import decode_detections
-from rafd.metrics import end_point_error, mean_average_precision
+from rafd.metrics import end_point_error, match_centres, mean_average_precision
 from rafd.train.collate import Collator
 
 IOU_THRESHOLDS = (0.3, 0.5, 0.7)
@@ -115,23 +115,40 @@ def _pooled(values: Sequence[float], weights: Sequence[int]) -> float:
     return float(sum(v * w for v, w in zip(values, weights) if w > 0) / total)
 
 
-def summarise(results: Sequence[FrameResult], iou_thresholds: Sequence[float] = IOU_THRESHOLDS) -> dict[str, Any]:
-    """mAP@IoU (in percent, like the paper's tables) and pooled EPE over a list of frame results."""
+CENTRE_DISTANCE_M = 2.0  # a detection counts when its centre is within this of an unmatched vehicle's
+
+
+def summarise(results: Sequence[FrameResult], iou_thresholds: Sequence[float] = IOU_THRESHOLDS,
+              score_threshold: float | None = None) -> dict[str, Any]:
+    """mAP@IoU (in percent, like the paper's tables), centre-distance detection figures and pooled EPE:
+    centre_AP (VOC AP with centre within CENTRE_DISTANCE_M as the match), recall_at_1fp (recall with at most one
+    false positive per frame, and the score threshold that gives it), and with a score_threshold its recall and
+    false positives per frame."""
     summary: dict[str, Any] = {"frames": len(results)}
     if not results:
         return summary
-    aps = mean_average_precision(
-        [r.predictions for r in results], [r.ground_truth for r in results], iou_thresholds=tuple(iou_thresholds)
-    )
+    predictions, ground_truths = [r.predictions for r in results], [r.ground_truth for r in results]
+    aps = mean_average_precision(predictions, ground_truths, iou_thresholds=tuple(iou_thresholds))
     for threshold in iou_thresholds:
         summary[f"mAP@{threshold:g}"] = 100.0 * float(aps[threshold])
+    centres = match_centres(predictions, ground_truths, CENTRE_DISTANCE_M)
+    summary["centre_AP"] = 100.0 * centres.average_precision()
+    recall, threshold_at = centres.recall_at_fp_rate(1.0)
+    summary["recall_at_1fp"] = 100.0 * recall
+    summary["threshold_at_1fp"] = threshold_at
+    if score_threshold is not None:
+        recall, fp_per_frame = centres.at_threshold(score_threshold)
+        summary["score_threshold"] = score_threshold
+        summary["recall_at_threshold"] = 100.0 * recall
+        summary["fp_per_frame_at_threshold"] = fp_per_frame
     summary["epe_all"] = _pooled([r.epe_all for r in results], [r.cells_all for r in results])
     summary["epe_foreground"] = _pooled([r.epe_foreground for r in results], [r.cells_foreground for r in results])
     summary["objects"] = int(sum(len(r.ground_truth) for r in results))
     return summary
 
 
-def summarise_by_sequence(results: Sequence[FrameResult]) -> dict[str, dict[str, Any]]:
+def summarise_by_sequence(results: Sequence[FrameResult], score_threshold: float | None = None) -> dict[str, dict[str, Any]]:
     """Per-sequence summaries, keyed by sequence name (sorted)."""
     names = sorted({r.sequence for r in results})
-    return {name: summarise([r for r in results if r.sequence == name]) for name in names}
+    return {name: summarise([r for r in results if r.sequence == name], score_threshold=score_threshold)
+            for name in names}

@@ -7,7 +7,10 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
-from rafd.config import RaFDConfig
+import dataclasses
+
+from rafd.augment import AugmentConfig
+from rafd.config import InputConfig, RaFDConfig
 from rafd.train.trainer import TrainConfig
 
 
@@ -17,7 +20,18 @@ class Recipe:
     description: str
     model: RaFDConfig
     train: TrainConfig
-    augment: bool  # window-consistent flip + rotation (rafd.augment)
+    augment: AugmentConfig | None  # rafd.augment (None: no augmentation)
+
+
+def shipped_model_config() -> RaFDConfig:
+    """The shipped default model's network: the tiny config at the protocol's 256 px crop, with the speed options
+    (flow branch at stride 8, 16-cell attention windows: neither is the paper's) and the gain-robust input."""
+    tiny = RaFDConfig.tiny(input_size=256)
+    return tiny.replace(
+        input=InputConfig(normalisation="local_contrast", window=47),
+        flow=dataclasses.replace(tiny.flow, stride=8),
+        enhance=dataclasses.replace(tiny.enhance, window=16),
+    )
 
 
 RECIPES: dict[str, Recipe] = {
@@ -29,7 +43,7 @@ RECIPES: dict[str, Recipe] = {
             "global batch 8, 10 epochs; no augmentation, no learning-rate schedule (the paper states none)",
             RaFDConfig.paper(),
             TrainConfig(epochs=10, batch_size=8, lr=2e-4, weight_decay=1e-2, optimizer="adam", lr_schedule="constant"),
-            augment=False,
+            augment=None,
         ),
         Recipe(
             "tiny",
@@ -37,7 +51,16 @@ RECIPES: dict[str, Recipe] = {
             "batch 4, 8 epochs, flip + rotation augmentation (the synthetic benchmark's setting)",
             RaFDConfig.tiny(),
             TrainConfig(epochs=8, batch_size=4, lr=1e-3, weight_decay=1e-2, optimizer="adamw", lr_schedule="constant"),
-            augment=True,
+            augment=AugmentConfig(),
+        ),
+        Recipe(
+            "default",
+            "the shipped model: tiny RaFD at 256 px, 4 frames, flow at stride 8, 16-cell attention windows, "
+            "gain-robust input; AdamW 1e-3 with cosine decay, batch 4, bf16-friendly; flip + rotation, radar "
+            "intensity changes and crops up to 80 m from the radar (full-scan tiles)",
+            shipped_model_config(),
+            TrainConfig(epochs=12, batch_size=4, lr=1e-3, weight_decay=1e-2, optimizer="adamw", lr_schedule="cosine"),
+            augment=AugmentConfig(intensity_probability=0.8, shift_probability=0.6, shift_max_m=80.0),
         ),
     )
 }

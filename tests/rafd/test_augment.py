@@ -9,7 +9,7 @@ import pytest
 
 from rafd.augment import AugmentConfig, Augmentation
 from rafd.config import RaFDConfig
-from rafd.geometry import box_corners, box_polygons_pixels, invert_pose, pixels_to_metres, relative_pose, transform_points
+from rafd.geometry import box_corners, box_polygons_pixels, invert_pose, metres_to_pixels, pixels_to_metres, relative_pose, transform_points
 from rafd.targets import build_targets
 
 CFG = RaFDConfig.tiny(input_size=128)
@@ -32,22 +32,28 @@ def test_flip_mirrors_box_corners_exactly() -> None:
         np.testing.assert_allclose(_sorted_rows(moved), _sorted_rows(original @ g.T), atol=1e-12)
 
 
-@pytest.mark.parametrize("augmentation", [Augmentation(True, 0.0), Augmentation(False, 0.7), Augmentation(True, -2.0)])
+SHIFT = dict(shift_px=(100, -40), shift_m=(100 * RES, 40 * RES))
+
+
+@pytest.mark.parametrize("augmentation", [Augmentation(True, 0.0), Augmentation(False, 0.7), Augmentation(True, -2.0),
+                                          Augmentation(False, 0.0, **SHIFT), Augmentation(True, 0.5, **SHIFT)])
 def test_poses_and_points_stay_consistent(augmentation: Augmentation) -> None:
-    """A world point seen from every frame: transforming the ego-frame observations equals observing the
-    transformed world with the transformed poses; relative motions map by G."""
+    """A world point seen from every frame: transforming the ego-frame observations into the crop's frame equals
+    observing the transformed world with the transformed (shifted-frame) poses; relative motions map by G."""
     rng = np.random.default_rng(3)
     poses = rng.normal(size=(4, 3)) * [20, 20, 1]
     world = rng.normal(size=(5, 2)) * 30
     new_poses = augmentation.poses(poses)
     for t in range(4):
         seen = transform_points(invert_pose(poses[t]), world)
-        seen_after = transform_points(invert_pose(new_poses[t]), augmentation.points(world))
+        seen_after = transform_points(invert_pose(new_poses[t]), augmentation.vectors(world))
         np.testing.assert_allclose(augmentation.points(seen), seen_after, atol=1e-9)
     for t in range(1, 4):
+        if augmentation.shift_px != (0, 0):
+            continue  # a shifted frame moves differently from the ego frame (the observation check above covers it)
         step = relative_pose(poses[t], poses[t - 1])
         new_step = relative_pose(new_poses[t], new_poses[t - 1])
-        np.testing.assert_allclose(new_step[:2], augmentation.points(step[:2]), atol=1e-9)
+        np.testing.assert_allclose(new_step[:2], augmentation.vectors(step[:2]), atol=1e-9)
         assert new_step[2] == pytest.approx(-step[2] if augmentation.flip else step[2], abs=1e-9)
 
 
@@ -133,7 +139,7 @@ def test_targets_of_augmented_annotations_equal_augmented_targets(window, augmen
     moved = augmentation.grid(np.arange(size * size).reshape(size, size))  # cell id now at each position
     lookup = {int(v): int(k) for k, v in enumerate(moved.reshape(-1))}
     np.testing.assert_array_equal(augmented["centre_index"][mask], [lookup[int(r * size + c)] for r, c in zip(rows, cols)])
-    np.testing.assert_allclose(augmented["offset"][mask], augmentation.points(original["offset"][mask]), atol=1e-5)
+    np.testing.assert_allclose(augmented["offset"][mask], augmentation.vectors(original["offset"][mask]), atol=1e-5)
     np.testing.assert_allclose(augmented["log_size"], original["log_size"])
     np.testing.assert_allclose(augmented["boxes"][mask], augmentation.boxes(original["boxes"][mask]), atol=1e-5)
 
@@ -151,7 +157,7 @@ def test_arbitrary_rotation_turns_the_object_flow(window) -> None:
             before = original["flow"][pair, :, row, col]
             row, col = _cell_of(augmentation.boxes(boxes[pair + 1][k : k + 1])[0])
             after = augmented["flow"][pair, :, row, col]
-            np.testing.assert_allclose(after, augmentation.points(before), atol=1e-5)
+            np.testing.assert_allclose(after, augmentation.vectors(before), atol=1e-5)
             assert np.linalg.norm(before) > 0.1
 
 
@@ -168,3 +174,56 @@ def test_sampling_is_seeded_and_bounded() -> None:
     assert max(abs(d.angle) for d in draws) <= math.radians(10.0)
     with pytest.raises(ValueError):
         AugmentConfig(flip_probability=1.5)
+
+
+# ---------------------------------------------------------------- intensity
+def test_intensity_changes_are_what_they_say_and_leave_neutral_windows_alone() -> None:
+    from rafd.augment import AugmentConfig
+
+    rng = np.random.default_rng(0)
+    frames = rng.integers(0, 200, (4, 32, 32)).astype(np.uint8)
+    assert Augmentation().intensity(frames) is frames or np.array_equal(Augmentation().intensity(frames), frames)
+    gained = Augmentation(gain=1.25).intensity(frames)
+    np.testing.assert_allclose(gained, np.clip(np.rint(frames / 255.0 * 1.25 * 255), 0, 255), atol=1)
+    gamma = Augmentation(gamma=1.2).intensity(frames)
+    np.testing.assert_allclose(gamma, np.rint(255 * (frames / 255.0) ** 1.2), atol=1)
+    floor = Augmentation(floor=12.0, noise_seed=3).intensity(np.zeros((2, 64, 64), np.uint8))
+    assert 6 < floor.mean() < 16 and floor.std() > 2  # a speckled floor of ~12 grey
+    np.testing.assert_array_equal(floor, Augmentation(floor=12.0, noise_seed=3).intensity(np.zeros((2, 64, 64), np.uint8)))
+    blurred = Augmentation(blur=0.9).intensity(frames)
+    assert blurred.std() < frames.std()
+    # one window, one change: frame-to-frame differences come from the jitter only
+    jittered = Augmentation(gain=1.1, jitter=0.05, noise_seed=1).intensity(np.full((4, 8, 8), 100, np.uint8))
+    assert np.all(np.abs(jittered.astype(int) - 110) < 20) and len({int(f[0, 0]) for f in jittered}) > 1
+    with pytest.raises(ValueError, match="gain_range"):
+        AugmentConfig(gain_range=(0.0, 1.0))
+
+
+def test_sampled_intensity_follows_the_config() -> None:
+    from rafd.augment import AugmentConfig
+
+    rng = np.random.default_rng(1)
+    off = [Augmentation.sample(rng, AugmentConfig()) for _ in range(50)]
+    assert not any(a.changes_intensity for a in off)
+    config = AugmentConfig(intensity_probability=1.0)
+    drawn = [Augmentation.sample(rng, config) for _ in range(200)]
+    gains = np.array([a.gain for a in drawn])
+    assert all(a.changes_intensity for a in drawn) and gains.min() >= 0.6 and gains.max() <= 1.6
+    assert gains.min() < 0.7 and gains.max() > 1.4 and all(0 <= a.floor <= 14 and 0 <= a.blur <= 0.9 for a in drawn)
+
+
+def test_a_shifted_crop_shows_its_boxes_where_the_scan_has_them() -> None:
+    """A bright square at a known ego position: in the shifted (and turned) crop it lies under the augmented box."""
+    scan = np.zeros((1152, 1152), np.uint8)
+    box = np.array([[30.0, -20.0, 3.0, 3.0, 0.0]])  # metres: 30 m right, 20 m behind
+    u, v = metres_to_pixels(box[0, :2], 1152, RES)
+    scan[int(v) - 8 : int(v) + 9, int(u) - 8 : int(u) + 9] = 255
+    for augmentation in (Augmentation(False, 0.0, shift_px=(150, 120), shift_m=(150 * RES, -120 * RES)),
+                         Augmentation(True, 0.6, shift_px=(150, 120), shift_m=(150 * RES, -120 * RES))):
+        crop = augmentation.image(scan, 128)
+        moved = augmentation.boxes(box)[0]
+        cu, cv = metres_to_pixels(moved[:2], 128, RES)
+        ys, xs = np.nonzero(crop > 128)
+        assert len(xs) > 100 and abs(xs.mean() + 0.5 - cu) < 1.0 and abs(ys.mean() + 0.5 - cv) < 1.0
+    with pytest.raises(ValueError, match="leaves"):
+        Augmentation(shift_px=(560, 0), shift_m=(560 * RES, 0.0)).image(scan, 128)

@@ -257,3 +257,26 @@ def test_end_point_error_empty_mask_nan_and_errors():
         end_point_error(np.zeros((3, 4, 4)), np.zeros((3, 4, 4)))
     with pytest.raises(ValueError, match="broadcast"):
         end_point_error(gt, gt, np.ones((1, 3, 3)))
+
+
+# ---------------------------------------------------------------- centre-distance matching
+def test_centre_matching_recall_and_false_positives_per_frame() -> None:
+    from rafd.metrics import match_centres
+
+    car = [1.0, 4.0, 0.0]  # width, length, yaw
+    gts = [np.array([[0, 10, *car], [5, 20, *car]]), np.array([[0, 10, *car]]), np.zeros((0, 5))]
+    preds = [
+        np.array([[0.5, 10.5, *car, 0.9], [0.4, 10.4, *car, 0.8], [30, 30, *car, 0.7]]),  # hit, duplicate, FP
+        np.array([[2.5, 10.0, *car, 0.6]]),  # 2.5 m away: a miss and a false positive
+        np.array([[9, 9, *car, 0.5]]),  # FP in an empty frame
+    ]
+    matches = match_centres(preds, gts, max_distance=2.0)
+    assert matches.true_positive.tolist() == [True, False, False, False, False]
+    assert matches.num_gt == 3 and matches.num_frames == 3
+    recall, fp_per_frame = matches.at_threshold(0.65)
+    assert recall == pytest.approx(1 / 3) and fp_per_frame == pytest.approx(2 / 3)
+    assert matches.at_threshold(0.0) == (pytest.approx(1 / 3), pytest.approx(4 / 3))
+    recall, threshold = matches.recall_at_fp_rate(1.0)  # 3 false positives allowed in 3 frames
+    assert recall == pytest.approx(1 / 3) and threshold == pytest.approx(0.6)
+    assert match_centres(preds, gts, max_distance=3.0).true_positive.sum() == 2
+    assert 0 < matches.average_precision() < 1

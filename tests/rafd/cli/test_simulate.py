@@ -52,4 +52,24 @@ def test_preview_side_by_side(tmp_path: Path, radiate_sample: Path) -> None:
     picture = cv2.imread(str(out))
     assert picture.shape == (768, 2 * 768 + 8, 3)
     red = (picture[..., 2] > 200) & (picture[..., 1] < 60)
-    assert red[:, :768].sum() > 20 and red[:, 776:].sum() > 20  # boxes drawn on both panels
+    assert red[:, :768].sum() > 20  # the simulated scan's boxes
+    assert red[:, 776:].sum() == 0  # the real scan without its labels (a frozen test set)
+    assert picture[:, 776:].mean() > 5  # ... but with its image
+
+
+def test_realism_table_from_the_command_line(tmp_path: Path, radiate_sample: Path, capsys) -> None:
+    import json
+
+    from rafd.sim import simulate_dataset
+
+    simulate_dataset(tmp_path / "sim", sequences=2, frames=2, seed=4, size=1152)
+    out = tmp_path / "realism.json"
+    assert main(["--realism", str(radiate_sample), "--realism-sim", str(tmp_path / "sim"), "--json", str(out),
+                 "--realism-steps", "20"]) == 0
+    printed = capsys.readouterr().out
+    assert "18 real scans, 4 simulated scans" in printed and "patch classifier" in printed
+    rows = json.loads(out.read_text())
+    assert len(rows) == 8 and all(row["distance"] >= 0 for row in rows)
+    simulate_dataset(tmp_path / "small", sequences=1, frames=2, seed=4, size=256)
+    assert main(["--realism", str(radiate_sample), "--realism-sim", str(tmp_path / "small")]) == 2
+    assert "1152 px" in capsys.readouterr().err

@@ -104,28 +104,41 @@ def test_objects_enter_and_leave_with_realistic_classes(simulated) -> None:
     present = np.array([np.isfinite(o.boxes[:, 0]) for o in sequence.objects])  # [N, T]
     assert present.all(0).sum() < len(sequence.objects)
     assert np.any(~present[:, 0] & present[:, -1]) or np.any(present[:, 0] & ~present[:, -1])  # someone enters or leaves
-    sizes = {o.class_name: np.nanmax(o.boxes[:, 3]) for o in sequence.objects}
+    sizes = {o.class_name: np.nanmax(o.boxes[:, 2:4]) for o in sequence.objects}  # the long side, however labelled
     assert set(sizes) <= {"car", "van", "truck", "bus", "motorbike", "bicycle", "pedestrian", "group_of_pedestrians"}
     if "car" in sizes:
-        assert 3.9 < sizes["car"] < 5.0
+        assert 4.2 < sizes["car"] < 6.5  # the body (4.0-4.9 m) and the blur an annotator draws around
 
 
 def test_traffic_mix_moving_parked_oncoming() -> None:
-    from rafd.sim.road import drive_ego, make_road
+    from rafd.sim.city import Street, build_city
+    from rafd.sim.road import drive_ego, make_route
     from rafd.sim.traffic import spawn_traffic
 
     rng = np.random.default_rng(21)
     times = np.arange(40) * 0.25
-    road = make_road(rng, -400.0, 600.0, 1.75)
-    ego = drive_ego(rng, road, times, 1.75)
-    agents = spawn_traffic(rng, road, times, ego.s, 1.75, 100.0, density=1.0)
-    speeds = np.array([np.abs(np.diff(a.s)).max() / 0.25 for a in agents])
-    directions = np.array([a.direction for a in agents])
+    street = Street(axis=1, position=1.65, lanes=1, pavement=3.0)
+    city = build_city(rng, (-260.0, 260.0, -160.0, 360.0), street, parked_density=1.0)
+    route = make_route(street.position, -300.0, 400.0, lanes=1)
+    ego = drive_ego(rng, route, times, 1.65)
+    agents = spawn_traffic(rng, city, route, times, ego.s, 1.65, 100.0, density=1.0)
+    speeds = np.array([np.hypot(*np.diff(a.boxes[:, :2], axis=0).T).max() / 0.25 for a in agents])
     moving = speeds > 0.5
-    assert np.any(~moving)  # parked vehicles or standing pedestrians
-    assert np.any(moving & (directions > 0)) and np.any(moving & (directions < 0))  # same-way and oncoming
+    assert np.any(~moving) and np.any(moving)  # parked and driving
+    headings = {round(float(np.cos(a.boxes[0, 4])), 0) for a, m in zip(agents, moving) if m and a.class_name != "pedestrian"}
+    assert {1.0, -1.0} <= headings  # both ways along the ego's street
     assert speeds.max() <= 15.0 + 1e-6
     assert len({a.id for a in agents}) == len(agents)
+
+
+def test_routes_turn_into_the_crossing_street() -> None:
+    from rafd.sim.road import make_route
+
+    route = make_route(1.65, -50.0, 150.0, lanes=1, turn=-1, junction_y=60.0, radius=10.0)
+    end_point, end_heading = route.points[-1], route.heading[-1]
+    assert abs(end_point[1] - 60.0) < 0.3 and abs(np.cos(end_heading) - 1.0) < 1e-3  # eastbound on y = 60
+    start = route.frame_at(np.array(0.0), 0.0)[0]
+    np.testing.assert_allclose(start, [1.65, 0.0], atol=1e-6)
 
 
 def test_labels_carry_the_annotators_ambiguity_and_cover_the_same_rectangles() -> None:
