@@ -9,9 +9,12 @@ standardised by the mean and spread of the window around each pixel:
 
 A gain change g adds log(g) / log(256) to l and cancels in l - mean; a gamma change multiplies log grey and cancels
 in the division; the noise floor's rise with range is removed locally. The window statistics are separable box
-means (two 1-D average pools, count_include_pad=False), which ONNX exports as AveragePool. "none" keeps the paper's
-input x = grey / 255.
+means over the pixels inside the image, taken on a grid STATS_STRIDE times coarser (4 x 4 pixel means, a window of
+window // 4 coarse cells, running sums exported as ONNX CumSum) and upsampled bilinearly: the statistics of a
+47-pixel window are smooth, and a full-resolution 47-pixel average pool was a tenth of a training step.
+"none" keeps the paper's input x = grey / 255.
 """
+
 from __future__ import annotations
 
 import math
@@ -21,13 +24,24 @@ from torch import Tensor, nn
 from torch.nn import functional as F
 
 NORMALISATIONS = ("none", "local_contrast")
+STATS_STRIDE = 4  # pixels per side of the coarse cells the window statistics are computed on
+
+
+def _window_sum(x: Tensor, window: int, dim: int) -> Tensor:
+    """Sum over `window` samples centred on each sample along `dim` (zeros beyond the edges), by running sums."""
+    half = window // 2
+    pad = [0, 0, 0, 0]
+    pad[2 * (3 - dim) + 0 : 2 * (3 - dim) + 2] = [half + 1, half]  # F.pad lists the last dim first
+    running = torch.cumsum(F.pad(x, pad), dim=dim)  # running[i] = sum of x[.. i - half - 1]
+    size = x.shape[dim]
+    return running.narrow(dim, window, size) - running.narrow(dim, 0, size)
 
 
 def box_mean(x: Tensor, window: int) -> Tensor:
     """[B, C, H, W] -> mean over the window x window box around each pixel, inside the image."""
-    half = window // 2
-    x = F.avg_pool2d(x, (window, 1), stride=1, padding=(half, 0), count_include_pad=False)  # along rows
-    return F.avg_pool2d(x, (1, window), stride=1, padding=(0, half), count_include_pad=False)  # along columns
+    ones = torch.ones_like(x[:1, :1])  # [1, 1, H, W]: how many pixels of each box are inside the image
+    count = _window_sum(_window_sum(ones, window, 2), window, 3)
+    return _window_sum(_window_sum(x, window, 2), window, 3) / count
 
 
 class LocalContrast(nn.Module):
@@ -42,9 +56,13 @@ class LocalContrast(nn.Module):
 
     def forward(self, frames: Tensor) -> Tensor:
         with torch.autocast(frames.device.type, enabled=False):  # statistics in float32 whatever the autocast
-            log_grey = torch.log1p(frames.float() * 255.0) * (1.0 / math.log(256.0))
-            mean = box_mean(log_grey, self.window)
-            variance = (box_mean(log_grey * log_grey, self.window) - mean * mean).clamp_min(0.0)
+            log_grey = torch.log1p(frames.float() * 255.0) * (1.0 / math.log(256.0))  # [B, 1, S, S]
+            size = log_grey.shape[-2:]
+            coarse = F.avg_pool2d(torch.cat([log_grey, log_grey * log_grey], 1), STATS_STRIDE)  # [B, 2, S/4, S/4]
+            cells = max(1, (self.window // STATS_STRIDE) | 1)  # odd window in coarse cells
+            moments = F.interpolate(box_mean(coarse, cells), size=size, mode="bilinear", align_corners=False)
+            mean, mean_square = moments[:, :1], moments[:, 1:]  # [B, 1, S, S] each
+            variance = (mean_square - mean * mean).clamp_min(0.0)
             return (log_grey - mean) * torch.rsqrt(variance + self.eps)
 
 

@@ -19,7 +19,7 @@ from rafd.geometry import RADIATE_RESOLUTION, RADIATE_SCAN_SIZE
 from rafd.polar import PolarConventions
 from rafd.sim.scene import Scatterers
 
-MOUNT_GAIN = 1.0  # the mounting pattern's power scales by this
+MOUNT_GAIN = 3.0  # the mounting pattern's power scales by this (matched to the real 3 m ring)
 BEAM_CORRELATION = 0.0  # azimuth bins: Gaussian correlation of the per-beam gains (0 = independent beams)
 NOISE_GRAIN = 0.7  # range bins: the receiver noise's own correlation (echo speckle has Conditions.speckle_grain)
 FLOOR_FAR_SCALE = 1.0  # scales Conditions.floor_far (the floor's rise with range)
@@ -153,7 +153,7 @@ class NavtechSensor:
         rays = rng.choice(cfg.azimuths, cfg.mount_rays, replace=False)
         fall = np.exp(-self.ranges / cfg.mount_reach)  # [R]
         pattern[rays] += rng.uniform(8.0, 45.0, (cfg.mount_rays, 1)) * fall[None]
-        pattern += 3.0 * np.exp(-self.ranges / 1.5)[None]  # the disc of leakage right at the radar
+        pattern += 8.0 * np.exp(-self.ranges / 1.5)[None]  # the disc of leakage right at the radar
         streak = np.exp(-0.5 * ((np.arange(cfg.azimuths) - cfg.mount_streak_azimuth) / 1.2) ** 2)  # [A]
         pattern += 60.0 * streak[:, None] * np.exp(-self.ranges / cfg.mount_streak_reach)[None]
         return pattern * MOUNT_GAIN

@@ -20,7 +20,7 @@ def test_local_contrast_cancels_gain_and_gamma_and_keeps_local_structure() -> No
     gained = norm(grey * 1.3 / 255)  # receiver gain (no pixel saturates)
     gamma = norm(255 * (grey / 255) ** 1.3 / 255)  # a gamma change: exact in log grey, log1p makes it approximate
     assert (base - gained).abs().max() < 0.08 and (base - gamma).abs().max() < 0.25
-    assert base[..., 22, 31] > 2.0 and base.mean().abs() < 0.2  # the object stands out, the floor is centred
+    assert base[..., 22, 31] > 1.5 and base.mean().abs() < 0.2  # the object stands out, the floor is centred
     raw = grey * 1.3 / 255 - grey / 255
     assert raw.abs().max() > 0.2  # without it the network would see the gain
 
