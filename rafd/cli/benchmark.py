@@ -30,9 +30,10 @@ class SplitSpec:
 BENCHMARK_SPLITS = (
     SplitSpec(split="train", sequences=40, frames=40, seed=1000, size=1152),
     SplitSpec(split="test", sequences=10, frames=30, seed=2000, size=1152),
+    # for choosing a model's operating threshold (never the test seeds, never the real sample's labels)
+    SplitSpec(split="val", sequences=6, frames=30, seed=3000, size=1152),
 )
 BENCHMARK_INPUT_SIZE = 256
-BENCHMARK_EPOCHS = 12
 BENCHMARK_RECIPE = "default"
 CACHE = "cache"
 
@@ -103,9 +104,9 @@ def build_parser() -> argparse.ArgumentParser:
     run.add_argument("data_root", type=Path)
     run.add_argument("out_dir", type=Path)
     run.add_argument("--variants", default=",".join(DEFAULT_VARIANTS), help=f"comma list of {sorted(VARIANTS)}")
-    run.add_argument("--epochs", type=int, default=BENCHMARK_EPOCHS)
-    run.add_argument("--batch-size", type=int, default=4)
-    run.add_argument("--lr", type=float, default=2e-4)
+    run.add_argument("--epochs", type=int, help="default: the recipe's")
+    run.add_argument("--batch-size", type=int, help="default: the recipe's")
+    run.add_argument("--lr", type=float, help="default: the recipe's")
     run.add_argument("--seed", type=int, default=0)
     run.add_argument("--config", default=BENCHMARK_RECIPE, help="training recipe (rafd.train.recipes)")
     run.add_argument("--full-scan", action="store_true", help="also score every variant on whole test scans")
@@ -138,6 +139,7 @@ def make_data(out_root: Path, scale: float, frames: int | None) -> Path:
         "cache": CACHE,
         "train_split": "train",
         "test_split": "test",
+        "val_split": "val",
     }
     path = out_root / MANIFEST
     path.write_text(json.dumps(manifest, indent=2))
@@ -187,8 +189,9 @@ def run_benchmark(args: argparse.Namespace) -> int:
         ckpt = args.out_dir / name / "model.pt"
         train_argv = [
             "--data", str(args.data_root), "--split", manifest["train_split"], "--config", args.config,
-            "--out", str(ckpt), "--epochs", str(args.epochs), "--batch-size", str(args.batch_size),
-            "--lr", str(args.lr), "--seed", str(args.seed), "--device", args.device, "--precision", args.precision,
+            "--out", str(ckpt), "--seed", str(args.seed), "--device", args.device, "--precision", args.precision,
+            *[flag for name, value in (("--epochs", args.epochs), ("--batch-size", args.batch_size), ("--lr", args.lr))
+              if value is not None for flag in (name, str(value))],
             "--input-size", str(manifest["input_size"]), "--val-every", "0", "--no-progress",
             *(["--cache", str(args.data_root / manifest["cache"])] if manifest.get("cache") else []),
             *variant.train_flags(),
