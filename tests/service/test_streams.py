@@ -30,9 +30,23 @@ def make_store(max_streams=3, ttl_s=10.0):
 
 
 async def feed(store: StreamStore, stream_id: str, timestamp: float) -> None:
-    """What a successful detect does to the store: hold the session, commit one frame."""
-    async with store.session(stream_id) as entry:
-        entry.commit(entry.state, timestamp, FRAME, None, "request")
+    """What a successful detect does to the store: take a ticket, wait for the turn, commit, release."""
+    ticket = store.take_ticket(stream_id)
+    try:
+        store.place(ticket, timestamp)
+        await store.wait_turn(ticket)
+        store.commit(ticket, ticket.entry.state, timestamp, FRAME, None, "request")
+    finally:
+        store.release(ticket)
+
+
+async def hold(store: StreamStore, stream_id: str, timestamp: float):
+    """A frame that committed and whose request has not ended yet (the caller releases the ticket)."""
+    ticket = store.take_ticket(stream_id)
+    store.place(ticket, timestamp)
+    await store.wait_turn(ticket)
+    store.commit(ticket, ticket.entry.state, timestamp, FRAME, None, "request")
+    return ticket
 
 
 def test_store_expires_idle_streams_after_the_ttl():
@@ -62,11 +76,12 @@ def test_store_evicts_the_least_recently_used_at_the_cap():
 
 def test_store_never_evicts_a_stream_with_a_request_in_flight():
     async def scenario(store: StreamStore) -> list[str]:
-        async with store.session("busy") as entry:
-            entry.commit(entry.state, 1.0, FRAME, None, "request")
-            await feed(store, "x", 1.0)  # cap 2 reached: busy + x
-            await feed(store, "y", 1.0)  # must evict x (idle), not busy
-            return sorted(s.stream_id for s in store.snapshot())
+        busy = await hold(store, "busy", 1.0)
+        await feed(store, "x", 1.0)  # cap 2 reached: busy + x
+        await feed(store, "y", 1.0)  # must evict x (idle), not busy
+        names = sorted(s.stream_id for s in store.snapshot())
+        store.release(busy)
+        return names
 
     store, _, evicted = make_store(max_streams=2)
     assert asyncio.run(scenario(store)) == ["busy", "y"]
@@ -75,10 +90,10 @@ def test_store_never_evicts_a_stream_with_a_request_in_flight():
 
 def test_cap_waits_for_in_flight_streams_then_applies():
     async def scenario(store: StreamStore) -> list[str]:
-        async with store.session("busy") as entry:
-            entry.commit(entry.state, 1.0, FRAME, None, "request")
-            await feed(store, "other", 1.0)  # cap 1, but "busy" is in flight: nothing can go yet
-            assert sorted(s.stream_id for s in store.snapshot()) == ["busy", "other"]
+        busy = await hold(store, "busy", 1.0)
+        await feed(store, "other", 1.0)  # cap 1, but "busy" is in flight: nothing can go yet
+        assert sorted(s.stream_id for s in store.snapshot()) == ["busy", "other"]
+        store.release(busy)
         return [s.stream_id for s in store.snapshot()]
 
     store, _, evicted = make_store(max_streams=1)
@@ -88,14 +103,19 @@ def test_cap_waits_for_in_flight_streams_then_applies():
 
 def test_a_new_stream_whose_first_frame_fails_leaves_nothing():
     async def failing(store: StreamStore) -> None:
-        async with store.session("new"):
+        ticket = store.take_ticket("new")
+        try:
+            store.place(ticket, 1.0)
+            await store.wait_turn(ticket)
             raise RuntimeError("model failed")
+        finally:
+            store.release(ticket)
 
     store, _, evicted = make_store(max_streams=1)
     asyncio.run(feed(store, "old", 1.0))
     with pytest.raises(RuntimeError):
         asyncio.run(failing(store))
-    assert store.get("new") is None
+    assert store.get("new") is None and "new" not in store._entries
     assert [s.stream_id for s in store.snapshot()] == ["old"] and evicted == []  # the failure evicted nobody
 
 
