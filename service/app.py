@@ -20,7 +20,7 @@ from starlette.concurrency import run_in_threadpool
 from rafd import __version__
 from service.auth import OPEN_PATHS, ApiKeyMiddleware, load_api_keys
 from service.detector import DetectService, Executors
-from service.errors import error_responses, install_error_handlers
+from service.errors import ERRORS, error_responses, install_error_handlers
 from service.limits import BodySizeLimitMiddleware
 from service.loading import check_buffer_length, open_runner, warm_up
 from service.metrics import MetricsMiddleware, ServiceMetrics
@@ -30,6 +30,11 @@ from service.settings import Settings, get_settings
 from service.streams import StreamStore
 
 log = logging.getLogger(__name__)
+
+# Errors any route can answer, before or besides its own (each route's responses list the rest).
+ANY_ROUTE_ERRORS = ("Every error is `{\"error\": {\"code\", \"message\"}}`. Besides each route's own errors, any "
+                    "route may answer: " + "; ".join(f"{ERRORS[code].status} `{code}`: {ERRORS[code].meaning}" for code in
+                    ("unauthorized", "not_found", "method_not_allowed", "request_too_large", "http_error")) + ".")
 
 
 def create_app(
@@ -77,7 +82,8 @@ def create_app(
                 app.state.service.executors.shutdown()
             app.state.service = None
 
-    app = FastAPI(title="RaFD radar detection service", version=__version__, lifespan=lifespan)
+    app = FastAPI(title="RaFD radar detection service", version=__version__, lifespan=lifespan,
+                  description=ANY_ROUTE_ERRORS)
     app.state.settings = settings
     app.state.metrics = service_metrics
     app.state.service = None

@@ -1,8 +1,9 @@
 """The detect pipeline, in arrival order per stream, every stage bounded:
 
-    admit (in-flight limit) -> [ticket: X-Stream-Id / path form] -> body parsed -> [ticket: body form] -> placed
-    (409 at once if out of order) -> PNG chunk check (event loop, headers only) -> decode executor -> wait for
-    the stream's turn -> pose (odometry executor) -> runner step (model executor) -> commit -> boxes and flow.
+    admit (in-flight limit) -> [ticket: X-Stream-Id / path form] -> body parsed (a multipart PNG's chunk headers
+    checked as it streams in) -> [ticket: body form] -> placed (409 at once if out of order) -> PNG chunk check
+    (event loop, headers only) -> decode executor -> wait for the stream's turn -> pose (odometry executor) ->
+    runner step (model executor) -> commit -> boxes and flow.
 
 A refused or failed frame changes no stream; a frame whose client left before its turn is dropped (499).
 """
@@ -21,7 +22,7 @@ from rafd.detections import decode_detections
 from rafd.geometry import box_polygons_pixels
 from service import poses
 from service.executors import AdmissionLimit, BoundedExecutor
-from service.images import DecodedFrame, accepted_sizes, check_posted_image, decode_frame
+from service.images import DecodedFrame, accepted_sizes, check_posted_image, decode_frame, upload_check
 from service.metrics import ServiceMetrics
 from service.requests import parse_detect_request
 from service.schemas import DetectFields
@@ -103,11 +104,11 @@ class DetectService:
         try:
             if stream_hint is not None:
                 ticket = self.store.take_ticket(stream_hint, caller)
-            fields, image = await parse_detect_request(request, stream_hint)
+            size, resolution = self.config.input_size, self.config.resolution
+            fields, image = await parse_detect_request(request, stream_hint, lambda: upload_check(size, resolution))
             if ticket is None:
                 ticket = self.store.take_ticket(fields.stream_id, caller)
             self.store.place(ticket, fields.timestamp)
-            size, resolution = self.config.input_size, self.config.resolution
             check_posted_image(image, size, resolution)  # chunk headers only: hostile files never take a slot
             decoded = await self.executors.decode.run(decode_frame, image, size, resolution)
             frame = decoded.model_input()  # [S, S] float32 in [0, 1]

@@ -3,11 +3,13 @@
 `decode_frame` is THE decode: every posted image goes through it (on the decode executor), and it ends in
 rafd.preprocess, the one torch-free path from a scan to the model input. `check_posted_image` is its cheap
 first half (chunk headers only), run on the event loop as soon as the body is parsed so a hostile file is
-refused before it takes a decode slot.
+refused before it takes a decode slot; `upload_check` runs the same rules on a multipart upload while it
+streams in.
 """
 from __future__ import annotations
 
 import binascii
+from collections.abc import Callable
 from dataclasses import dataclass
 
 import cv2
@@ -73,6 +75,20 @@ def check_posted_image(image: PostedImage, input_size: int, resolution: float) -
     layout = png.read_layout(_source(image))
     _check_size(layout.header, accepted_sizes(input_size, resolution))
     return layout
+
+
+def upload_check(input_size: int, resolution: float) -> Callable[[bytes], None]:
+    """A feeder for a PNG file upload as it streams in: refuses by chunk headers, format and size as soon as they
+    arrive, so a hostile upload is answered before the rest of its body is received."""
+    check, sizes = png.StreamingCheck(), accepted_sizes(input_size, resolution)
+
+    def feed(data: bytes) -> None:
+        had_header = check.header is not None
+        check.feed(data)
+        if not had_header and check.header is not None:
+            _check_size(check.header, sizes)
+
+    return feed
 
 
 def decode_frame(image: PostedImage, input_size: int, resolution: float) -> DecodedFrame:

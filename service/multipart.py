@@ -3,12 +3,13 @@
 Why not Starlette's `request.form()`: it spools files over 1 MB to temporary files through the shared thread pool
 (the pool health checks waited on), keeps the LAST of duplicated fields silently, and answers malformed bodies
 with an undocumented 400. Here the body (already capped by RAFD_MAX_REQUEST_BYTES) is parsed as it streams in;
-every part must be a known field, appear once, and be a file or a plain field as the API says, and plain fields
-are short.
+every part must be a known field, appear once, and be a file or a plain field as the API says, plain fields
+are short, and a file part can be inspected piece by piece as it arrives (a hostile upload is refused before the
+rest of it is received).
 """
 from __future__ import annotations
 
-from collections.abc import AsyncIterator, Collection
+from collections.abc import AsyncIterator, Callable, Collection, Mapping
 from dataclasses import dataclass, field
 
 from python_multipart.exceptions import MultipartParseError
@@ -44,8 +45,10 @@ def boundary_of(content_type: str) -> bytes:
 class _FormReader:
     """python-multipart callbacks -> the parts by name, refusing unknown, duplicated or oversized parts."""
 
-    def __init__(self, files: Collection[str], fields: Collection[str]) -> None:
+    def __init__(self, files: Collection[str], fields: Collection[str],
+                 inspect: Mapping[str, Callable[[bytes], None]]) -> None:
         self.files, self.fields = set(files), set(fields)
+        self.inspect = inspect
         self.parts: dict[str, Part] = {}
         self.current: Part | None = None
         self.header_name = bytearray()
@@ -103,8 +106,11 @@ class _FormReader:
         part = self.current
         if part is None:
             raise ApiError("invalid_multipart", "multipart data before a part's headers")
-        part.chunks.append(data[start:end])
-        part.size += end - start
+        piece = data[start:end]
+        part.chunks.append(piece)
+        part.size += len(piece)
+        if part.name in self.inspect:
+            self.inspect[part.name](piece)
         if part.name in self.fields and part.size > MAX_FIELD_BYTES:
             raise ApiError("validation_error", f"form field {part.name!r} is longer than {MAX_FIELD_BYTES} bytes")
 
@@ -116,9 +122,13 @@ class _FormReader:
 
 
 async def read_form(stream: AsyncIterator[bytes], content_type: str, files: Collection[str],
-                    fields: Collection[str]) -> dict[str, Part]:
-    """Parse the streamed body; -> {name: Part}. 400 invalid_multipart / 422 validation_error on faults."""
-    reader = _FormReader(files, fields)
+                    fields: Collection[str], inspect: Mapping[str, Callable[[bytes], None]] | None = None
+                    ) -> dict[str, Part]:
+    """Parse the streamed body; -> {name: Part}. 400 invalid_multipart / 422 validation_error on faults.
+
+    `inspect[name]` sees each piece of that part as it arrives and may refuse it (raise) before the rest of the
+    body is read."""
+    reader = _FormReader(files, fields, inspect or {})
     parser = MultipartParser(boundary_of(content_type), reader.callbacks())
     received = 0
     try:

@@ -119,6 +119,49 @@ def read_header(ihdr: bytes) -> PngHeader:
     return PngHeader(width, height, depth, colour, bool(interlace))
 
 
+class _ChunkRules:
+    """The rules on a PNG's chunk sequence, applied one chunk header at a time in file order (so the same rules
+    run on a whole file and on an upload while it streams in)."""
+
+    def __init__(self) -> None:
+        self.chunks = 0
+        self.ancillary = 0
+        self.ancillary_bytes = 0
+        self.header: PngHeader | None = None
+        self.ihdr = (0, 0)
+        self.idat: list[tuple[int, int]] = []
+        self.idat_ended = False
+        self.ended = False
+
+    def visit(self, offset: int, length: int, kind: bytes, ihdr_data: bytes) -> None:
+        """One chunk header at `offset`; `ihdr_data`: its first 13 data bytes (only read for the first chunk)."""
+        if not kind.isalpha():
+            raise _invalid(f"the PNG has a malformed chunk type {kind!r}")
+        self.chunks += 1
+        if self.chunks > MAX_CHUNKS:
+            raise _invalid(f"the PNG has more than {MAX_CHUNKS} chunks")
+        if self.header is None:
+            if kind != b"IHDR" or length != 13:
+                raise _invalid("the PNG does not start with an IHDR chunk")
+            self.header, self.ihdr = read_header(ihdr_data), (offset, 25)
+        elif kind == b"IDAT":
+            if self.idat_ended:
+                raise _invalid("the PNG's IDAT chunks are not consecutive")
+            self.idat.append((offset + 8, length))
+        elif kind == b"IEND":
+            self.ended = True
+        elif kind[0:1].isupper():  # critical: the decoder must understand it; greyscale has no PLTE
+            raise _invalid(f"the PNG has an unexpected critical chunk {kind.decode('ascii')!r}")
+        else:
+            self.ancillary += 1
+            self.ancillary_bytes += length
+            if self.ancillary > MAX_ANCILLARY_CHUNKS or self.ancillary_bytes > MAX_ANCILLARY_BYTES:
+                raise _invalid(f"the PNG carries more than {MAX_ANCILLARY_CHUNKS} ancillary chunks or "
+                               f"{MAX_ANCILLARY_BYTES} bytes of them (text, metadata); send the image data only")
+        if self.idat and kind != b"IDAT":
+            self.idat_ended = True
+
+
 def read_layout(source: ByteSource) -> PngLayout:
     """Walk the chunk headers (never their compressed contents) and refuse what is not a plain greyscale PNG."""
     size = len(source)
@@ -126,48 +169,56 @@ def read_layout(source: ByteSource) -> PngLayout:
         raise _invalid("the image is empty")
     if source.read(0, 8) != PNG_SIGNATURE:
         raise _invalid("the image is not a PNG (expected the PNG signature)")
-    offset, chunks, ancillary, ancillary_bytes = 8, 0, 0, 0
-    header: PngHeader | None = None
-    ihdr = (0, 0)
-    idat: list[tuple[int, int]] = []
-    idat_ended = False
-    while True:
+    rules, offset = _ChunkRules(), 8
+    while not rules.ended:
         if offset + 12 > size:
             raise _invalid("the PNG is truncated (no IEND chunk)")
         length, kind = struct.unpack(">I4s", source.read(offset, 8))
         if length > size - offset - 12:
             raise _invalid(f"the PNG is truncated ({kind!r} chunk of {length} bytes runs past the end)")
-        if not kind.isalpha():
-            raise _invalid(f"the PNG has a malformed chunk type {kind!r}")
-        chunks += 1
-        if chunks > MAX_CHUNKS:
-            raise _invalid(f"the PNG has more than {MAX_CHUNKS} chunks")
-        if header is None:
-            if kind != b"IHDR" or length != 13:
-                raise _invalid("the PNG does not start with an IHDR chunk")
-            header, ihdr = read_header(source.read(offset + 8, 13)), (offset, 25)
-        elif kind == b"IDAT":
-            if idat_ended:
-                raise _invalid("the PNG's IDAT chunks are not consecutive")
-            idat.append((offset + 8, length))
-        elif kind == b"IEND":
-            break
-        elif kind[0:1].isupper():  # critical: the decoder must understand it; greyscale has no PLTE
-            raise _invalid(f"the PNG has an unexpected critical chunk {kind.decode('ascii')!r}")
-        else:
-            ancillary += 1
-            ancillary_bytes += length
-            if ancillary > MAX_ANCILLARY_CHUNKS or ancillary_bytes > MAX_ANCILLARY_BYTES:
-                raise _invalid(f"the PNG carries more than {MAX_ANCILLARY_CHUNKS} ancillary chunks or "
-                               f"{MAX_ANCILLARY_BYTES} bytes of them (text, metadata); send the image data only")
-        if idat and kind != b"IDAT":
-            idat_ended = True
+        rules.visit(offset, length, kind, source.read(offset + 8, 13) if rules.header is None else b"")
         offset += 12 + length
-    if offset + 12 != size:
-        raise _invalid(f"the PNG has {size - offset - 12} bytes after its IEND chunk")
-    if not idat:
+    if offset != size:
+        raise _invalid(f"the PNG has {size - offset} bytes after its IEND chunk")
+    if not rules.idat:
         raise _invalid("the PNG has no image data (IDAT)")
-    return PngLayout(header=header, ihdr=ihdr, idat=tuple(idat), ancillary_chunks=ancillary)
+    return PngLayout(header=rules.header, ihdr=rules.ihdr, idat=tuple(rules.idat), ancillary_chunks=rules.ancillary)
+
+
+class StreamingCheck:
+    """The chunk rules on an upload as it arrives: a hostile file is refused after its first few chunk headers,
+    before the rest of it is even received. Keeps only the bytes from the next chunk header on."""
+
+    def __init__(self) -> None:
+        self.rules = _ChunkRules()
+        self.received = 0  # bytes fed so far
+        self.next = 0  # offset of the next thing to read: the signature, then each chunk header
+        self.buffer = bytearray()  # bytes from `next` on, as far as received
+
+    @property
+    def header(self) -> PngHeader | None:
+        return self.rules.header
+
+    def feed(self, data: bytes) -> None:
+        start, self.received = self.received, self.received + len(data)
+        if self.rules.ended or self.received <= self.next:
+            return
+        self.buffer += data[max(0, self.next - start) :]
+        while not self.rules.ended:
+            if self.next == 0:
+                if len(self.buffer) < 8:
+                    return
+                if bytes(self.buffer[:8]) != PNG_SIGNATURE:
+                    raise _invalid("the image is not a PNG (expected the PNG signature)")
+                step = 8
+            else:
+                if len(self.buffer) < (8 if self.rules.header is not None else 21):
+                    return
+                length, kind = struct.unpack(">I4s", self.buffer[:8])
+                self.rules.visit(self.next, length, kind, bytes(self.buffer[8:21]))
+                step = 12 + length
+            self.next += step
+            del self.buffer[:step]
 
 
 def check_inflated_size(data: bytes, layout: PngLayout) -> None:

@@ -11,6 +11,7 @@ from __future__ import annotations
 import json
 import math
 import re
+from collections.abc import Callable
 from typing import Any
 
 from fastapi import Request
@@ -32,13 +33,17 @@ POSE_FIELDS = frozenset(Pose.model_fields)
 NUMBER = re.compile(r"-?(?:0|[1-9][0-9]*)(?:\.[0-9]+)?(?:[eE][+-]?[0-9]+)?")
 
 
-async def parse_detect_request(request: Request, stream_hint: str | None) -> tuple[DetectFields, PostedImage]:
-    """-> (validated fields with the resolved stream id, the image as posted); 400/415/422 with the reason."""
+async def parse_detect_request(request: Request, stream_hint: str | None,
+                               upload_check: Callable[[], Callable[[bytes], None]] | None = None
+                               ) -> tuple[DetectFields, PostedImage]:
+    """-> (validated fields with the resolved stream id, the image as posted); 400/415/422 with the reason.
+
+    `upload_check()` gives a feeder that sees a multipart image upload piece by piece as it streams in."""
     media_type = request.headers.get("content-type", "").split(";")[0].strip().lower()
     if media_type == JSON:
         body, image = parse_json_body(await request.body())
     elif media_type == MULTIPART:
-        body, image = await _parse_form(request)
+        body, image = await _parse_form(request, {"image": upload_check()} if upload_check else {})
     else:
         raise ApiError("unsupported_media_type",
                        f"Content-Type must be {JSON} or {MULTIPART}, got {media_type[:64] or 'none'!r}")
@@ -138,8 +143,9 @@ def _number(name: str, text: str) -> float:
                                        f"1574859771.74 or -0.5, got {text[:32]!r}")
 
 
-async def _parse_form(request: Request) -> tuple[DetectBody, bytes]:
-    parts = await read_form(request.stream(), request.headers.get("content-type", ""), FORM_FILES, FORM_FIELDS)
+async def _parse_form(request: Request, inspect: dict[str, Callable[[bytes], None]]) -> tuple[DetectBody, bytes]:
+    parts = await read_form(request.stream(), request.headers.get("content-type", ""), FORM_FILES, FORM_FIELDS,
+                            inspect)
     if "image" not in parts:
         raise ApiError("validation_error", "form field 'image' (the PNG file) is missing")
     values: dict[str, Any] = {}
