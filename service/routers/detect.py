@@ -6,6 +6,7 @@ its body is read. Every id given (header, path, body) must be the same (else 422
 """
 from __future__ import annotations
 
+from dataclasses import dataclass
 from typing import Literal
 
 import orjson
@@ -43,45 +44,50 @@ ERROR_CODES = (
     "overloaded", "odometry_unavailable",
 )
 _RESPONSES = {200: {"model": DetectResponse}, **error_responses(*ERROR_CODES)}
-_STREAM_ID_HEADER = Header(default=None, alias="X-Stream-Id", min_length=1, max_length=128,
-                           pattern=STREAM_ID_PATTERN,
-                           description="the stream, named outside the body (route on it; must equal the body's "
-                                       "stream_id when both are given)")
-_FLOW = Query(True, description="false leaves the flow field out")
-_FLOW_FORMAT = Query("list", description="list: nested [2][Hf][Wf] metres rounded to 1 mm; "
-                                         "base64: little-endian float16 bytes, row-major [2, Hf, Wf]")
 
 
-async def _detect(request: Request, stream_hint: str | None, service: DetectService, caller: str | None,
-                  flow: bool, flow_format: Literal["list", "base64"]) -> Response:
-    answer = await service.detect(request, stream_hint, caller, DetectOptions(flow=flow, flow_format=flow_format))
-    return Response(orjson.dumps(answer), media_type="application/json")
+@dataclass(frozen=True)
+class DetectCall:
+    """What both detect routes take besides the body: options, the X-Stream-Id header, the service, the caller."""
+
+    options: DetectOptions
+    header_stream_id: str | None
+    service: DetectService
+    caller: str | None
+
+    async def answer(self, request: Request, stream_hint: str | None) -> Response:
+        answer = await self.service.detect(request, stream_hint, self.caller, self.options)
+        return Response(orjson.dumps(answer), media_type="application/json")
+
+
+async def detect_call(
+    flow: bool = Query(True, description="false leaves the flow field out"),
+    flow_format: Literal["list", "base64"] = Query(
+        "list", description="list: nested [2][Hf][Wf] metres rounded to 1 mm; "
+                            "base64: little-endian float16 bytes, row-major [2, Hf, Wf]"),
+    x_stream_id: str | None = Header(
+        default=None, alias="X-Stream-Id", min_length=1, max_length=128, pattern=STREAM_ID_PATTERN,
+        description="the stream, named outside the body (route on it; must equal the body's stream_id when both "
+                    "are given)"),
+    service: DetectService = Depends(get_service),
+    caller: str | None = Depends(get_caller),
+) -> DetectCall:
+    return DetectCall(DetectOptions(flow=flow, flow_format=flow_format), x_stream_id, service, caller)
 
 
 @router.post("/detect", responses=_RESPONSES, openapi_extra=_REQUEST_BODY)
-async def detect(
-    request: Request,
-    flow: bool = _FLOW,
-    flow_format: Literal["list", "base64"] = _FLOW_FORMAT,
-    x_stream_id: str | None = _STREAM_ID_HEADER,
-    service: DetectService = Depends(get_service),
-    caller: str | None = Depends(get_caller),
-) -> Response:
-    return await _detect(request, x_stream_id, service, caller, flow, flow_format)
+async def detect(request: Request, call: DetectCall = Depends(detect_call)) -> Response:
+    return await call.answer(request, call.header_stream_id)
 
 
 @router.post("/streams/{stream_id}/detect", responses=_RESPONSES, openapi_extra=_REQUEST_BODY)
 async def detect_on_stream(
     request: Request,
     stream_id: str = Path(min_length=1, max_length=128, pattern=STREAM_ID_PATTERN),
-    flow: bool = _FLOW,
-    flow_format: Literal["list", "base64"] = _FLOW_FORMAT,
-    x_stream_id: str | None = _STREAM_ID_HEADER,
-    service: DetectService = Depends(get_service),
-    caller: str | None = Depends(get_caller),
+    call: DetectCall = Depends(detect_call),
 ) -> Response:
     """The same as POST /detect with the stream named in the path."""
-    if x_stream_id is not None and x_stream_id != stream_id:
-        raise ApiError("stream_id_mismatch",
-                       f"the X-Stream-Id header {x_stream_id!r} differs from the path's stream id {stream_id!r}")
-    return await _detect(request, stream_id, service, caller, flow, flow_format)
+    if call.header_stream_id is not None and call.header_stream_id != stream_id:
+        raise ApiError("stream_id_mismatch", f"the X-Stream-Id header {call.header_stream_id!r} differs from the "
+                                             f"path's stream id {stream_id!r}")
+    return await call.answer(request, stream_id)
