@@ -2,15 +2,16 @@
 
     python -m service.hostile_load [--sample DIR] [--frames 60] [--rate-hz 4] [--flood-connections 8]
 
-Starts `rafd-serve` (the shipped model, or --model) on 127.0.0.1 in a subprocess, then runs the same normal
-stream twice: full 1152 px RADIATE scans without poses (so decode + odometry + model), multipart like the
-README's curl, at the radar's 4 Hz, each answer awaited; meanwhile a probe asks /health/ready every 50 ms.
-The first run is alone; the second runs beside a flood: --flood-connections clients on their own process post,
+Starts `rafd-serve` (the shipped model, or --model) on 127.0.0.1 in a subprocess, then runs a normal stream
+under two conditions: full 1152 px RADIATE scans without poses (so decode + odometry + model), multipart like
+the README's curl, at the radar's 4 Hz, each answer awaited; meanwhile a probe asks /health/ready every 50 ms.
+"alone" has nothing else; "under flood" runs beside --flood-connections clients on their own process posting,
 back to back, a valid scan padded with ~900 zTXt chunks to 7.7 MB (27 s of libpng time each before the fix).
+The conditions alternate in --rounds blocks (a shared machine's background load drifts; both see the same).
 Prints the normal stream's p50/p99 latency, readiness latency and the flood's answers per status, and exits 1
 when the normal stream's p99 under the flood exceeds 2x its unloaded p99, a readiness probe took 100 ms or more
-or failed, a normal frame failed, or a flood request was accepted. Bounded: --frames frames per run, the flood
-stops with the second run, and --max-seconds caps everything. Loopback only: it serves and attacks 127.0.0.1.
+or failed, a normal frame failed, or a flood request was accepted. Bounded: --frames frames per condition, the flood
+stops with each flooded block, and --max-seconds caps everything. Loopback only: it serves and attacks 127.0.0.1.
 Needs httpx (the dev extra); imports no torch.
 """
 from __future__ import annotations
@@ -136,6 +137,7 @@ class Run:
     seconds: float = 0.0
     server_cpu_s: float = 0.0
     flood_cpu_s: float = 0.0
+    flood_seconds: float = 0.0  # the flood runs from 1 s before each measured block to its end
 
 
 def percentile(values: list[float], q: float) -> float:
@@ -158,12 +160,14 @@ def probe_readiness(url: str, stop: threading.Event, run: Run) -> None:
 
 
 def normal_stream(url: str, stream_id: str, scans: list[bytes], frames: int, period_s: float, run: Run) -> None:
-    """Frames at the sensor's rate, each answer awaited (a radar client does not pipeline its frames)."""
+    """Frames at the sensor's rate, each answer awaited (a radar client does not pipeline its frames); the stream
+    goes on from the run's previous block."""
     import httpx
 
     with httpx.Client(base_url=url, timeout=60.0) as http:
         next_at = time.perf_counter()
-        for k in range(frames):
+        for _ in range(frames):
+            k = len(run.latencies_s)
             start = time.perf_counter()
             response = http.post("/detect?flow=false", data={"stream_id": stream_id, "timestamp": str(k + 1)},
                                  files={"image": ("scan.png", scans[k % len(scans)], "image/png")})
@@ -174,23 +178,41 @@ def normal_stream(url: str, stream_id: str, scans: list[bytes], frames: int, per
             time.sleep(max(0.0, next_at - time.perf_counter()))
 
 
-def measure(name: str, url: str, scans: list[bytes], frames: int, period_s: float, server_pid: int,
-            flood_pid: int | None = None) -> Run:
-    run = Run(name)
+def measure(run: Run, url: str, scans: list[bytes], frames: int, period_s: float, server_pid: int,
+            flood_pid: int | None = None) -> None:
+    """One block of the normal stream with the readiness probe, added to `run`."""
     stop = threading.Event()
     prober = threading.Thread(target=probe_readiness, args=(url, stop, run), daemon=True)
     start, server_cpu = time.perf_counter(), cpu_seconds(server_pid)
     flood_cpu = cpu_seconds(flood_pid) if flood_pid else 0.0
     prober.start()
     try:
-        normal_stream(url, "normal-" + name.replace(" ", "-"), scans, frames, period_s, run)
+        normal_stream(url, "normal-" + run.name.replace(" ", "-"), scans, frames, period_s, run)
     finally:
         stop.set()
         prober.join(timeout=30)
-    run.seconds = time.perf_counter() - start
-    run.server_cpu_s = cpu_seconds(server_pid) - server_cpu
-    run.flood_cpu_s = cpu_seconds(flood_pid) - flood_cpu if flood_pid else 0.0
-    return run
+    run.seconds += time.perf_counter() - start
+    run.server_cpu_s += cpu_seconds(server_pid) - server_cpu
+    run.flood_cpu_s += cpu_seconds(flood_pid) - flood_cpu if flood_pid else 0.0
+
+
+def flooded_block(run: Run, port: int, request: bytes, connections: int, url: str, scans: list[bytes], frames: int,
+                  period_s: float, server_pid: int) -> None:
+    """One block of the normal stream while the flood runs (from 1 s before it); the flood's answers add to `run`."""
+    stop, results = multiprocessing.Event(), multiprocessing.Queue()
+    flooder = multiprocessing.Process(target=flood, args=(port, request, connections, stop, results))
+    started = time.perf_counter()
+    flooder.start()
+    try:
+        time.sleep(1.0)  # the flood is under way before the first measured frame
+        measure(run, url, scans, frames, period_s, server_pid, flooder.pid)
+    finally:
+        stop.set()
+        counts = results.get(timeout=120)
+        flooder.join(timeout=30)
+        run.flood_seconds += time.perf_counter() - started
+    for status, count in counts.items():
+        run.flood[status] = run.flood.get(status, 0) + count
 
 
 # ------------------------------------------------------------------------------------------------ the server
@@ -235,7 +257,7 @@ def report(alone: Run, flooded: Run) -> list[str]:
         ms = [1000 * v for v in run.latencies_s]
         ready = [1000 * v for v in run.ready_s]
         flood_text = ", ".join(f"{k}: {v}" for k, v in sorted(run.flood.items())) or "-"
-        rate = sum(run.flood.values()) / (run.seconds + 1.0) if run.flood else 0.0  # the flood starts 1 s early
+        rate = sum(run.flood.values()) / run.flood_seconds if run.flood else 0.0
         print(f"{run.name:<12} {len(ms):>6} {percentile(ms, 50):>7.1f} {percentile(ms, 99):>7.1f} {max(ms):>7.1f} | "
               f"{percentile(ready, 50):>9.1f} {percentile(ready, 99):>9.1f} {max(ready):>9.1f} {len(ready):>6} | "
               f"{100 * run.server_cpu_s / run.seconds:>9.0f}% {100 * run.flood_cpu_s / run.seconds:>8.0f}% | "
@@ -263,13 +285,17 @@ def main(argv: list[str] | None = None) -> int:
                         help="RADIATE sequence for the normal stream (default: $RAFD_RADIATE_SAMPLE, else speckle)")
     parser.add_argument("--model", type=Path, default=None, help="ONNX model (default: the shipped one)")
     parser.add_argument("--threads", type=int, default=None, help="server onnxruntime threads (default: its CPUs)")
-    parser.add_argument("--frames", type=int, default=60, help="normal-stream frames per run")
+    parser.add_argument("--frames", type=int, default=60, help="normal-stream frames per condition")
+    parser.add_argument("--rounds", type=int, default=3,
+                        help="alternate alone / under-flood blocks this many times (background load drifts)")
     parser.add_argument("--rate-hz", type=float, default=4.0, help="normal-stream frame rate (RADIATE: 4 Hz)")
     parser.add_argument("--flood-connections", type=int, default=8, help="flood clients posting back to back")
     parser.add_argument("--max-seconds", type=float, default=300.0, help="hard limit on the whole run")
     args = parser.parse_args(argv)
-    if not 1 <= args.frames <= 2000 or not 0 < args.rate_hz <= 50 or not 1 <= args.flood_connections <= 256:
-        parser.error("bounded load only: --frames 1-2000, --rate-hz up to 50, --flood-connections 1-256")
+    if (not 1 <= args.rounds <= args.frames <= 2000 or not 0 < args.rate_hz <= 50
+            or not 1 <= args.flood_connections <= 256):
+        parser.error("bounded load only: 1 <= --rounds <= --frames <= 2000, --rate-hz up to 50, "
+                     "--flood-connections 1-256")
 
     scans = scans_from(args.sample)
     request = multipart_request(padded_png(scans[0]), "flood", 1.0)
@@ -286,20 +312,12 @@ def main(argv: list[str] | None = None) -> int:
               f"connections posting a {len(request) / 1e6:.1f} MB padded PNG; {os.cpu_count()} CPUs, "
               f"{len(os.sched_getaffinity(0))} usable")
         period = 1.0 / args.rate_hz
-        measure("warm-up", url, scans, min(8, args.frames), period, server.pid)  # odometry import, allocations
-        alone = measure("alone", url, scans, args.frames, period, server.pid)
-
-        stop, results = multiprocessing.Event(), multiprocessing.Queue()
-        flooder = multiprocessing.Process(target=flood, args=(port, request, args.flood_connections, stop, results))
-        flooder.start()
-        time.sleep(1.0)  # the flood is under way before the first measured frame
-        try:
-            flooded = measure("under flood", url, scans, args.frames, period, server.pid, flooder.pid)
-        finally:
-            stop.set()
-            flooded_counts = results.get(timeout=120)
-            flooder.join(timeout=30)
-        flooded.flood = flooded_counts
+        measure(Run("warm-up"), url, scans, min(8, args.frames), period, server.pid)  # odometry import, allocations
+        alone, flooded = Run("alone"), Run("under flood")
+        for block in range(args.rounds):
+            frames = args.frames // args.rounds + (block < args.frames % args.rounds)
+            measure(alone, url, scans, frames, period, server.pid)
+            flooded_block(flooded, port, request, args.flood_connections, url, scans, frames, period, server.pid)
         failed = report(alone, flooded)
     finally:
         watchdog.cancel()
