@@ -32,9 +32,11 @@ from service.streams import StreamStore
 log = logging.getLogger(__name__)
 
 # Errors any route can answer, before or besides its own (each route's responses list the rest).
-ANY_ROUTE_ERRORS = ("Every error is `{\"error\": {\"code\", \"message\"}}`. Besides each route's own errors, any "
-                    "route may answer: " + "; ".join(f"{ERRORS[code].status} `{code}`: {ERRORS[code].meaning}" for code in
-                    ("unauthorized", "not_found", "method_not_allowed", "request_too_large", "http_error")) + ".")
+ANY_ROUTE_ERRORS = (
+    "Every error is `{\"error\": {\"code\", \"message\"}}`. Besides each route's own errors, any route may answer: "
+    + "; ".join(f"{ERRORS[code].status} `{code}`: {ERRORS[code].meaning}"
+                for code in ("unauthorized", "not_found", "method_not_allowed", "request_too_large", "http_error"))
+    + ".")
 
 
 def create_app(

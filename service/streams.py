@@ -158,8 +158,8 @@ class StreamStore:
             raise ApiError("stream_forbidden", f"stream {stream_id!r} belongs to another API key")
         elif len(entry.queue) >= self.queue_limit:
             raise ApiError("stream_queue_full", f"{len(entry.queue)} frames of stream {stream_id!r} are already "
-                                                f"queued (RAFD_STREAM_QUEUE_LIMIT); retry after "
-                                                f"{self.retry_after_s} s", headers={"Retry-After": str(self.retry_after_s)})
+                                                f"queued (RAFD_STREAM_QUEUE_LIMIT); retry after {self.retry_after_s} s",
+                           headers={"Retry-After": str(self.retry_after_s)})
         ticket = Ticket(entry=entry)
         entry.queue.append(ticket)
         return ticket

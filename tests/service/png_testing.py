@@ -29,10 +29,14 @@ def scanlines(image: np.ndarray, interlaced: bool = False) -> bytes:
 
 
 def grey_png(image: np.ndarray, interlaced: bool = False, before_idat: bytes = b"", after_idat: bytes = b"",
-             extra_compressed: int = 0, idat_size: int = 8192, trailing: bytes = b"") -> bytes:
+             extra_compressed: int = 0, idat_size: int = 8192, trailing: bytes = b"",
+             declared: tuple[int, int] | None = None) -> bytes:
     """An 8-bit greyscale PNG; `before_idat` / `after_idat`: raw chunks inserted; `extra_compressed`: that many
-    zero bytes deflated into the image stream after the last row (libpng inflates them all)."""
-    height, width = image.shape
+    zero bytes deflated into the image stream after the last row (libpng inflates them all); `declared`:
+    (width, height) written in IHDR instead of the image's."""
+    height, width = image.shape[0], image.shape[1]
+    if declared is not None:
+        width, height = declared
     compressor = zlib.compressobj(6)
     stream = compressor.compress(scanlines(image, interlaced))
     if extra_compressed:

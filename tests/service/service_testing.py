@@ -98,7 +98,8 @@ def wait_until(predicate: Any, timeout: float = 10.0, message: str = "condition"
         time.sleep(0.005)
 
 
-def http_request(method: str, path: str, body: bytes = b"", headers: dict[str, str] | None = None) -> tuple[bytes, bytes]:
+def http_request(method: str, path: str, body: bytes = b"", headers: dict[str, str] | None = None
+                 ) -> tuple[bytes, bytes]:
     """(head, body) of a raw HTTP/1.1 request that closes its connection, to send in pieces over a socket."""
     lines = [f"{method} {path} HTTP/1.1", "Host: 127.0.0.1", "Connection: close",
              f"Content-Length: {len(body)}", *(f"{k}: {v}" for k, v in (headers or {}).items())]

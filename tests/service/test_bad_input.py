@@ -63,6 +63,20 @@ def multipart_part(name: str, value: bytes, filename: str | None = None) -> byte
     return b"--XyZ\r\nContent-Disposition: form-data; name=\"" + name.encode() + b'"' + file.encode() + b"\r\n\r\n" + value + b"\r\n"
 
 
+def flipped(data: bytes, index: int) -> bytes:
+    data = bytearray(data)
+    data[index] ^= 1
+    return bytes(data)
+
+
+def split_idat_run() -> bytes:
+    """A PNG whose IDAT chunks are interrupted by a text chunk (the spec wants them consecutive)."""
+    noise = np.random.default_rng(0).integers(0, 255, (128, 128), dtype=np.uint8)
+    data = grey_png(noise, idat_size=100)
+    first_idat_end = 33 + 12 + 100
+    return data[:first_idat_end] + chunk(b"tEXt", b"a\x00b") + data[first_idat_end:]
+
+
 GOOD_BODY = json.dumps(body())
 CASES = {
     "wrong content type": (415, "unsupported_media_type", {"content": GOOD_BODY.encode(), "headers": {"content-type": "text/plain"}}),
@@ -132,11 +146,13 @@ CASES = {
     "too many ancillary chunks": (422, "invalid_image", {"json": body(image=b64(grey_png(FRAME, before_idat=text_chunks(17, 100))))}),
     "ancillary chunks too large": (422, "invalid_image", {"json": body(image=b64(grey_png(FRAME, before_idat=text_chunks(1, 70_000, compressed=False))))}),
     "image data inflating past its header": (422, "invalid_image", {"json": body(image=b64(grey_png(FRAME, extra_compressed=1_000_000)))}),
-    "image data short of its header": (422, "invalid_image", {"json": body(image=b64(grey_png(FRAME)[:60] + grey_png(FRAME)[-12:]))}),
+    "image data short of its header": (422, "invalid_image", {"json": body(image=b64(grey_png(FRAME[:100], declared=(128, 128))))}),
+    "chunk running past the end": (422, "invalid_image", {"json": body(image=b64(grey_png(FRAME)[:60] + grey_png(FRAME)[-12:]))}),
     "bytes after IEND": (422, "invalid_image", {"json": body(image=b64(grey_png(FRAME, trailing=b"x" * 10)))}),
     "unknown critical chunk": (422, "invalid_image", {"json": body(image=b64(grey_png(FRAME, before_idat=chunk(b"ABCD", b"1"))))}),
-    "split IDAT run": (422, "invalid_image", {"json": body(image=b64(grey_png(FRAME, idat_size=100)[:33 + 112] + chunk(b"tEXt", b"a\x00b") + grey_png(FRAME, idat_size=100)[33 + 112:]))}),
-    "bad IDAT crc": (422, "invalid_image", {"json": body(image=b64(GOOD_PNG[:-20] + bytes([GOOD_PNG[-20] ^ 1]) + GOOD_PNG[-19:]))}),
+    "split IDAT run": (422, "invalid_image", {"json": body(image=b64(split_idat_run()))}),
+    "bad IDAT crc": (422, "invalid_image", {"json": body(image=b64(flipped(GOOD_PNG, -13)))}),  # last IDAT's CRC
+    "corrupt image data": (422, "invalid_image", {"json": body(image=b64(flipped(GOOD_PNG, -20)))}),  # its adler32
     # finding 8: duplicate multipart fields refused; multipart faults have documented codes
     "multipart duplicate field": (422, "validation_error", form({}, extra=[("timestamp", (None, "11.0"))])),
     "multipart duplicate image": (422, "validation_error", form({}, extra=[("image", ("g.png", GOOD_PNG, "image/png"))])),
@@ -155,6 +171,16 @@ CASES = {
     "header stream id differs": (422, "stream_id_mismatch", {"json": body(), "headers": {"X-Stream-Id": "other"}}),
     "header stream id invalid": (422, "validation_error", {"json": body(), "headers": {"X-Stream-Id": "a/b"}}),
     "no stream id anywhere": (422, "validation_error", {"json": body(stream_id=...)}),
+}
+# The reason, for cases where the code alone could be right for the wrong reason.
+MESSAGES = {
+    "too many ancillary chunks": "ancillary chunks", "ancillary chunks too large": "ancillary chunks",
+    "image data inflating past its header": "inflates to more than", "image data short of its header": "truncated (",
+    "bytes after IEND": "after its IEND", "unknown critical chunk": "critical chunk", "split IDAT run": "consecutive",
+    "bad IDAT crc": "could not be decoded", "corrupt image data": "corrupt", "1-bit png": "1-bit greyscale", "palette png": "8-bit palette",
+    "4-bit grey png": "4-bit greyscale", "duplicate json key": "more than once", "multipart duplicate field": "more than once",
+    "multipart duplicate image": "more than once", "timestamp true": "valid number", "timestamp numeric string": "valid number",
+    "multipart timestamp true": "finite number", "no stream id anywhere": "X-Stream-Id",
 }
 PATH_CASES = {
     "path and body differ": (422, "stream_id_mismatch", "/streams/other/detect", {"json": body()}),
@@ -192,7 +218,9 @@ def assert_refused_without_change(primed, response, status: int, code: str) -> N
 def test_bad_request_is_refused_and_changes_nothing(primed, case):
     status, code, request = CASES[case]
     primed[1].now += 1.0
-    assert_refused_without_change(primed, primed[0].post("/detect", **request), status, code)
+    response = primed[0].post("/detect", **request)
+    assert_refused_without_change(primed, response, status, code)
+    assert MESSAGES.get(case, "") in response.json()["error"]["message"]
 
 
 @pytest.mark.parametrize("case", sorted(PATH_CASES))
