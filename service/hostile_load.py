@@ -4,7 +4,8 @@
 
 Starts `rafd-serve` (the shipped model, or --model) on 127.0.0.1 in a subprocess, then runs a normal stream
 under two conditions: full 1152 px RADIATE scans without poses (so decode + odometry + model), multipart like
-the README's curl, at the radar's 4 Hz, each answer awaited; meanwhile a probe asks /health/ready every 50 ms.
+the README's curl, at the radar's 4 Hz, each answer awaited; meanwhile a probe on its own process asks
+/health/ready every 50 ms.
 "alone" has nothing else; "under flood" runs beside --flood-connections clients on their own process posting,
 back to back, a valid scan padded with ~900 zTXt chunks to 7.7 MB (27 s of libpng time each before the fix).
 The conditions alternate in --rounds blocks (a shared machine's background load drifts; both see the same).
@@ -144,9 +145,11 @@ def percentile(values: list[float], q: float) -> float:
     return float(np.percentile(values, q)) if values else float("nan")
 
 
-def probe_readiness(url: str, stop: threading.Event, run: Run) -> None:
+def probe_readiness(url: str, stop: multiprocessing.Event, results: multiprocessing.Queue) -> None:
+    """Runs in its own process (so the normal stream's client does not delay it): [(seconds, ok), ...]."""
     import httpx
 
+    probes = []
     with httpx.Client(base_url=url, timeout=10.0) as http:
         while not stop.is_set():
             start = time.perf_counter()
@@ -154,9 +157,9 @@ def probe_readiness(url: str, stop: threading.Event, run: Run) -> None:
                 ok = http.get("/health/ready").status_code == 200
             except httpx.HTTPError:
                 ok = False
-            run.ready_s.append(time.perf_counter() - start)
-            run.ready_failures += not ok
+            probes.append((time.perf_counter() - start, ok))
             stop.wait(READY_PROBE_PERIOD_S)
+    results.put(probes)
 
 
 def normal_stream(url: str, stream_id: str, scans: list[bytes], frames: int, period_s: float, run: Run) -> None:
@@ -181,8 +184,8 @@ def normal_stream(url: str, stream_id: str, scans: list[bytes], frames: int, per
 def measure(run: Run, url: str, scans: list[bytes], frames: int, period_s: float, server_pid: int,
             flood_pid: int | None = None) -> None:
     """One block of the normal stream with the readiness probe, added to `run`."""
-    stop = threading.Event()
-    prober = threading.Thread(target=probe_readiness, args=(url, stop, run), daemon=True)
+    stop, results = multiprocessing.Event(), multiprocessing.Queue()
+    prober = multiprocessing.Process(target=probe_readiness, args=(url, stop, results))
     start, server_cpu = time.perf_counter(), cpu_seconds(server_pid)
     flood_cpu = cpu_seconds(flood_pid) if flood_pid else 0.0
     prober.start()
@@ -190,7 +193,10 @@ def measure(run: Run, url: str, scans: list[bytes], frames: int, period_s: float
         normal_stream(url, "normal-" + run.name.replace(" ", "-"), scans, frames, period_s, run)
     finally:
         stop.set()
+        probes = results.get(timeout=60)
         prober.join(timeout=30)
+    run.ready_s += [seconds for seconds, _ in probes]
+    run.ready_failures += sum(not ok for _, ok in probes)
     run.seconds += time.perf_counter() - start
     run.server_cpu_s += cpu_seconds(server_pid) - server_cpu
     run.flood_cpu_s += cpu_seconds(flood_pid) - flood_cpu if flood_pid else 0.0
