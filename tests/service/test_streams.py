@@ -159,3 +159,41 @@ def test_delete_resets_a_stream(clocked):
     assert client.delete("/streams/r").status_code == 404
     restarted = client.post("/detect", json=detect_json("r", 1.0, FRAME, (0, 0, 0))).json()
     assert restarted["frames_used"] == 1 and restarted["warming_up"] is True
+
+
+def test_a_stream_queues_at_most_its_limit_and_a_refused_ticket_changes_nothing():
+    from service.errors import ApiError
+
+    store, clock, _ = make_store()
+    store.queue_limit = 2
+    asyncio.run(feed(store, "q", 1.0))
+    before = store.snapshot()
+    first, second = store.take_ticket("q"), store.take_ticket("q")
+    clock.now += 5.0
+    with pytest.raises(ApiError) as refused:
+        store.take_ticket("q")
+    assert refused.value.status == 429 and refused.value.headers == {"Retry-After": "1"}
+    assert [t for t in store.get("q").queue] == [first, second]
+    store.release(first)
+    store.release(second)
+    assert store.snapshot()[0].idle_s == pytest.approx(before[0].idle_s + 5.0)  # no idle refresh either
+
+
+def test_generation_increases_per_chain_and_a_closed_chain_refuses_its_tickets():
+    from service.errors import ApiError
+
+    async def scenario(store: StreamStore) -> None:
+        await feed(store, "g", 1.0)
+        waiting = store.take_ticket("g")
+        assert store.delete("g")
+        with pytest.raises(ApiError) as reset:
+            store.place(waiting, 2.0)
+            await store.wait_turn(waiting)
+        assert reset.value.code == "stream_reset"
+        store.release(waiting)
+        await feed(store, "g", 0.5)  # a new chain: an older timestamp is fine
+
+    store, _, _ = make_store()
+    asyncio.run(scenario(store))
+    (info,) = store.snapshot()
+    assert info.generation == 2 and info.frames_seen == 1 and info.last_timestamp == 0.5
