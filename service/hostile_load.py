@@ -202,6 +202,21 @@ def measure(run: Run, url: str, scans: list[bytes], frames: int, period_s: float
     run.flood_cpu_s += cpu_seconds(flood_pid) - flood_cpu if flood_pid else 0.0
 
 
+def flood_cost(port: int, request: bytes, connections: int, seconds: float, server_pid: int) -> None:
+    """The flood alone: the server's CPU time per flood request (a figure the background load hardly moves)."""
+    stop, results = multiprocessing.Event(), multiprocessing.Queue()
+    flooder = multiprocessing.Process(target=flood, args=(port, request, connections, stop, results))
+    cpu = cpu_seconds(server_pid)
+    flooder.start()
+    time.sleep(seconds)
+    stop.set()
+    counts = results.get(timeout=120)
+    flooder.join(timeout=30)
+    used, answered = cpu_seconds(server_pid) - cpu, sum(counts.values())
+    print(f"flood alone for {seconds:.0f} s: {answered} answers {dict(counts)}, server CPU "
+          f"{1000 * used / max(1, answered):.2f} ms per flood request")
+
+
 def flooded_block(run: Run, port: int, request: bytes, connections: int, url: str, scans: list[bytes], frames: int,
                   period_s: float, server_pid: int) -> None:
     """One block of the normal stream while the flood runs (from 1 s before it); the flood's answers add to `run`."""
@@ -296,6 +311,8 @@ def main(argv: list[str] | None = None) -> int:
                         help="alternate alone / under-flood blocks this many times (background load drifts)")
     parser.add_argument("--rate-hz", type=float, default=4.0, help="normal-stream frame rate (RADIATE: 4 Hz)")
     parser.add_argument("--flood-connections", type=int, default=8, help="flood clients posting back to back")
+    parser.add_argument("--flood-cost-seconds", type=float, default=5.0,
+                        help="first flood alone this long and print the server's CPU per flood request (0: skip)")
     parser.add_argument("--max-seconds", type=float, default=300.0, help="hard limit on the whole run")
     args = parser.parse_args(argv)
     if (not 1 <= args.rounds <= args.frames <= 2000 or not 0 < args.rate_hz <= 50
@@ -318,6 +335,8 @@ def main(argv: list[str] | None = None) -> int:
               f"connections posting a {len(request) / 1e6:.1f} MB padded PNG; {os.cpu_count()} CPUs, "
               f"{len(os.sched_getaffinity(0))} usable")
         period = 1.0 / args.rate_hz
+        if args.flood_cost_seconds > 0:
+            flood_cost(port, request, args.flood_connections, min(args.flood_cost_seconds, 60.0), server.pid)
         measure(Run("warm-up"), url, scans, min(8, args.frames), period, server.pid)  # odometry import, allocations
         alone, flooded = Run("alone"), Run("under flood")
         for block in range(args.rounds):

@@ -27,11 +27,12 @@ def test_the_flood_request_is_a_valid_multipart_post_of_a_padded_png():
 
 def test_hostile_load_runs_bounded_and_the_flood_is_refused(tmp_path):
     out = subprocess.run([sys.executable, "-m", "service.hostile_load", "--frames", "4", "--rate-hz", "20",
-                          "--flood-connections", "2", "--max-seconds", "120"],
+                          "--flood-connections", "2", "--flood-cost-seconds", "1", "--max-seconds", "120"],
                          cwd=REPO, capture_output=True, text=True, timeout=180)
     assert out.returncode in (0, 1), out.stdout + out.stderr  # 1: a latency criterion missed at this tiny scale
     lines = out.stdout.splitlines()
     assert any(line.startswith("alone ") for line in lines) and any(line.startswith("under flood") for line in lines)
+    assert any(line.startswith("flood alone for 1 s:") and "ms per flood request" in line for line in lines)
     flood_line = next(line for line in lines if line.startswith("under flood"))
     assert "422:" in flood_line and " 200:" not in flood_line
     assert "flood requests were accepted" not in out.stdout and "normal frames failed" not in out.stdout
