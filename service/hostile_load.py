@@ -56,6 +56,16 @@ def scans_from(sample: Path | None, count: int = 18) -> list[bytes]:
     return scans + scans[-2:0:-1]
 
 
+def model_crops(scans: list[bytes], size: int) -> list[bytes]:
+    """The low-latency client's frames: each scan's centre crop at the model's input size (rafd.preprocess)."""
+    import cv2
+
+    from rafd.preprocess import model_crop
+
+    return [cv2.imencode(".png", model_crop(cv2.imdecode(np.frombuffer(scan, np.uint8), cv2.IMREAD_GRAYSCALE),
+                                            size))[1].tobytes() for scan in scans]
+
+
 def _chunk(kind: bytes, payload: bytes) -> bytes:
     return struct.pack(">I4s", len(payload), kind) + payload + struct.pack(">I", zlib.crc32(kind + payload))
 
@@ -162,17 +172,19 @@ def probe_readiness(url: str, stop: multiprocessing.Event, results: multiprocess
     results.put(probes)
 
 
-def normal_stream(url: str, stream_id: str, scans: list[bytes], frames: int, period_s: float, run: Run) -> None:
+def normal_stream(url: str, stream_id: str, scans: list[bytes], frames: int, period_s: float, run: Run,
+                  with_pose: bool) -> None:
     """Frames at the sensor's rate, each answer awaited (a radar client does not pipeline its frames); the stream
-    goes on from the run's previous block."""
+    goes on from the run's previous block. `with_pose`: send a (stationary) pose, so no odometry runs."""
     import httpx
 
+    pose = {"pose_x": "0", "pose_y": "0", "pose_yaw": "0"} if with_pose else {}
     with httpx.Client(base_url=url, timeout=60.0) as http:
         next_at = time.perf_counter()
         for _ in range(frames):
             k = len(run.latencies_s)
             start = time.perf_counter()
-            response = http.post("/detect?flow=false", data={"stream_id": stream_id, "timestamp": str(k + 1)},
+            response = http.post("/detect?flow=false", data={"stream_id": stream_id, "timestamp": str(k + 1)} | pose,
                                  files={"image": ("scan.png", scans[k % len(scans)], "image/png")})
             run.latencies_s.append(time.perf_counter() - start)
             if response.status_code != 200:
@@ -182,7 +194,7 @@ def normal_stream(url: str, stream_id: str, scans: list[bytes], frames: int, per
 
 
 def measure(run: Run, url: str, scans: list[bytes], frames: int, period_s: float, server_pid: int,
-            flood_pid: int | None = None) -> None:
+            flood_pid: int | None = None, with_pose: bool = False) -> None:
     """One block of the normal stream with the readiness probe, added to `run`."""
     stop, results = multiprocessing.Event(), multiprocessing.Queue()
     prober = multiprocessing.Process(target=probe_readiness, args=(url, stop, results))
@@ -190,7 +202,7 @@ def measure(run: Run, url: str, scans: list[bytes], frames: int, period_s: float
     flood_cpu = cpu_seconds(flood_pid) if flood_pid else 0.0
     prober.start()
     try:
-        normal_stream(url, "normal-" + run.name.replace(" ", "-"), scans, frames, period_s, run)
+        normal_stream(url, "normal-" + run.name.replace(" ", "-"), scans, frames, period_s, run, with_pose)
     finally:
         stop.set()
         probes = results.get(timeout=60)
@@ -218,7 +230,7 @@ def flood_cost(port: int, request: bytes, connections: int, seconds: float, serv
 
 
 def flooded_block(run: Run, port: int, request: bytes, connections: int, url: str, scans: list[bytes], frames: int,
-                  period_s: float, server_pid: int) -> None:
+                  period_s: float, server_pid: int, with_pose: bool) -> None:
     """One block of the normal stream while the flood runs (from 1 s before it); the flood's answers add to `run`."""
     stop, results = multiprocessing.Event(), multiprocessing.Queue()
     flooder = multiprocessing.Process(target=flood, args=(port, request, connections, stop, results))
@@ -226,7 +238,7 @@ def flooded_block(run: Run, port: int, request: bytes, connections: int, url: st
     flooder.start()
     try:
         time.sleep(1.0)  # the flood is under way before the first measured frame
-        measure(run, url, scans, frames, period_s, server_pid, flooder.pid)
+        measure(run, url, scans, frames, period_s, server_pid, flooder.pid, with_pose)
     finally:
         stop.set()
         counts = results.get(timeout=120)
@@ -306,6 +318,9 @@ def main(argv: list[str] | None = None) -> int:
                         help="RADIATE sequence for the normal stream (default: $RAFD_RADIATE_SAMPLE, else speckle)")
     parser.add_argument("--model", type=Path, default=None, help="ONNX model (default: the shipped one)")
     parser.add_argument("--threads", type=int, default=None, help="server onnxruntime threads (default: its CPUs)")
+    parser.add_argument("--stream", choices=("scans", "crops"), default="scans",
+                        help="normal stream: full 1152 px scans without poses (decode + odometry + model), or the "
+                             "low-latency client's model-size crops with poses (decode + model)")
     parser.add_argument("--frames", type=int, default=60, help="normal-stream frames per condition")
     parser.add_argument("--rounds", type=int, default=3,
                         help="alternate alone / under-flood blocks this many times (background load drifts)")
@@ -330,19 +345,25 @@ def main(argv: list[str] | None = None) -> int:
     watchdog.start()
     try:
         wait_ready(url, server)
-        print(f"rafd-serve on {url}; normal stream: {args.frames} full scans at {args.rate_hz} Hz without poses"
+        kind = "model-size crops with poses" if args.stream == "crops" else "full scans without poses"
+        print(f"rafd-serve on {url}; normal stream: {args.frames} {kind} at {args.rate_hz} Hz"
               f" ({'RADIATE sample' if args.sample else 'speckle stand-ins'}); flood: {args.flood_connections} "
               f"connections posting a {len(request) / 1e6:.1f} MB padded PNG; {os.cpu_count()} CPUs, "
               f"{len(os.sched_getaffinity(0))} usable")
-        period = 1.0 / args.rate_hz
+        period, with_pose = 1.0 / args.rate_hz, args.stream == "crops"
+        if with_pose:
+            import httpx
+
+            scans = model_crops(scans, int(httpx.get(f"{url}/model").json()["input_size"]))
         if args.flood_cost_seconds > 0:
             flood_cost(port, request, args.flood_connections, min(args.flood_cost_seconds, 60.0), server.pid)
-        measure(Run("warm-up"), url, scans, min(8, args.frames), period, server.pid)  # odometry import, allocations
+        measure(Run("warm-up"), url, scans, min(8, args.frames), period, server.pid, None, with_pose)  # first calls
         alone, flooded = Run("alone"), Run("under flood")
         for block in range(args.rounds):
             frames = args.frames // args.rounds + (block < args.frames % args.rounds)
-            measure(alone, url, scans, frames, period, server.pid)
-            flooded_block(flooded, port, request, args.flood_connections, url, scans, frames, period, server.pid)
+            measure(alone, url, scans, frames, period, server.pid, None, with_pose)
+            flooded_block(flooded, port, request, args.flood_connections, url, scans, frames, period, server.pid,
+                          with_pose)
         failed = report(alone, flooded)
     finally:
         watchdog.cancel()
