@@ -9,6 +9,7 @@ A refused or failed frame changes no stream; a frame whose client left before it
 """
 from __future__ import annotations
 
+import asyncio
 import base64
 import time
 from dataclasses import dataclass
@@ -21,6 +22,7 @@ from starlette.requests import ClientDisconnect
 from rafd.detections import decode_detections
 from rafd.geometry import box_polygons_pixels
 from service import poses
+from service.errors import ApiError
 from service.executors import AdmissionLimit, BoundedExecutor
 from service.images import DecodedFrame, accepted_sizes, check_posted_image, decode_frame, upload_check
 from service.metrics import ServiceMetrics
@@ -105,7 +107,7 @@ class DetectService:
             if stream_hint is not None:
                 ticket = self.store.take_ticket(stream_hint, caller)
             size, resolution = self.config.input_size, self.config.resolution
-            fields, image = await parse_detect_request(request, stream_hint, lambda: upload_check(size, resolution))
+            fields, image = await self._read(request, stream_hint, lambda: upload_check(size, resolution))
             if ticket is None:
                 ticket = self.store.take_ticket(fields.stream_id, caller)
             self.store.place(ticket, fields.timestamp)
@@ -152,6 +154,15 @@ class DetectService:
             "total_ms": _ms(done - start),
         }
         return answer
+
+    async def _read(self, request: Request, stream_hint: str | None, check: Any) -> tuple[DetectFields, Any]:
+        """The parsed body, within RAFD_BODY_TIMEOUT_S: a slow body must not hold its stream's place forever."""
+        try:
+            return await asyncio.wait_for(parse_detect_request(request, stream_hint, check),
+                                          self.settings.body_timeout_s)
+        except asyncio.TimeoutError as exc:
+            raise ApiError("body_timeout", f"the request body did not arrive within {self.settings.body_timeout_s} "
+                                           "s (RAFD_BODY_TIMEOUT_S)") from exc
 
     # ------------------------------------------------------------------ post-processing
     def _answer(self, fields: DetectFields, decoded: DecodedFrame, result: Any, pose: np.ndarray, source: str,

@@ -45,6 +45,8 @@ ERRORS: Mapping[str, ErrorCode] = {
     "not_found": ErrorCode(404, "no such route"),
     "stream_not_found": ErrorCode(404, "no such stream (never seen, deleted or expired)"),
     "method_not_allowed": ErrorCode(405, "the route does not take this HTTP method"),
+    "body_timeout": ErrorCode(408, "the body did not arrive within RAFD_BODY_TIMEOUT_S (its frame held its "
+                                   "stream's place meanwhile)"),
     "timestamp_not_increasing": ErrorCode(
         409, "the frame's timestamp is not after the stream's last accepted frame, or after a frame of that "
              "stream that arrived earlier and is still queued"),

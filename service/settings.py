@@ -65,6 +65,8 @@ class Settings(BaseSettings):
     max_inflight_requests: int = Field(default=64, ge=1)
     # Frames of one stream queued at once (they run in arrival order); beyond it 429 + Retry-After.
     stream_queue_limit: int = Field(default=8, ge=1)
+    # Seconds a request's body may take to arrive (a frame holds its stream's place while it does); beyond it 408.
+    body_timeout_s: float = Field(default=30.0, gt=0)
     # Each stage runs on its own threads with its own queue limit (jobs waiting beyond the running ones); a full
     # queue answers 503 + Retry-After at once. One model worker: onnxruntime already uses `threads` cores per step.
     decode_workers: int = Field(default=1, ge=1)

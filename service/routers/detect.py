@@ -37,7 +37,7 @@ _REQUEST_BODY = {"requestBody": {"required": True, "content": {
     "multipart/form-data": {"schema": _MULTIPART_SCHEMA},
 }}}
 ERROR_CODES = (
-    "empty_body", "invalid_json", "invalid_multipart", "unauthorized", "stream_forbidden",
+    "empty_body", "invalid_json", "invalid_multipart", "unauthorized", "stream_forbidden", "body_timeout",
     "timestamp_not_increasing", "pose_source_conflict", "stream_reset", "request_too_large",
     "unsupported_media_type", "validation_error", "stream_id_mismatch", "invalid_image", "unsupported_image_size",
     "unsupported_image_format", "stream_queue_full", "internal_error", "odometry_failed", "not_ready",

@@ -225,6 +225,23 @@ def test_finding3_with_the_stream_named_in_a_header_a_frame_is_placed_before_its
     assert predecessor(json.loads(answer_b), 3) == 2 and json.loads(answer_b)["flow"]["pair"] == [2.0, 3.0]
 
 
+def test_finding3_a_slow_body_holds_its_streams_place_only_until_the_body_timeout():
+    app = create_app(Settings(threads=1, body_timeout_s=0.5), runner=FakeRunner())
+    with serve_in_thread(app) as url, httpx.Client(base_url=url, timeout=10.0) as http:
+        wait_ready(http)
+        assert http.post("/detect", json=detect_json("slow", 1.0, uniform(1), (1.0, 0, 0))).status_code == 200
+        port = int(url.rsplit(":", 1)[1])
+        head, _ = http_request("POST", "/streams/slow/detect", json_part("slow", 2.0, uniform(2), (2.0, 0, 0)),
+                               {"Content-Type": "application/json"})
+        with socket.create_connection(("127.0.0.1", port)) as stalled:
+            stalled.sendall(head)  # ... and never the body
+            wait_until(lambda: stream_state(http, "slow")["frames_queued"] == 1, message="the stalled frame queued")
+            behind = http.post("/detect", json=detect_json("slow", 3.0, uniform(3), (3.0, 0, 0)))
+            status, answer = read_http_response(stalled)
+    assert status == 408 and json.loads(answer)["error"]["code"] == "body_timeout"
+    assert behind.status_code == 200 and predecessor(behind.json(), 3) == 1
+
+
 def test_finding3_a_frame_that_can_no_longer_be_in_order_is_refused_without_waiting():
     with gated_app() as (client, gate, runner):
         with ThreadPoolExecutor(max_workers=1) as pool:
