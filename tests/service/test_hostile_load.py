@@ -27,7 +27,8 @@ def test_the_flood_request_is_a_valid_multipart_post_of_a_padded_png():
 
 def test_hostile_load_runs_bounded_and_the_flood_is_refused(tmp_path):
     out = subprocess.run([sys.executable, "-m", "service.hostile_load", "--frames", "4", "--rate-hz", "20",
-                          "--flood-connections", "2", "--flood-cost-seconds", "1", "--max-seconds", "120"],
+                          "--rounds", "1", "--flood-connections", "2", "--flood-cost-seconds", "1",
+                          "--max-seconds", "120"],
                          cwd=REPO, capture_output=True, text=True, timeout=180)
     assert out.returncode in (0, 1), out.stdout + out.stderr  # 1: a latency criterion missed at this tiny scale
     lines = out.stdout.splitlines()
