@@ -157,9 +157,14 @@ class DetectService:
 
     async def _read(self, request: Request, stream_hint: str | None, check: Any) -> tuple[DetectFields, Any]:
         """The parsed body, within RAFD_BODY_TIMEOUT_S: a slow body must not hold its stream's place forever."""
+        parse = parse_detect_request(request, stream_hint, check)
         try:
-            return await asyncio.wait_for(parse_detect_request(request, stream_hint, check),
-                                          self.settings.body_timeout_s)
+            if not hasattr(asyncio, "timeout"):  # Python 3.10
+                return await asyncio.wait_for(parse, self.settings.body_timeout_s)
+            # asyncio.timeout cancels this task at the deadline; wait_for runs the parse as another task, which
+            # made refusing a hostile upload measurably slower (0.5 ms more server CPU each, here).
+            async with asyncio.timeout(self.settings.body_timeout_s):
+                return await parse
         except asyncio.TimeoutError as exc:
             raise ApiError("body_timeout", f"the request body did not arrive within {self.settings.body_timeout_s} "
                                            "s (RAFD_BODY_TIMEOUT_S)") from exc
