@@ -66,19 +66,26 @@ def _dump(value: Any) -> str:
     return json.dumps(value, separators=(", ", ": "))
 
 
+def _box_lines(box: dict[str, Any], indent: str) -> list[str]:
+    """One box as two lines: its fields, then its polygon."""
+    fields = ", ".join(f"{_dump(k)}: {_dump(v)}" for k, v in box.items() if k != "polygon")
+    return [f"{indent}{{{fields},", f'{indent} "polygon": {_dump(box["polygon"])}}}']
+
+
 def render(answer: dict[str, Any]) -> str:
-    """The shown answer as a json code block: fields packed into lines of at most LINE_WIDTH, one box per line."""
+    """The shown answer as a json code block: fields packed into lines of at most LINE_WIDTH, each box on two."""
     lines: list[str] = []
     current = ""
     for key, value in shown(answer).items():
         if key == "boxes" and value:
             if current:
                 lines.append(current + ",")
-            boxes = [_dump(box) for box in value]
-            lines.append(f' "boxes": [{boxes[0]}' + ("," if len(boxes) > 1 else "]" + ","))
-            lines += [f"           {box}," for box in boxes[1:-1]]
-            if len(boxes) > 1:
-                lines.append(f"           {boxes[-1]}],")
+            boxes = [_box_lines(box, " " * 11) for box in value]
+            boxes[0][0] = ' "boxes": [' + boxes[0][0].lstrip()
+            for box in boxes[:-1]:
+                box[-1] += ","
+            boxes[-1][-1] += "],"
+            lines += [line for box in boxes for line in box]
             current = ""
             continue
         item = f"{_dump(key)}: {_dump(value)}"
