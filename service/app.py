@@ -2,6 +2,8 @@
 
 The model is loaded in the lifespan, in a background task, never at import: /health/live answers at
 once, /health/ready (and every model route) answers 503 until the model is loaded and warmed up.
+Middleware, outermost first: metrics (counts every answer, 401s and 413s included), API keys (401 before
+anything is read), the body size limit (413), then the routes.
 """
 from __future__ import annotations
 
@@ -16,8 +18,9 @@ from fastapi import FastAPI
 from starlette.concurrency import run_in_threadpool
 
 from rafd import __version__
-from service.detector import DetectService
-from service.errors import install_error_handlers
+from service.auth import OPEN_PATHS, ApiKeyMiddleware, load_api_keys
+from service.detector import DetectService, Executors
+from service.errors import ERRORS, error_responses, install_error_handlers
 from service.limits import BodySizeLimitMiddleware
 from service.loading import check_buffer_length, open_runner, warm_up
 from service.metrics import MetricsMiddleware, ServiceMetrics
@@ -28,6 +31,13 @@ from service.streams import StreamStore
 
 log = logging.getLogger(__name__)
 
+# Errors any route can answer, before or besides its own (each route's responses list the rest).
+ANY_ROUTE_ERRORS = (
+    "Every error is `{\"error\": {\"code\", \"message\"}}`. Besides each route's own errors, any route may answer: "
+    + "; ".join(f"{ERRORS[code].status} `{code}`: {ERRORS[code].meaning}"
+                for code in ("unauthorized", "not_found", "method_not_allowed", "request_too_large", "http_error"))
+    + ".")
+
 
 def create_app(
     settings: Settings | None = None,
@@ -35,9 +45,13 @@ def create_app(
     odometry: Odometry | None = None,
     clock: Callable[[], float] = time.monotonic,
 ) -> FastAPI:
-    """Build the app; `runner` (an OnnxRunner-compatible object) and `odometry` can be injected for tests."""
+    """Build the app; `runner` (an OnnxRunner-compatible object) and `odometry` can be injected for tests.
+
+    Raises ValueError at once when the configured API keys are malformed or their file cannot be read.
+    """
     settings = settings or get_settings()
     service_metrics = ServiceMetrics()
+    api_keys = load_api_keys(settings)
 
     async def load(app: FastAPI) -> None:
         try:
@@ -45,9 +59,11 @@ def create_app(
             check_buffer_length(settings, loaded)
             await run_in_threadpool(warm_up, loaded)
             store = StreamStore(loaded.new_state, settings.max_streams, settings.stream_ttl_s, clock=clock,
-                                on_evict=lambda reason: service_metrics.evictions.labels(reason=reason).inc())
+                                on_evict=lambda reason: service_metrics.evictions.labels(reason=reason).inc(),
+                                queue_limit=settings.stream_queue_limit, retry_after_s=settings.retry_after_s)
             service_metrics.track_active_streams(lambda: len(store))
-            app.state.service = DetectService(loaded, settings, store, service_metrics, odometry)
+            app.state.service = DetectService(loaded, settings, store, service_metrics, odometry,
+                                              Executors.from_settings(settings, service_metrics))
             log.info("model ready: %s", loaded.metadata.get("version", "unknown"))
         except Exception as exc:  # readiness reports it; the process stays up for inspection
             log.exception("model failed to load")
@@ -64,17 +80,45 @@ def create_app(
             task.cancel()
             with contextlib.suppress(asyncio.CancelledError):
                 await task
+            if app.state.service is not None:
+                app.state.service.executors.shutdown()
             app.state.service = None
 
-    app = FastAPI(title="RaFD radar detection service", version=__version__, lifespan=lifespan)
+    app = FastAPI(title="RaFD radar detection service", version=__version__, lifespan=lifespan,
+                  description=ANY_ROUTE_ERRORS)
     app.state.settings = settings
     app.state.metrics = service_metrics
     app.state.service = None
     app.state.load_error = None
     install_error_handlers(app)
-    for router in (detect.router, streams.router, health.router, model.router, metrics.router):
+    for router in (detect.router, streams.router, health.router, metrics.router):
         app.include_router(router)
-    # Last added = outermost: metrics also count the 413s the size limit answers.
+    app.include_router(model.router, responses=error_responses("unauthorized", "not_ready"))
+    # Last added = outermost: metrics also count the 401s and 413s answered before the routes.
     app.add_middleware(BodySizeLimitMiddleware, max_bytes=settings.max_request_bytes)
+    app.add_middleware(ApiKeyMiddleware, keys=api_keys)
     app.add_middleware(MetricsMiddleware, metrics=service_metrics)
+    if api_keys.enabled:
+        _document_api_keys(app)
     return app
+
+
+def _document_api_keys(app: FastAPI) -> None:
+    """OpenAPI: the two ways to present a key, required on every operation but liveness and readiness."""
+    build = app.openapi
+
+    def openapi() -> dict[str, Any]:
+        if app.openapi_schema:
+            return app.openapi_schema
+        schema = build()
+        schema.setdefault("components", {})["securitySchemes"] = {
+            "ApiKeyHeader": {"type": "apiKey", "in": "header", "name": "X-API-Key"},
+            "BearerAuth": {"type": "http", "scheme": "bearer"},
+        }
+        for path, operations in schema["paths"].items():
+            for operation in operations.values():
+                operation["security"] = [] if path in OPEN_PATHS else [{"ApiKeyHeader": []}, {"BearerAuth": []}]
+        app.openapi_schema = schema
+        return schema
+
+    app.openapi = openapi  # type: ignore[method-assign]

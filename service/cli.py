@@ -58,7 +58,12 @@ def main(argv: list[str] | None = None) -> int:
     from service.app import create_app
 
     logging.basicConfig(level=args.log_level.upper(), format="%(asctime)s %(levelname)s %(name)s: %(message)s")
-    uvicorn.run(create_app(settings), host=args.host, port=args.port, log_level=args.log_level)
+    try:
+        app = create_app(settings)
+    except ValueError as exc:  # e.g. a malformed API key or an unreadable RAFD_API_KEYS_FILE
+        print(f"rafd-serve: {exc}", file=sys.stderr)
+        return 2
+    uvicorn.run(app, host=args.host, port=args.port, log_level=args.log_level)
     return 0
 
 

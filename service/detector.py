@@ -1,20 +1,32 @@
-"""The detect pipeline: decode -> per-stream lock -> pose -> runner step -> commit -> boxes and flow."""
+"""The detect pipeline, in arrival order per stream, every stage bounded:
+
+    admit (in-flight limit) -> [ticket: X-Stream-Id / path form] -> body parsed (a multipart PNG's chunk headers
+    checked as it streams in) -> [ticket: body form] -> placed (409 at once if out of order) -> PNG chunk check
+    (event loop, headers only) -> decode executor -> wait for the stream's turn -> pose (odometry executor) ->
+    runner step (model executor) -> commit -> boxes and flow.
+
+A refused or failed frame changes no stream; a frame whose client left before its turn is dropped (499).
+"""
 from __future__ import annotations
 
+import asyncio
 import base64
 import time
 from dataclasses import dataclass
 from typing import Any, Literal
 
 import numpy as np
-from starlette.concurrency import run_in_threadpool
+from fastapi import Request
+from starlette.requests import ClientDisconnect
 
 from rafd.detections import decode_detections
 from rafd.geometry import box_polygons_pixels
 from service import poses
 from service.errors import ApiError
-from service.images import DecodedFrame, accepted_sizes, decode_frame
+from service.executors import AdmissionLimit, BoundedExecutor
+from service.images import DecodedFrame, accepted_sizes, check_posted_image, decode_frame, upload_check
 from service.metrics import ServiceMetrics
+from service.requests import parse_detect_request
 from service.schemas import DetectFields
 from service.settings import Settings
 from service.streams import StreamStore
@@ -33,16 +45,43 @@ class DetectOptions:
     flow_format: FlowFormat = "list"
 
 
+@dataclass(frozen=True)
+class Executors:
+    """One bounded executor per stage, so a slow stage never queues the others' work (or health checks)."""
+
+    decode: BoundedExecutor
+    odometry: BoundedExecutor
+    model: BoundedExecutor
+
+    @classmethod
+    def from_settings(cls, settings: Settings, metrics: ServiceMetrics) -> Executors:
+        def make(name: str, workers: int, queue_limit: int) -> BoundedExecutor:
+            executor = BoundedExecutor(name, workers, queue_limit, settings.retry_after_s,
+                                       on_refused=metrics.executor_refused)
+            metrics.track_executor(name, lambda: executor.waiting)
+            return executor
+
+        return cls(decode=make("decode", settings.decode_workers, settings.decode_queue_limit),
+                   odometry=make("odometry", settings.odometry_workers, settings.odometry_queue_limit),
+                   model=make("model", settings.model_workers, settings.model_queue_limit))
+
+    def shutdown(self) -> None:
+        for executor in (self.decode, self.odometry, self.model):
+            executor.shutdown()
+
+
 class DetectService:
-    """Everything /detect needs once the model is loaded: runner, stream store, odometry, settings."""
+    """Everything /detect needs once the model is loaded: runner, stream store, executors, odometry, settings."""
 
     def __init__(self, runner: Any, settings: Settings, store: StreamStore, metrics: ServiceMetrics,
-                 odometry: poses.Odometry | None = None) -> None:
+                 odometry: poses.Odometry | None = None, executors: Executors | None = None) -> None:
         self.runner = runner
         self.config = runner.config
         self.settings = settings
         self.store = store
         self.metrics = metrics
+        self.executors = executors or Executors.from_settings(settings, metrics)
+        self.admission = AdmissionLimit(settings.max_inflight_requests, settings.retry_after_s)
         self._odometry = odometry
 
     @property
@@ -54,35 +93,53 @@ class DetectService:
             self._odometry = poses.default_odometry()
         return self._odometry
 
-    async def detect(self, fields: DetectFields, image: bytes, options: DetectOptions) -> dict[str, Any]:
-        """One frame of one stream -> the JSON answer; the stream changes only when everything succeeded."""
-        start = time.perf_counter()
-        decoded = await run_in_threadpool(decode_frame, image, self.config.input_size, self.config.resolution)
-        frame = decoded.model_input()  # [S, S] float32 in [0, 1]
-        decoded_at = time.perf_counter()
-        requested = None if fields.pose is None else np.array([fields.pose.x, fields.pose.y, fields.pose.yaw])
+    async def detect(self, request: Request, stream_hint: str | None, caller: str | None,
+                     options: DetectOptions) -> dict[str, Any]:
+        """One frame of one stream -> the JSON answer; the stream changes only when everything succeeded.
 
-        async with self.store.session(fields.stream_id) as entry:
+        `stream_hint`: the stream id from the X-Stream-Id header or the path (None: from the body); with it the
+        frame's place in the stream's queue is taken before the body is read. `caller`: the API key's name.
+        """
+        start = time.perf_counter()
+        self.admission.enter()
+        ticket = None
+        try:
+            if stream_hint is not None:
+                ticket = self.store.take_ticket(stream_hint, caller)
+            size, resolution = self.config.input_size, self.config.resolution
+            fields, image = await self._read(request, stream_hint, lambda: upload_check(size, resolution))
+            if ticket is None:
+                ticket = self.store.take_ticket(fields.stream_id, caller)
+            self.store.place(ticket, fields.timestamp)
+            check_posted_image(image, size, resolution)  # chunk headers only: hostile files never take a slot
+            decoded = await self.executors.decode.run(decode_frame, image, size, resolution)
+            frame = decoded.model_input()  # [S, S] float32 in [0, 1]
+            decoded_at = time.perf_counter()
+
+            await self.store.wait_turn(ticket)
+            if await request.is_disconnected():
+                raise ClientDisconnect()  # nobody to answer: the frame is dropped before it changes the stream
+            entry = self.store.check_turn(ticket)
             locked_at = time.perf_counter()
-            if entry.last_timestamp is not None and fields.timestamp <= entry.last_timestamp:
-                raise ApiError(409, "timestamp_not_increasing",
-                               f"timestamp {fields.timestamp!r} is not after this stream's last frame "
-                               f"({entry.last_timestamp!r}); timestamps must increase within a stream")
-            if requested is not None:
+            if fields.pose is not None:
                 poses.check_request_pose(entry.pose_source)
-                pose, source = requested, "request"
+                pose, source = np.array([fields.pose.x, fields.pose.y, fields.pose.yaw]), "request"
             elif entry.last_frame is None:  # a stream's first frame anchors its odometry world frame
                 pose, source = np.zeros(3), "odometry"
             else:
-                pose = await run_in_threadpool(poses.odometry_pose, entry.last_pose, entry.last_frame, decoded.odometry_view,
-                                               self.config.resolution, self.odometry())
+                pose = await self.executors.odometry.run(poses.odometry_pose, entry.last_pose, entry.last_frame,
+                                                         decoded.odometry_view, resolution, self.odometry())
                 source = "odometry"
             odometry_done = time.perf_counter()
             # float64: world poses may be large (UTM metres); the runner takes differences before casting.
-            result, new_state = await run_in_threadpool(self.runner.step, entry.state, frame, pose)
+            result, new_state = await self.executors.model.run(self.runner.step, entry.state, frame, pose)
             model_done = time.perf_counter()
             previous_timestamp = entry.last_timestamp
-            entry.commit(new_state, fields.timestamp, decoded.odometry_view, pose, source)
+            self.store.commit(ticket, new_state, fields.timestamp, decoded.odometry_view, pose, source)
+        finally:
+            if ticket is not None:
+                self.store.release(ticket)
+            self.admission.leave()
 
         self.metrics.frames.inc()
         self.metrics.model_latency.observe(model_done - odometry_done)
@@ -97,6 +154,20 @@ class DetectService:
             "total_ms": _ms(done - start),
         }
         return answer
+
+    async def _read(self, request: Request, stream_hint: str | None, check: Any) -> tuple[DetectFields, Any]:
+        """The parsed body, within RAFD_BODY_TIMEOUT_S: a slow body must not hold its stream's place forever."""
+        parse = parse_detect_request(request, stream_hint, check)
+        try:
+            if not hasattr(asyncio, "timeout"):  # Python 3.10
+                return await asyncio.wait_for(parse, self.settings.body_timeout_s)
+            # asyncio.timeout cancels this task at the deadline; wait_for runs the parse as another task, which
+            # made refusing a hostile upload measurably slower (0.5 ms more server CPU each, here).
+            async with asyncio.timeout(self.settings.body_timeout_s):
+                return await parse
+        except asyncio.TimeoutError as exc:
+            raise ApiError("body_timeout", f"the request body did not arrive within {self.settings.body_timeout_s} "
+                                           "s (RAFD_BODY_TIMEOUT_S)") from exc
 
     # ------------------------------------------------------------------ post-processing
     def _answer(self, fields: DetectFields, decoded: DecodedFrame, result: Any, pose: np.ndarray, source: str,

@@ -1,60 +1,152 @@
-"""One error shape for every 4xx/5xx: {"error": {"code": str, "message": str}}."""
+"""One error shape for every 4xx/5xx: {"error": {"code": str, "message": str}}, from one registry of codes.
+
+Every code the service can answer is in `ERRORS` (status and meaning); `ApiError` only takes a registered code,
+the OpenAPI responses are built from the registry (`error_responses`) and service/README.md documents each code
+(a test checks all three agree). Messages are capped (`MAX_MESSAGE_CHARS`) so an error never grows with the input.
+"""
 from __future__ import annotations
 
 import logging
-from http import HTTPStatus
+from collections.abc import Mapping
+from dataclasses import dataclass
+from typing import Any
 
 from fastapi import FastAPI, Request
 from fastapi.exceptions import RequestValidationError
 from fastapi.responses import JSONResponse
 from starlette.exceptions import HTTPException as StarletteHTTPException
+from starlette.requests import ClientDisconnect
+from starlette.responses import Response
 
 log = logging.getLogger(__name__)
 
+# An error message is for a human: a few hundred characters say what was wrong; more only echoes the input.
+MAX_MESSAGE_CHARS = 512
+# Pydantic reports one error per bad field or extra key; a few name the problem.
+MAX_LISTED_ERRORS = 5
+MAX_LOCATION_CHARS = 64
+# Not an answer anyone receives: the client left before its answer. Counted under this status in the metrics
+# (nginx's convention), never as a 500.
+CLIENT_CLOSED_REQUEST = 499
+
+
+@dataclass(frozen=True)
+class ErrorCode:
+    status: int
+    meaning: str
+
+
+ERRORS: Mapping[str, ErrorCode] = {
+    "empty_body": ErrorCode(400, "the request body is empty"),
+    "invalid_json": ErrorCode(400, "the body is not valid JSON (NaN, Infinity and out-of-range numbers included)"),
+    "invalid_multipart": ErrorCode(400, "the multipart/form-data body cannot be parsed (boundary, part headers)"),
+    "unauthorized": ErrorCode(401, "API keys are configured and the request has no valid key"),
+    "stream_forbidden": ErrorCode(403, "the stream was created with another API key"),
+    "not_found": ErrorCode(404, "no such route"),
+    "stream_not_found": ErrorCode(404, "no such stream (never seen, deleted or expired)"),
+    "method_not_allowed": ErrorCode(405, "the route does not take this HTTP method"),
+    "body_timeout": ErrorCode(408, "the body did not arrive within RAFD_BODY_TIMEOUT_S (its frame held its "
+                                   "stream's place meanwhile)"),
+    "timestamp_not_increasing": ErrorCode(
+        409, "the frame's timestamp is not after the stream's last accepted frame, or after a frame of that "
+             "stream that arrived earlier and is still queued"),
+    "pose_source_conflict": ErrorCode(409, "a request pose on a stream whose world frame was anchored by odometry"),
+    "stream_reset": ErrorCode(
+        409, "the stream was deleted (reset) while this frame waited or ran; the frame belongs to the ended "
+             "chain and was not used: send it again to start the new chain"),
+    "request_too_large": ErrorCode(413, "the body exceeds RAFD_MAX_REQUEST_BYTES"),
+    "unsupported_media_type": ErrorCode(415, "Content-Type is neither application/json nor multipart/form-data"),
+    "validation_error": ErrorCode(
+        422, "a field is missing, unknown, duplicated or of the wrong type (no coercion: a JSON timestamp must be "
+             "a number, not a string or a boolean), or a path, query or header value is invalid"),
+    "stream_id_mismatch": ErrorCode(
+        422, "the stream id in the X-Stream-Id header, the URL path and the body do not all agree"),
+    "invalid_image": ErrorCode(
+        422, "the image is not valid base64 / not a PNG / corrupt, or its chunk structure is refused before "
+             "decoding (too many or too large ancillary chunks, image data that inflates beyond its header's size)"),
+    "unsupported_image_size": ErrorCode(422, "the PNG is not one of the accepted square sizes"),
+    "unsupported_image_format": ErrorCode(422, "the PNG is not 8-bit greyscale (colour type 0, bit depth 8)"),
+    "stream_queue_full": ErrorCode(429, "RAFD_STREAM_QUEUE_LIMIT frames of this stream are already queued"),
+    "internal_error": ErrorCode(500, "the model or the service failed; no stream changed"),
+    "odometry_failed": ErrorCode(500, "odometry returned no finite ego motion; no stream changed"),
+    "not_ready": ErrorCode(503, "the model is loading or warming up, or failed to load"),
+    "overloaded": ErrorCode(
+        503, "too many requests in flight, or the decode / odometry / model queue is full; retry after the "
+             "Retry-After header's seconds"),
+    "odometry_unavailable": ErrorCode(503, "this build cannot estimate ego motion: send a pose with every frame"),
+    "http_error": ErrorCode(400, "any other refusal by the HTTP framework (not expected)"),
+}
+
 
 class ApiError(Exception):
-    """A request the service refuses, with a machine-readable code and a human-readable reason."""
+    """A request the service refuses, with a registered code and a human-readable reason."""
 
-    def __init__(self, status: int, code: str, message: str) -> None:
+    def __init__(self, code: str, message: str, headers: Mapping[str, str] | None = None) -> None:
         super().__init__(message)
-        self.status = status
+        self.status = ERRORS[code].status  # KeyError: every code must be registered (and so documented)
         self.code = code
         self.message = message
+        self.headers = dict(headers or {})
 
 
-def error_response(status: int, code: str, message: str) -> JSONResponse:
-    return JSONResponse({"error": {"code": code, "message": message}}, status_code=status)
+def cap_message(message: str, limit: int = MAX_MESSAGE_CHARS) -> str:
+    return message if len(message) <= limit else message[: limit - 15] + " ... (truncated)"
 
 
-def _status_code_name(status: int) -> str:
-    try:
-        return HTTPStatus(status).phrase.lower().replace(" ", "_").replace("-", "_")
-    except ValueError:
-        return "error"
+def error_body(code: str, message: str) -> dict[str, Any]:
+    return {"error": {"code": code, "message": cap_message(message)}}
+
+
+def error_response(status: int, code: str, message: str, headers: Mapping[str, str] | None = None) -> JSONResponse:
+    return JSONResponse(error_body(code, message), status_code=status, headers=dict(headers or {}))
 
 
 def format_validation_errors(errors: list[dict]) -> str:
-    """Pydantic errors -> one readable line: `field.path: reason; ...`."""
+    """Pydantic errors -> one short line: `field.path: reason; ...` (at most MAX_LISTED_ERRORS, names capped)."""
     parts = []
-    for error in errors:
-        location = ".".join(str(p) for p in error.get("loc", ()) if p not in ("body", "query", "path"))
+    for error in errors[:MAX_LISTED_ERRORS]:
+        location = ".".join(str(p)[:MAX_LOCATION_CHARS] for p in error.get("loc", ())
+                            if p not in ("body", "query", "path", "header"))
         parts.append(f"{location or 'request'}: {error.get('msg', 'invalid')}")
+    if len(errors) > MAX_LISTED_ERRORS:
+        parts.append(f"and {len(errors) - MAX_LISTED_ERRORS} more")
     return "; ".join(parts)
 
 
+def error_responses(*codes: str) -> dict[int | str, dict[str, Any]]:
+    """OpenAPI `responses` for a route: one entry per status, its description listing the codes it can carry."""
+    from service.schemas import ErrorResponse  # schemas imports nothing from here; keep the import local anyway
+
+    by_status: dict[int, list[str]] = {}
+    for code in codes:
+        by_status.setdefault(ERRORS[code].status, []).append(code)
+    return {
+        status: {"model": ErrorResponse,
+                 "description": "; ".join(f"`{code}`: {ERRORS[code].meaning}" for code in names)}
+        for status, names in sorted(by_status.items())
+    }
+
+
 async def _api_error(request: Request, exc: ApiError) -> JSONResponse:
-    return error_response(exc.status, exc.code, exc.message)
+    return error_response(exc.status, exc.code, exc.message, exc.headers)
+
+
+_FRAMEWORK_CODES = {404: "not_found", 405: "method_not_allowed"}
 
 
 async def _http_error(request: Request, exc: StarletteHTTPException) -> JSONResponse:
-    response = error_response(exc.status_code, _status_code_name(exc.status_code), str(exc.detail))
-    if exc.headers:
-        response.headers.update(exc.headers)
-    return response
+    code = _FRAMEWORK_CODES.get(exc.status_code) or ("http_error" if exc.status_code < 500 else "internal_error")
+    return error_response(ERRORS[code].status, code, str(exc.detail), exc.headers)
 
 
 async def _validation_error(request: Request, exc: RequestValidationError) -> JSONResponse:
     return error_response(422, "validation_error", format_validation_errors(list(exc.errors())))
+
+
+async def _client_disconnect(request: Request, exc: ClientDisconnect) -> Response:
+    """The client left: one INFO line, a 499 for the metrics (nobody receives it), never a 500."""
+    log.info("client disconnected before its answer: %s %s", request.method, request.url.path)
+    return Response(status_code=CLIENT_CLOSED_REQUEST)
 
 
 async def _unexpected_error(request: Request, exc: Exception) -> JSONResponse:
@@ -66,4 +158,5 @@ def install_error_handlers(app: FastAPI) -> None:
     app.add_exception_handler(ApiError, _api_error)
     app.add_exception_handler(StarletteHTTPException, _http_error)
     app.add_exception_handler(RequestValidationError, _validation_error)
+    app.add_exception_handler(ClientDisconnect, _client_disconnect)
     app.add_exception_handler(Exception, _unexpected_error)

@@ -1,9 +1,15 @@
-"""Decode and validate posted radar frames: 8-bit single-channel PNG, full RADIATE scan or model size."""
+"""Posted radar frames: 8-bit greyscale PNG, a full RADIATE scan or the model's input size, -> the model's crop.
+
+`decode_frame` is THE decode: every posted image goes through it (on the decode executor), and it ends in
+rafd.preprocess, the one torch-free path from a scan to the model input. `check_posted_image` is its cheap
+first half (chunk headers only), run on the event loop as soon as the body is parsed so a hostile file is
+refused before it takes a decode slot; `upload_check` runs the same rules on a multipart upload while it
+streams in.
+"""
 from __future__ import annotations
 
-import base64
 import binascii
-import struct
+from collections.abc import Callable
 from dataclasses import dataclass
 
 import cv2
@@ -11,13 +17,17 @@ import numpy as np
 
 from rafd.geometry import RADIATE_RESOLUTION, RADIATE_SCAN_SIZE
 from rafd.preprocess import model_crop, to_model_input
+from service import png
 from service.errors import ApiError
 
-PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"
 # Odometry registers this much of the posted scan around the radar (89 m at RADIATE's resolution):
 # on the model's small crop alone the static scene is too sparse and registration sometimes locks
 # onto vehicles that move with the ego.
 ODOMETRY_VIEW_SIZE = 512
+DATA_URL_PREFIX = "data:image/png;base64,"
+
+# A posted image: PNG bytes (multipart file) or base64 text of them (JSON field).
+PostedImage = bytes | str
 
 
 @dataclass(frozen=True)
@@ -40,43 +50,64 @@ def accepted_sizes(input_size: int, resolution: float) -> tuple[int, ...]:
     return tuple(sizes)
 
 
-def decode_base64(text: str) -> bytes:
-    """Base64 text (optionally a `data:image/png;base64,` URL) -> bytes; 422 when it is not base64."""
+def strip_data_url(text: str) -> str:
+    """A base64 JSON image may carry a `data:image/png;base64,` prefix."""
     if text.startswith("data:"):
-        text = text.partition(",")[2]
-    try:
-        return base64.b64decode(text, validate=True)
-    except (binascii.Error, ValueError) as exc:
-        raise ApiError(422, "invalid_image", f"field 'image' is not valid base64: {exc}") from exc
+        if not text.startswith(DATA_URL_PREFIX):
+            raise ApiError("invalid_image", f"a data URL image must start with {DATA_URL_PREFIX!r}")
+        return text[len(DATA_URL_PREFIX) :]
+    return text
 
 
-def png_header_size(data: bytes) -> tuple[int, int]:
-    """(width, height) from the PNG IHDR chunk, read before decoding so a huge image is never allocated."""
-    if not data:
-        raise ApiError(422, "invalid_image", "the image is empty")
-    if not data.startswith(PNG_SIGNATURE) or len(data) < 24 or data[12:16] != b"IHDR":
-        raise ApiError(422, "invalid_image", "the image is not a PNG (expected the PNG signature and IHDR chunk)")
-    width, height = struct.unpack(">II", data[16:24])
-    return width, height
+def _source(image: PostedImage) -> png.ByteSource:
+    return png.Base64Bytes(strip_data_url(image)) if isinstance(image, str) else png.RawBytes(image)
 
 
-def decode_frame(data: bytes, input_size: int, resolution: float) -> DecodedFrame:
-    """PNG bytes -> the model's [S, S] uint8 crop; 422 naming what was expected on any mismatch."""
-    width, height = png_header_size(data)
-    sizes = accepted_sizes(input_size, resolution)
-    if width != height or width not in sizes:
+def _check_size(header: png.PngHeader, sizes: tuple[int, ...]) -> None:
+    if header.width != header.height or header.width not in sizes:
         accepted = " or ".join(f"{s}x{s}" for s in sizes)
-        raise ApiError(422, "unsupported_image_size", f"image is {width}x{height}; accepted sizes: {accepted}")
-    image = cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_UNCHANGED)
-    if image is None:
-        raise ApiError(422, "invalid_image", "the PNG could not be decoded (truncated or corrupt)")
-    if image.ndim != 2:
-        channels = image.shape[2] if image.ndim == 3 else "?"
-        raise ApiError(422, "unsupported_image_format",
-                       f"image has {channels} channels; expected a single-channel (greyscale) radar scan")
-    if image.dtype != np.uint8:
-        raise ApiError(422, "unsupported_image_format",
-                       f"image is {image.dtype}; expected 8-bit greyscale like RADIATE's Navtech scans")
-    view = model_crop(image, max(input_size, min(width, ODOMETRY_VIEW_SIZE)))
-    return DecodedFrame(crop=model_crop(image, input_size), posted_size=width, crop_offset=(width - input_size) // 2,
-                        odometry_view=view)
+        raise ApiError("unsupported_image_size",
+                       f"image is {header.width}x{header.height}; accepted sizes: {accepted}")
+
+
+def check_posted_image(image: PostedImage, input_size: int, resolution: float) -> png.PngLayout:
+    """Chunk structure, format and size from the headers alone: 422 before any pixel is decoded."""
+    layout = png.read_layout(_source(image))
+    _check_size(layout.header, accepted_sizes(input_size, resolution))
+    return layout
+
+
+def upload_check(input_size: int, resolution: float) -> Callable[[bytes], None]:
+    """A feeder for a PNG file upload as it streams in: refuses by chunk headers, format and size as soon as they
+    arrive, so a hostile upload is answered before the rest of its body is received."""
+    check, sizes = png.StreamingCheck(), accepted_sizes(input_size, resolution)
+
+    def feed(data: bytes) -> None:
+        had_header = check.header is not None
+        check.feed(data)
+        if not had_header and check.header is not None:
+            _check_size(check.header, sizes)
+
+    return feed
+
+
+def decode_frame(image: PostedImage, input_size: int, resolution: float) -> DecodedFrame:
+    """A posted PNG (bytes, or base64 text) -> the model's [S, S] uint8 crop; 422 naming what was expected."""
+    layout = check_posted_image(image, input_size, resolution)
+    if isinstance(image, str):
+        try:
+            data = binascii.a2b_base64(strip_data_url(image), strict_mode=True)
+        except binascii.Error as exc:
+            raise ApiError("invalid_image", f"field 'image' is not valid base64: {exc}") from exc
+    else:
+        data = image
+    bounded = png.bounded_png(data, layout)  # inflated size checked; ancillary chunks dropped
+    decoded = cv2.imdecode(np.frombuffer(bounded, np.uint8), cv2.IMREAD_UNCHANGED)
+    if decoded is None:
+        raise ApiError("invalid_image", "the PNG could not be decoded (corrupt chunk CRC or image data)")
+    if decoded.ndim != 2 or decoded.dtype != np.uint8:  # the header said 8-bit greyscale: a decoder mismatch
+        raise ApiError("unsupported_image_format", f"decoded {decoded.dtype} {decoded.shape}; expected 8-bit grey")
+    width = decoded.shape[1]
+    view = model_crop(decoded, max(input_size, min(width, ODOMETRY_VIEW_SIZE)))
+    return DecodedFrame(crop=model_crop(decoded, input_size), posted_size=width,
+                        crop_offset=(width - input_size) // 2, odometry_view=view)

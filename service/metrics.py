@@ -1,4 +1,9 @@
-"""Prometheus metrics on a per-app registry (two apps in one process, e.g. tests, never share counters)."""
+"""Prometheus metrics on a per-app registry (two apps in one process, e.g. tests, never share counters).
+
+Every label comes from a closed set: the route TEMPLATE (never the raw path: stream ids would explode it) or
+"unmatched", a known HTTP method or "other" (a client can send any token as a method), a status the service
+answers or "other". So no request, however made up, adds a series.
+"""
 from __future__ import annotations
 
 import time
@@ -7,13 +12,27 @@ from collections.abc import Callable
 from prometheus_client import CollectorRegistry, Counter, Gauge, Histogram
 from starlette.types import ASGIApp, Message, Receive, Scope, Send
 
+from service.errors import CLIENT_CLOSED_REQUEST, ERRORS
+
 LATENCY_BUCKETS = (0.005, 0.01, 0.025, 0.05, 0.1, 0.25, 0.5, 1.0, 2.5, 5.0, 10.0)
+METHODS = frozenset({"GET", "HEAD", "POST", "PUT", "DELETE", "OPTIONS", "PATCH"})
+STATUSES = frozenset({200, 204, CLIENT_CLOSED_REQUEST} | {error.status for error in ERRORS.values()})
+EXECUTORS = ("decode", "odometry", "model")
+
+
+def method_label(method: str) -> str:
+    return method if method in METHODS else "other"
+
+
+def status_label(status: int) -> str:
+    return str(status) if status in STATUSES else "other"
 
 
 class ServiceMetrics:
     def __init__(self) -> None:
         self.registry = CollectorRegistry(auto_describe=True)
-        self.requests = Counter("rafd_requests", "HTTP requests by route, method and status code",
+        self.requests = Counter("rafd_requests", "HTTP requests by route, method and status code (499: the "
+                                                 "client left before its answer)",
                                 ["route", "method", "code"], registry=self.registry)
         self.errors = Counter("rafd_request_errors", "HTTP responses with status >= 400 by route and code",
                               ["route", "code"], registry=self.registry)
@@ -25,16 +44,28 @@ class ServiceMetrics:
         self.active_streams = Gauge("rafd_active_streams", "streams holding a buffer", registry=self.registry)
         self.evictions = Counter("rafd_stream_evictions", "streams evicted, by reason (ttl or lru)",
                                  ["reason"], registry=self.registry)
+        self.queued = Gauge("rafd_executor_queued", "jobs waiting for a worker, by executor",
+                            ["executor"], registry=self.registry)
+        self.refused = Counter("rafd_executor_refused", "jobs refused with 503 because the executor's queue was "
+                                                        "full, by executor", ["executor"], registry=self.registry)
         for reason in ("ttl", "lru"):
             self.evictions.labels(reason=reason)  # export zeros so dashboards see the series from the start
+        for executor in EXECUTORS:
+            self.refused.labels(executor=executor)
 
     def track_active_streams(self, count: Callable[[], int]) -> None:
         """The gauge reads the store at scrape time (so TTL expiry shows without a background task)."""
         self.active_streams.set_function(count)
 
+    def track_executor(self, name: str, waiting: Callable[[], int]) -> None:
+        self.queued.labels(executor=name).set_function(waiting)
+
+    def executor_refused(self, name: str) -> None:
+        self.refused.labels(executor=name).inc()
+
 
 class MetricsMiddleware:
-    """Counts every HTTP request by its route template (not the raw path: stream ids would explode labels)."""
+    """Counts every HTTP request by its route template, method and status, all from closed sets."""
 
     def __init__(self, app: ASGIApp, metrics: ServiceMetrics) -> None:
         self.app = app
@@ -58,8 +89,8 @@ class MetricsMiddleware:
         finally:
             route = scope.get("route")
             path = getattr(route, "path", None) or "unmatched"
-            code = str(status)
-            self.metrics.requests.labels(route=path, method=scope["method"], code=code).inc()
+            code = status_label(status)
+            self.metrics.requests.labels(route=path, method=method_label(scope["method"]), code=code).inc()
             if status >= 400:
                 self.metrics.errors.labels(route=path, code=code).inc()
             self.metrics.latency.labels(route=path).observe(time.perf_counter() - start)

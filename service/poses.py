@@ -24,7 +24,7 @@ def default_odometry() -> Odometry:
     try:
         from rafd.odometry import estimate_relative_pose
     except ImportError as exc:
-        raise ApiError(503, "odometry_unavailable",
+        raise ApiError("odometry_unavailable",
                        f"this build cannot estimate ego motion ({exc}); send a pose with every frame") from exc
     return estimate_relative_pose
 
@@ -32,7 +32,7 @@ def default_odometry() -> Odometry:
 def check_request_pose(stream_pose_source: str | None) -> None:
     """Refuse a request pose on a stream whose world frame was anchored by odometry."""
     if stream_pose_source == "odometry":
-        raise ApiError(409, "pose_source_conflict",
+        raise ApiError("pose_source_conflict",
                        "this stream started without poses (odometry world frame anchored at its first frame); "
                        "a request pose would be in another world frame: DELETE the stream to switch to poses")
 
@@ -47,5 +47,5 @@ def odometry_pose(previous_pose: np.ndarray | None, previous_frame: np.ndarray |
         previous_frame, frame = centre_crop(previous_frame, side), centre_crop(frame, side)
     relative = np.asarray(odometry(previous_frame, frame, resolution), dtype=np.float64)
     if relative.shape != (3,) or not np.all(np.isfinite(relative)):
-        raise ApiError(500, "odometry_failed", f"odometry returned {relative!r}; expected 3 finite numbers")
+        raise ApiError("odometry_failed", f"odometry returned {relative!r}; expected 3 finite numbers")
     return compose_poses(previous_pose, relative)

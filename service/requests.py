@@ -1,75 +1,162 @@
-"""Parse POST /detect bodies: JSON (base64 image) or multipart/form-data (image file + form fields).
+"""Parse POST /detect bodies strictly: JSON (base64 image) or multipart/form-data (image file + form fields).
 
-Multipart fields: stream_id, timestamp, optional pose_x, pose_y, pose_yaw (all three or none), and the
-file field `image`. Unknown fields are refused (a typo like `pose_yw` must not silently drop the pose).
+JSON: no duplicate keys, no NaN / Infinity / out-of-range numbers, no unknown keys, no type coercion (a
+timestamp is a JSON number: "1.5" and true are refused). Multipart: fields stream_id, timestamp, optional
+pose_x, pose_y, pose_yaw (all three or none) and the file field `image`, each at most once; numbers are written
+as JSON numbers. Unknown fields are refused (a typo like `pose_yw` must not silently drop the pose).
+The stream id may come from the body, the X-Stream-Id header or the path; all that are given must agree.
 """
 from __future__ import annotations
 
+import json
+import math
+import re
+from collections.abc import Callable
 from typing import Any
 
-import orjson
 from fastapi import Request
-from pydantic import ValidationError
-from starlette.datastructures import UploadFile
+from pydantic import BaseModel, ValidationError
 
-from service.errors import ApiError, format_validation_errors
-from service.images import decode_base64
-from service.schemas import DetectFields, DetectJson
+from service.errors import MAX_LISTED_ERRORS, MAX_LOCATION_CHARS, ApiError, format_validation_errors
+from service.images import PostedImage
+from service.multipart import Part, read_form
+from service.schemas import DetectBody, DetectFields, DetectJson, Pose
 
 JSON = "application/json"
 MULTIPART = "multipart/form-data"
 POSE_FORM_FIELDS = ("pose_x", "pose_y", "pose_yaw")
-FORM_FIELDS = {"stream_id", "timestamp", "image", *POSE_FORM_FIELDS}
+FORM_FIELDS = ("stream_id", "timestamp", *POSE_FORM_FIELDS)
+FORM_FILES = ("image",)
+JSON_FIELDS = frozenset(DetectJson.model_fields)
+POSE_FIELDS = frozenset(Pose.model_fields)
+# RFC 8259's number grammar: what a multipart number field may hold (no "nan", "inf", " 1", "1_000", "0x1").
+NUMBER = re.compile(r"-?(?:0|[1-9][0-9]*)(?:\.[0-9]+)?(?:[eE][+-]?[0-9]+)?")
 
 
-async def parse_detect_request(request: Request) -> tuple[DetectFields, bytes]:
-    """-> (validated fields, raw image bytes); 400/415/422 with the reason on anything malformed."""
+async def parse_detect_request(request: Request, stream_hint: str | None,
+                               upload_check: Callable[[], Callable[[bytes], None]] | None = None
+                               ) -> tuple[DetectFields, PostedImage]:
+    """-> (validated fields with the resolved stream id, the image as posted); 400/415/422 with the reason.
+
+    `upload_check()` gives a feeder that sees a multipart image upload piece by piece as it streams in."""
     media_type = request.headers.get("content-type", "").split(";")[0].strip().lower()
     if media_type == JSON:
-        return await _parse_json(request)
-    if media_type == MULTIPART:
-        return await _parse_multipart(request)
-    raise ApiError(415, "unsupported_media_type",
-                   f"Content-Type must be {JSON} or {MULTIPART}, got {media_type or 'none'!r}")
+        body, image = parse_json_body(await request.body())
+    elif media_type == MULTIPART:
+        body, image = await _parse_form(request, {"image": upload_check()} if upload_check else {})
+    else:
+        raise ApiError("unsupported_media_type",
+                       f"Content-Type must be {JSON} or {MULTIPART}, got {media_type[:64] or 'none'!r}")
+    return resolve_stream_id(body, stream_hint), image
 
 
-def _validate(model: type, data: Any) -> Any:
+def resolve_stream_id(body: DetectBody, stream_hint: str | None) -> DetectFields:
+    if body.stream_id is None and stream_hint is None:
+        raise ApiError("validation_error", "stream_id: Field required (in the body, the X-Stream-Id header "
+                                           "or the path /streams/{stream_id}/detect)")
+    if body.stream_id is not None and stream_hint is not None and body.stream_id != stream_hint:
+        raise ApiError("stream_id_mismatch", f"the body's stream_id {body.stream_id!r} differs from "
+                                             f"{stream_hint!r} given in the X-Stream-Id header or the path")
+    return DetectFields(stream_id=body.stream_id or stream_hint, timestamp=body.timestamp, pose=body.pose)
+
+
+# ---------------------------------------------------------------------------------------------------- JSON
+class _DuplicateKey(ValueError):
+    pass
+
+
+def _object(pairs: list[tuple[str, Any]]) -> dict[str, Any]:
+    obj: dict[str, Any] = {}
+    for key, value in pairs:
+        if key in obj:
+            raise _DuplicateKey(key)
+        obj[key] = value
+    return obj
+
+
+def _finite_float(text: str) -> float:
+    value = float(text)
+    if not math.isfinite(value):
+        raise ValueError(f"number {text[:32]} is out of range")
+    return value
+
+
+def _no_constant(name: str) -> float:
+    raise ValueError(f"{name} is not allowed")
+
+
+def load_json(raw: bytes) -> Any:
+    """JSON text -> Python; refuses duplicate keys and non-finite numbers (Python's json would take both)."""
+    try:
+        return json.loads(raw, object_pairs_hook=_object, parse_float=_finite_float, parse_constant=_no_constant)
+    except _DuplicateKey as exc:
+        raise ApiError("validation_error",
+                       f"key {str(exc)[:MAX_LOCATION_CHARS]!r} appears more than once in a JSON object") from exc
+    except (ValueError, RecursionError) as exc:
+        raise ApiError("invalid_json", "the body is not valid JSON (NaN, Infinity and out-of-range numbers "
+                                       f"are not allowed): {exc}") from exc
+
+
+def _refuse_unknown_keys(obj: dict[str, Any], allowed: frozenset[str], where: str) -> None:
+    """Before pydantic: a body with 100k extra keys is refused by listing a few, not by building 100k errors."""
+    unknown = [key for key in obj if key not in allowed]
+    if unknown:
+        listed = ", ".join(repr(key[:MAX_LOCATION_CHARS]) for key in unknown[:MAX_LISTED_ERRORS])
+        more = f" and {len(unknown) - MAX_LISTED_ERRORS} more" if len(unknown) > MAX_LISTED_ERRORS else ""
+        raise ApiError("validation_error", f"unknown {where}keys {listed}{more}; allowed: {sorted(allowed)}")
+
+
+def _validate(model: type[BaseModel], data: Any) -> Any:
     try:
         return model.model_validate(data)
     except ValidationError as exc:
-        raise ApiError(422, "validation_error", format_validation_errors(exc.errors())) from exc
+        raise ApiError("validation_error", format_validation_errors(exc.errors())) from exc
 
 
-async def _parse_json(request: Request) -> tuple[DetectFields, bytes]:
-    body = await request.body()
-    if not body.strip():
-        raise ApiError(400, "empty_body", "the request body is empty; expected a JSON object")
-    try:
-        data = orjson.loads(body)  # rejects NaN / Infinity literals, which Python's json would accept
-    except orjson.JSONDecodeError as exc:
-        raise ApiError(400, "invalid_json",
-                       f"the body is not valid JSON (NaN and Infinity are not allowed): {exc}") from exc
+def parse_json_body(raw: bytes) -> tuple[DetectBody, str]:
+    if not raw or raw.isspace():
+        raise ApiError("empty_body", "the request body is empty; expected a JSON object")
+    data = load_json(raw)
     if not isinstance(data, dict):
-        raise ApiError(422, "validation_error", f"expected a JSON object, got {type(data).__name__}")
+        raise ApiError("validation_error", f"expected a JSON object, got {type(data).__name__}")
+    _refuse_unknown_keys(data, JSON_FIELDS, "")
+    if isinstance(data.get("pose"), dict):
+        _refuse_unknown_keys(data["pose"], POSE_FIELDS, "pose ")
     parsed = _validate(DetectJson, data)
-    image = decode_base64(parsed.image)
-    return DetectFields(stream_id=parsed.stream_id, timestamp=parsed.timestamp, pose=parsed.pose), image
+    return parsed, parsed.image
 
 
-async def _parse_multipart(request: Request) -> tuple[DetectFields, bytes]:
-    async with request.form(max_files=1, max_fields=len(FORM_FIELDS)) as form:
-        unknown = sorted(set(form.keys()) - FORM_FIELDS)
-        if unknown:
-            raise ApiError(422, "validation_error", f"unknown form fields {unknown}; allowed: {sorted(FORM_FIELDS)}")
-        image = form.get("image")
-        if not isinstance(image, UploadFile):
-            raise ApiError(422, "validation_error", "form field 'image' must be a file (the PNG)")
-        values = {key: form.get(key) for key in ("stream_id", "timestamp") if key in form}
-        given = [key for key in POSE_FORM_FIELDS if key in form]
-        if given and len(given) != len(POSE_FORM_FIELDS):
-            raise ApiError(422, "validation_error",
-                           f"pose form fields must come together: got {given}, need {list(POSE_FORM_FIELDS)}")
-        if given:
-            values["pose"] = {"x": form["pose_x"], "y": form["pose_y"], "yaw": form["pose_yaw"]}
-        fields = _validate(DetectFields, values)
-        return fields, await image.read()
+# ---------------------------------------------------------------------------------------------------- multipart
+def _text(part: Part) -> str:
+    try:
+        return part.data.decode("utf-8")
+    except UnicodeDecodeError as exc:
+        raise ApiError("validation_error", f"form field {part.name!r} is not UTF-8 text") from exc
+
+
+def _number(name: str, text: str) -> float:
+    if NUMBER.fullmatch(text):
+        value = float(text)
+        if math.isfinite(value):
+            return value
+    raise ApiError("validation_error", f"form field {name!r} must be a finite number written like "
+                                       f"1574859771.74 or -0.5, got {text[:32]!r}")
+
+
+async def _parse_form(request: Request, inspect: dict[str, Callable[[bytes], None]]) -> tuple[DetectBody, bytes]:
+    parts = await read_form(request.stream(), request.headers.get("content-type", ""), FORM_FILES, FORM_FIELDS,
+                            inspect)
+    if "image" not in parts:
+        raise ApiError("validation_error", "form field 'image' (the PNG file) is missing")
+    values: dict[str, Any] = {}
+    if "stream_id" in parts:
+        values["stream_id"] = _text(parts["stream_id"])
+    if "timestamp" in parts:
+        values["timestamp"] = _number("timestamp", _text(parts["timestamp"]))
+    given = [name for name in POSE_FORM_FIELDS if name in parts]
+    if given and len(given) != len(POSE_FORM_FIELDS):
+        raise ApiError("validation_error",
+                       f"pose form fields must come together: got {given}, need {list(POSE_FORM_FIELDS)}")
+    if given:
+        values["pose"] = {axis: _number(name, _text(parts[name])) for axis, name in zip(("x", "y", "yaw"), given)}
+    return _validate(DetectBody, values), parts["image"].data

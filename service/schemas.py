@@ -10,7 +10,8 @@ STREAM_ID_PATTERN = r"^[A-Za-z0-9._~:@+\-]{1,128}$"
 StreamId = Annotated[str, Field(min_length=1, max_length=128, pattern=STREAM_ID_PATTERN,
                                 description="1-128 characters from A-Z a-z 0-9 . _ ~ : @ + -")]
 
-Strict = ConfigDict(extra="forbid", allow_inf_nan=False)
+# No coercion: a JSON timestamp is a number (an integer is a number), never "1.5" or true.
+Strict = ConfigDict(extra="forbid", allow_inf_nan=False, strict=True)
 
 
 class Pose(BaseModel):
@@ -22,17 +23,29 @@ class Pose(BaseModel):
     yaw: float = Field(description="radians, counter-clockwise")
 
 
-class DetectFields(BaseModel):
-    """The non-image fields of POST /detect (JSON body or multipart form)."""
+class DetectBody(BaseModel):
+    """The non-image fields of POST /detect as posted (JSON body or multipart form)."""
 
     model_config = Strict
-    stream_id: StreamId
+    stream_id: StreamId | None = Field(
+        default=None, description="required unless the X-Stream-Id header or the path names the stream; "
+                                  "must equal them when both are given")
     timestamp: float = Field(description="seconds (e.g. UNIX time); must increase within a stream")
     pose: Pose | None = Field(default=None, description="omit to estimate ego motion from the radar (odometry)")
 
 
-class DetectJson(DetectFields):
-    image: str = Field(min_length=1, description="base64 PNG, 8-bit greyscale (a data: URL prefix is accepted)")
+class DetectJson(DetectBody):
+    image: str = Field(min_length=1, description="base64 PNG, 8-bit greyscale, no line breaks "
+                                                 "(a data:image/png;base64, prefix is accepted)")
+
+
+class DetectFields(BaseModel):
+    """One frame's fields once the stream id is resolved from the body, the X-Stream-Id header or the path."""
+
+    model_config = Strict
+    stream_id: StreamId
+    timestamp: float
+    pose: Pose | None = None
 
 
 class BoxOut(BaseModel):
@@ -103,16 +116,19 @@ class DetectResponse(BaseModel):
 
 class StreamOut(BaseModel):
     stream_id: str
+    generation: int = Field(description="increases each time the stream id starts a new chain "
+                                        "(first frame, after a DELETE or an expiry)")
     frames_buffered: int
     frames_seen: int
+    frames_queued: int = Field(description="frames of this stream waiting or running now")
     last_timestamp: float | None
-    idle_s: float
+    idle_s: float = Field(description="seconds since the last ACCEPTED frame (refused frames do not count)")
     pose_source: str | None
     state_bytes: int
 
 
 class StreamsResponse(BaseModel):
-    count: int
+    count: int = Field(description="streams listed (with API keys: the caller's own)")
     max_streams: int
     ttl_s: float
     streams: list[StreamOut]

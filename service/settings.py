@@ -5,9 +5,10 @@ import math
 import os
 from functools import lru_cache
 from pathlib import Path
+from typing import Annotated
 
-from pydantic import Field
-from pydantic_settings import BaseSettings, SettingsConfigDict
+from pydantic import Field, SecretStr, field_validator
+from pydantic_settings import BaseSettings, NoDecode, SettingsConfigDict
 
 CGROUP_V2_CPU_MAX = Path("/sys/fs/cgroup/cpu.max")
 CGROUP_V1_QUOTA = Path("/sys/fs/cgroup/cpu/cpu.cfs_quota_us")
@@ -59,6 +60,35 @@ class Settings(BaseSettings):
     stream_ttl_s: float = Field(default=300.0, gt=0)
     # Request bodies above this many bytes get 413 (a base64 1152x1152 RADIATE PNG is ~1-2 MB).
     max_request_bytes: int = Field(default=8 * 1024 * 1024, ge=1024)
+    # /detect requests in flight at once (each may hold a body of max_request_bytes); beyond it 503 + Retry-After
+    # before the body is read.
+    max_inflight_requests: int = Field(default=64, ge=1)
+    # Frames of one stream queued at once (they run in arrival order); beyond it 429 + Retry-After.
+    stream_queue_limit: int = Field(default=8, ge=1)
+    # Seconds a request's body may take to arrive (a frame holds its stream's place while it does); beyond it 408.
+    body_timeout_s: float = Field(default=30.0, gt=0)
+    # Each stage runs on its own threads with its own queue limit (jobs waiting beyond the running ones); a full
+    # queue answers 503 + Retry-After at once. One model worker: onnxruntime already uses `threads` cores per step.
+    decode_workers: int = Field(default=1, ge=1)
+    decode_queue_limit: int = Field(default=16, ge=0)
+    odometry_workers: int = Field(default=1, ge=1)
+    odometry_queue_limit: int = Field(default=16, ge=0)
+    model_workers: int = Field(default=1, ge=1)
+    model_queue_limit: int = Field(default=16, ge=0)
+    # Seconds a 503 / 429 asks the client to wait (the Retry-After header).
+    retry_after_s: int = Field(default=1, ge=1)
+    # API keys, "KEY" or "NAME:KEY", comma-separated (e.g. RAFD_API_KEYS=car-fleet:4f9c...); empty: no keys.
+    api_keys: Annotated[list[SecretStr], NoDecode] = Field(default_factory=list)
+    # A file of API keys, one "KEY" or "NAME:KEY" per line (# comments); read once at start-up.
+    api_keys_file: Path | None = None
+
+    @field_validator("api_keys", mode="before")
+    @classmethod
+    def _split_keys(cls, value: object) -> object:
+        if isinstance(value, str):
+            return [key.strip() for key in value.split(",") if key.strip()]
+        return value
+
     # Frames per stream buffer; must equal the model's num_frames (None: take it from the model).
     buffer_length: int | None = Field(default=None, ge=1)
     # Detections with a score below this are dropped from the answer.

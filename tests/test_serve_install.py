@@ -1,6 +1,6 @@
 """The serving image's install path without Docker: a fresh venv with ONLY the `serve` extra (no torch)
-installs the package non-editably (as the Dockerfile does), starts `rafd-serve` on the shipped model and
-answers POST /detect.
+installs the package non-editably (as the Dockerfile does), starts `rafd-serve` on the shipped model with an
+API key configured, keeps its probes open, and answers POST /detect only with the key.
 """
 from __future__ import annotations
 
@@ -43,7 +43,8 @@ def test_serve_extra_installs_without_torch_and_answers_detect(serve_venv: Path,
     assert probe.stdout.strip() == "True", "the serve extra pulled in torch"
 
     port = free_port()
-    env = {k: v for k, v in os.environ.items() if not k.startswith("RAFD_")}
+    key = "install-check-key-0123456789"
+    env = {k: v for k, v in os.environ.items() if not k.startswith("RAFD_")} | {"RAFD_API_KEYS": f"ci:{key}"}
     server = subprocess.Popen([str(serve_venv / "bin" / "rafd-serve"), "--port", str(port), "--threads", "1"],
                               cwd=tmp_path, env=env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
     url = f"http://127.0.0.1:{port}"
@@ -58,13 +59,15 @@ def test_serve_extra_installs_without_torch_and_answers_detect(serve_venv: Path,
                 pass
             assert time.monotonic() < deadline, "rafd-serve not ready after 90 s"
             time.sleep(0.25)
-        size = httpx.get(f"{url}/model").json()["input_size"]
+        assert httpx.get(f"{url}/model").status_code == 401  # the readiness probe above needed no key
+        size = httpx.get(f"{url}/model", headers={"X-API-Key": key}).json()["input_size"]
         image = np.random.default_rng(0).integers(0, 60, (int(size), int(size)), dtype=np.uint8)
         ok, png = cv2.imencode(".png", image)
         assert ok
-        answer = httpx.post(f"{url}/detect", timeout=30.0, json={
-            "stream_id": "install-check", "timestamp": 1.0, "pose": {"x": 0.0, "y": 0.0, "yaw": 0.0},
-            "image": base64.b64encode(png.tobytes()).decode("ascii")})
+        body = {"stream_id": "install-check", "timestamp": 1.0, "pose": {"x": 0.0, "y": 0.0, "yaw": 0.0},
+                "image": base64.b64encode(png.tobytes()).decode("ascii")}
+        assert httpx.post(f"{url}/detect", timeout=30.0, json=body).status_code == 401
+        answer = httpx.post(f"{url}/detect", timeout=30.0, json=body, headers={"Authorization": f"Bearer {key}"})
         assert answer.status_code == 200, answer.text
         body = answer.json()
         assert body["frames_used"] == 1 and isinstance(body["boxes"], list)

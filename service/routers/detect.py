@@ -1,23 +1,30 @@
-"""POST /detect: one radar frame of one stream -> oriented boxes and the BEV flow field."""
+"""POST /detect and POST /streams/{stream_id}/detect: one radar frame of one stream -> oriented boxes and BEV flow.
+
+The stream may be named outside the body (the `X-Stream-Id` header, or the path form) so that a load balancer
+can route on it without reading the body, and so that the frame's place in its stream's queue is taken before
+its body is read. Every id given (header, path, body) must be the same (else 422 `stream_id_mismatch`).
+"""
 from __future__ import annotations
 
+from dataclasses import dataclass
 from typing import Literal
 
 import orjson
-from fastapi import APIRouter, Depends, Query, Request, Response
+from fastapi import APIRouter, Depends, Header, Path, Query, Request, Response
 
+from service.dependencies import get_caller, get_service
 from service.detector import DetectOptions, DetectService
-from service.dependencies import get_service
-from service.requests import parse_detect_request
-from service.schemas import DetectFields, DetectJson, DetectResponse, ErrorResponse
+from service.errors import ApiError, error_responses
+from service.schemas import STREAM_ID_PATTERN, DetectJson, DetectResponse
 
 router = APIRouter(tags=["detect"])
 
 _MULTIPART_SCHEMA = {
     "type": "object",
-    "required": ["stream_id", "timestamp", "image"],
+    "required": ["timestamp", "image"],
     "properties": {
-        "stream_id": {"type": "string"},
+        "stream_id": {"type": "string", "description": "required unless the X-Stream-Id header or the path "
+                                                       "names the stream"},
         "timestamp": {"type": "number"},
         "pose_x": {"type": "number"},
         "pose_y": {"type": "number"},
@@ -25,27 +32,62 @@ _MULTIPART_SCHEMA = {
         "image": {"type": "string", "format": "binary"},
     },
 }
-
-_ERRORS = {code: {"model": ErrorResponse} for code in (400, 409, 413, 415, 422, 503)}
-
-
-@router.post(
-    "/detect",
-    responses={200: {"model": DetectResponse}, **_ERRORS},
-    openapi_extra={"requestBody": {"required": True, "content": {
-        "application/json": {"schema": DetectJson.model_json_schema(ref_template="#/components/schemas/{model}")},
-        "multipart/form-data": {"schema": _MULTIPART_SCHEMA},
-    }}},
+_REQUEST_BODY = {"requestBody": {"required": True, "content": {
+    "application/json": {"schema": DetectJson.model_json_schema(ref_template="#/components/schemas/{model}")},
+    "multipart/form-data": {"schema": _MULTIPART_SCHEMA},
+}}}
+ERROR_CODES = (
+    "empty_body", "invalid_json", "invalid_multipart", "unauthorized", "stream_forbidden", "body_timeout",
+    "timestamp_not_increasing", "pose_source_conflict", "stream_reset", "request_too_large",
+    "unsupported_media_type", "validation_error", "stream_id_mismatch", "invalid_image", "unsupported_image_size",
+    "unsupported_image_format", "stream_queue_full", "internal_error", "odometry_failed", "not_ready",
+    "overloaded", "odometry_unavailable",
 )
-async def detect(
-    request: Request,
+_RESPONSES = {200: {"model": DetectResponse}, **error_responses(*ERROR_CODES)}
+
+
+@dataclass(frozen=True)
+class DetectCall:
+    """What both detect routes take besides the body: options, the X-Stream-Id header, the service, the caller."""
+
+    options: DetectOptions
+    header_stream_id: str | None
+    service: DetectService
+    caller: str | None
+
+    async def answer(self, request: Request, stream_hint: str | None) -> Response:
+        answer = await self.service.detect(request, stream_hint, self.caller, self.options)
+        return Response(orjson.dumps(answer), media_type="application/json")
+
+
+async def detect_call(
     flow: bool = Query(True, description="false leaves the flow field out"),
     flow_format: Literal["list", "base64"] = Query(
         "list", description="list: nested [2][Hf][Wf] metres rounded to 1 mm; "
                             "base64: little-endian float16 bytes, row-major [2, Hf, Wf]"),
+    x_stream_id: str | None = Header(
+        default=None, alias="X-Stream-Id", min_length=1, max_length=128, pattern=STREAM_ID_PATTERN,
+        description="the stream, named outside the body (route on it; must equal the body's stream_id when both "
+                    "are given)"),
     service: DetectService = Depends(get_service),
+    caller: str | None = Depends(get_caller),
+) -> DetectCall:
+    return DetectCall(DetectOptions(flow=flow, flow_format=flow_format), x_stream_id, service, caller)
+
+
+@router.post("/detect", responses=_RESPONSES, openapi_extra=_REQUEST_BODY)
+async def detect(request: Request, call: DetectCall = Depends(detect_call)) -> Response:
+    return await call.answer(request, call.header_stream_id)
+
+
+@router.post("/streams/{stream_id}/detect", responses=_RESPONSES, openapi_extra=_REQUEST_BODY)
+async def detect_on_stream(
+    request: Request,
+    stream_id: str = Path(min_length=1, max_length=128, pattern=STREAM_ID_PATTERN),
+    call: DetectCall = Depends(detect_call),
 ) -> Response:
-    fields: DetectFields
-    fields, image = await parse_detect_request(request)
-    answer = await service.detect(fields, image, DetectOptions(flow=flow, flow_format=flow_format))
-    return Response(orjson.dumps(answer), media_type="application/json")
+    """The same as POST /detect with the stream named in the path."""
+    if call.header_stream_id is not None and call.header_stream_id != stream_id:
+        raise ApiError("stream_id_mismatch", f"the X-Stream-Id header {call.header_stream_id!r} differs from the "
+                                             f"path's stream id {stream_id!r}")
+    return await call.answer(request, stream_id)

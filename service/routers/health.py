@@ -1,11 +1,14 @@
-"""Liveness (the process answers) and readiness (model loaded and warmed up)."""
+"""Liveness (the process answers) and readiness (model loaded and warmed up); never behind an API key.
+
+Both run on the event loop with no thread-pool dependency, so they answer while every executor is busy.
+"""
 from __future__ import annotations
 
 from fastapi import APIRouter, Depends
 
 from service.dependencies import get_service
 from service.detector import DetectService
-from service.schemas import ErrorResponse
+from service.errors import error_responses
 
 router = APIRouter(prefix="/health", tags=["health"])
 
@@ -15,6 +18,6 @@ async def live() -> dict[str, str]:
     return {"status": "alive"}
 
 
-@router.get("/ready", responses={503: {"model": ErrorResponse, "description": "model loading or failed"}})
+@router.get("/ready", responses=error_responses("not_ready"))
 async def ready(service: DetectService = Depends(get_service)) -> dict[str, str]:
     return {"status": "ready", "model_version": service.runner.metadata.get("version", "unknown")}

@@ -1,21 +1,23 @@
-"""Stream inspection and reset: GET /streams, DELETE /streams/{stream_id}."""
+"""Stream inspection and reset: GET /streams, DELETE /streams/{stream_id} (a caller sees and deletes its own)."""
 from __future__ import annotations
 
 import dataclasses
 
 from fastapi import APIRouter, Depends, Path, Response
 
-from service.dependencies import get_service
+from service.dependencies import get_caller, get_service
 from service.detector import DetectService
-from service.errors import ApiError
-from service.schemas import STREAM_ID_PATTERN, ErrorResponse, StreamsResponse
+from service.errors import ApiError, error_responses
+from service.schemas import STREAM_ID_PATTERN, StreamsResponse
 
 router = APIRouter(prefix="/streams", tags=["streams"])
 
 
-@router.get("", response_model=StreamsResponse)
-async def list_streams(service: DetectService = Depends(get_service)) -> StreamsResponse:
-    infos = service.store.snapshot()
+@router.get("", response_model=StreamsResponse, responses=error_responses("unauthorized", "not_ready"))
+async def list_streams(service: DetectService = Depends(get_service),
+                       caller: str | None = Depends(get_caller)) -> StreamsResponse:
+    """The caller's live streams (every stream when the service runs without API keys), least recently used first."""
+    infos = service.store.snapshot(owner=caller)
     return StreamsResponse(
         count=len(infos),
         max_streams=service.store.max_streams,
@@ -24,12 +26,15 @@ async def list_streams(service: DetectService = Depends(get_service)) -> Streams
     )
 
 
-@router.delete("/{stream_id}", status_code=204, responses={404: {"model": ErrorResponse}})
+@router.delete("/{stream_id}", status_code=204, responses=error_responses(
+    "unauthorized", "stream_forbidden", "stream_not_found", "validation_error", "not_ready"))
 async def delete_stream(
     stream_id: str = Path(min_length=1, max_length=128, pattern=STREAM_ID_PATTERN),
     service: DetectService = Depends(get_service),
+    caller: str | None = Depends(get_caller),
 ) -> Response:
-    """Forget a stream's buffer; its next frame starts a new one (this is also the reset)."""
-    if not service.store.delete(stream_id):
-        raise ApiError(404, "stream_not_found", f"no stream {stream_id!r} (never seen, deleted or expired)")
+    """Forget a stream's buffer; its next frame starts a new chain (this is also the reset). Frames of the old
+    chain still queued or running are refused with 409 `stream_reset`."""
+    if not service.store.delete(stream_id, owner=caller):
+        raise ApiError("stream_not_found", f"no stream {stream_id!r} (never seen, deleted or expired)")
     return Response(status_code=204)

@@ -59,6 +59,7 @@ class FakeRunner:
         self.delay_s = delay_s
         self.gate = gate  # when set, step() waits for it (to hold the app in "loading")
         self.calls = 0
+        self.at_gate = 0  # steps blocked at the gate right now
         self.in_flight = 0
         self.max_in_flight = 0  # most steps seen running at once (different streams run concurrently)
         self._calls_lock = threading.Lock()
@@ -76,7 +77,13 @@ class FakeRunner:
         if pose.shape != (3,) or not np.all(np.isfinite(pose)):
             raise ValueError(f"pose must be 3 finite numbers, got {pose!r}")
         if self.gate is not None:
-            self.gate.wait(timeout=10.0)
+            with self._calls_lock:
+                self.at_gate += 1
+            try:
+                self.gate.wait(timeout=10.0)
+            finally:
+                with self._calls_lock:
+                    self.at_gate -= 1
         with self._calls_lock:
             self.calls += 1
             self.in_flight += 1

@@ -87,3 +87,38 @@ def serve_in_thread(app: Any) -> Iterator[str]:
     finally:
         server.should_exit = True
         thread.join(timeout=10.0)
+
+
+def wait_until(predicate: Any, timeout: float = 10.0, message: str = "condition") -> None:
+    """Poll `predicate()` until it is true (state reached by other threads), else fail naming `message`."""
+    deadline = time.monotonic() + timeout
+    while not predicate():
+        if time.monotonic() > deadline:
+            raise AssertionError(f"timed out waiting for {message}")
+        time.sleep(0.005)
+
+
+def http_request(method: str, path: str, body: bytes = b"", headers: dict[str, str] | None = None
+                 ) -> tuple[bytes, bytes]:
+    """(head, body) of a raw HTTP/1.1 request that closes its connection, to send in pieces over a socket."""
+    lines = [f"{method} {path} HTTP/1.1", "Host: 127.0.0.1", "Connection: close",
+             f"Content-Length: {len(body)}", *(f"{k}: {v}" for k, v in (headers or {}).items())]
+    return ("\r\n".join(lines) + "\r\n\r\n").encode("latin-1"), body
+
+
+def read_http_response(sock: Any, timeout: float = 10.0) -> tuple[int, bytes]:
+    """Read a whole `Connection: close` response: (status, body)."""
+    sock.settimeout(timeout)
+    data = b""
+    while chunk := sock.recv(65536):
+        data += chunk
+    head, _, body = data.partition(b"\r\n\r\n")
+    return int(head.split(b" ", 2)[1]), body
+
+
+def json_part(stream_id: str, timestamp: float, image: np.ndarray, pose: tuple[float, float, float] | None = None
+              ) -> bytes:
+    """A /detect JSON body as bytes."""
+    import json
+
+    return json.dumps(detect_json(stream_id, timestamp, image, pose)).encode()

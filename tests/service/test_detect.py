@@ -207,3 +207,25 @@ def test_a_model_failure_answers_500_and_changes_no_stream(settings):
             [{k: v for k, v in s.items() if k != "idle_s"} for s in before]  # "new" was not created either
         retry = client.post("/detect", json=detect_json("ok", 2.0, FRAMES[1], POSES[1])).json()
         assert retry["frames_used"] == 2  # the failed frame never entered the buffer
+
+
+def test_the_stream_can_be_named_in_a_header_or_the_path(client):
+    """X-Stream-Id and POST /streams/{id}/detect (for routing without reading the body) answer like the body."""
+    for t in range(3):
+        body = detect_json("body", 10.0 + t, FRAMES[t], POSES[t])
+        by_body = client.post("/detect", json=body).json()
+        anonymous = {k: v for k, v in body.items() if k != "stream_id"}
+        by_header = client.post("/detect", json=anonymous, headers={"X-Stream-Id": "header"}).json()
+        by_path = client.post("/streams/path/detect", json=anonymous).json()
+        both = client.post("/streams/both/detect", json=body | {"stream_id": "both"},
+                           headers={"X-Stream-Id": "both"}).json()
+        files = {"image": ("frame.png", png(FRAMES[t]), "image/png")}
+        form = client.post("/streams/form/detect", files=files, data={
+            "timestamp": str(10.0 + t), "pose_x": str(POSES[t][0]), "pose_y": str(POSES[t][1]),
+            "pose_yaw": str(POSES[t][2])}).json()
+        for answer, name in ((by_header, "header"), (by_path, "path"), (both, "both"), (form, "form")):
+            assert answer["stream_id"] == name
+            for key in ("boxes", "flow", "frames_used", "pose"):
+                assert answer[key] == by_body[key], (name, key)
+    assert {s["stream_id"] for s in client.get("/streams").json()["streams"]} == {"body", "header", "path", "both",
+                                                                                  "form"}

@@ -30,9 +30,23 @@ def make_store(max_streams=3, ttl_s=10.0):
 
 
 async def feed(store: StreamStore, stream_id: str, timestamp: float) -> None:
-    """What a successful detect does to the store: hold the session, commit one frame."""
-    async with store.session(stream_id) as entry:
-        entry.commit(entry.state, timestamp, FRAME, None, "request")
+    """What a successful detect does to the store: take a ticket, wait for the turn, commit, release."""
+    ticket = store.take_ticket(stream_id)
+    try:
+        store.place(ticket, timestamp)
+        await store.wait_turn(ticket)
+        store.commit(ticket, ticket.entry.state, timestamp, FRAME, None, "request")
+    finally:
+        store.release(ticket)
+
+
+async def hold(store: StreamStore, stream_id: str, timestamp: float):
+    """A frame that committed and whose request has not ended yet (the caller releases the ticket)."""
+    ticket = store.take_ticket(stream_id)
+    store.place(ticket, timestamp)
+    await store.wait_turn(ticket)
+    store.commit(ticket, ticket.entry.state, timestamp, FRAME, None, "request")
+    return ticket
 
 
 def test_store_expires_idle_streams_after_the_ttl():
@@ -62,11 +76,12 @@ def test_store_evicts_the_least_recently_used_at_the_cap():
 
 def test_store_never_evicts_a_stream_with_a_request_in_flight():
     async def scenario(store: StreamStore) -> list[str]:
-        async with store.session("busy") as entry:
-            entry.commit(entry.state, 1.0, FRAME, None, "request")
-            await feed(store, "x", 1.0)  # cap 2 reached: busy + x
-            await feed(store, "y", 1.0)  # must evict x (idle), not busy
-            return sorted(s.stream_id for s in store.snapshot())
+        busy = await hold(store, "busy", 1.0)
+        await feed(store, "x", 1.0)  # cap 2 reached: busy + x
+        await feed(store, "y", 1.0)  # must evict x (idle), not busy
+        names = sorted(s.stream_id for s in store.snapshot())
+        store.release(busy)
+        return names
 
     store, _, evicted = make_store(max_streams=2)
     assert asyncio.run(scenario(store)) == ["busy", "y"]
@@ -75,10 +90,10 @@ def test_store_never_evicts_a_stream_with_a_request_in_flight():
 
 def test_cap_waits_for_in_flight_streams_then_applies():
     async def scenario(store: StreamStore) -> list[str]:
-        async with store.session("busy") as entry:
-            entry.commit(entry.state, 1.0, FRAME, None, "request")
-            await feed(store, "other", 1.0)  # cap 1, but "busy" is in flight: nothing can go yet
-            assert sorted(s.stream_id for s in store.snapshot()) == ["busy", "other"]
+        busy = await hold(store, "busy", 1.0)
+        await feed(store, "other", 1.0)  # cap 1, but "busy" is in flight: nothing can go yet
+        assert sorted(s.stream_id for s in store.snapshot()) == ["busy", "other"]
+        store.release(busy)
         return [s.stream_id for s in store.snapshot()]
 
     store, _, evicted = make_store(max_streams=1)
@@ -88,14 +103,19 @@ def test_cap_waits_for_in_flight_streams_then_applies():
 
 def test_a_new_stream_whose_first_frame_fails_leaves_nothing():
     async def failing(store: StreamStore) -> None:
-        async with store.session("new"):
+        ticket = store.take_ticket("new")
+        try:
+            store.place(ticket, 1.0)
+            await store.wait_turn(ticket)
             raise RuntimeError("model failed")
+        finally:
+            store.release(ticket)
 
     store, _, evicted = make_store(max_streams=1)
     asyncio.run(feed(store, "old", 1.0))
     with pytest.raises(RuntimeError):
         asyncio.run(failing(store))
-    assert store.get("new") is None
+    assert store.get("new") is None and "new" not in store._entries
     assert [s.stream_id for s in store.snapshot()] == ["old"] and evicted == []  # the failure evicted nobody
 
 
@@ -139,3 +159,41 @@ def test_delete_resets_a_stream(clocked):
     assert client.delete("/streams/r").status_code == 404
     restarted = client.post("/detect", json=detect_json("r", 1.0, FRAME, (0, 0, 0))).json()
     assert restarted["frames_used"] == 1 and restarted["warming_up"] is True
+
+
+def test_a_stream_queues_at_most_its_limit_and_a_refused_ticket_changes_nothing():
+    from service.errors import ApiError
+
+    store, clock, _ = make_store()
+    store.queue_limit = 2
+    asyncio.run(feed(store, "q", 1.0))
+    before = store.snapshot()
+    first, second = store.take_ticket("q"), store.take_ticket("q")
+    clock.now += 5.0
+    with pytest.raises(ApiError) as refused:
+        store.take_ticket("q")
+    assert refused.value.status == 429 and refused.value.headers == {"Retry-After": "1"}
+    assert [t for t in store.get("q").queue] == [first, second]
+    store.release(first)
+    store.release(second)
+    assert store.snapshot()[0].idle_s == pytest.approx(before[0].idle_s + 5.0)  # no idle refresh either
+
+
+def test_generation_increases_per_chain_and_a_closed_chain_refuses_its_tickets():
+    from service.errors import ApiError
+
+    async def scenario(store: StreamStore) -> None:
+        await feed(store, "g", 1.0)
+        waiting = store.take_ticket("g")
+        assert store.delete("g")
+        with pytest.raises(ApiError) as reset:
+            store.place(waiting, 2.0)
+            await store.wait_turn(waiting)
+        assert reset.value.code == "stream_reset"
+        store.release(waiting)
+        await feed(store, "g", 0.5)  # a new chain: an older timestamp is fine
+
+    store, _, _ = make_store()
+    asyncio.run(scenario(store))
+    (info,) = store.snapshot()
+    assert info.generation == 2 and info.frames_seen == 1 and info.last_timestamp == 0.5
