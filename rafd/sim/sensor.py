@@ -152,8 +152,8 @@ class NavtechSensor:
         pattern = np.zeros((cfg.azimuths, self.num_bins))
         rays = rng.choice(cfg.azimuths, cfg.mount_rays, replace=False)
         fall = np.exp(-self.ranges / cfg.mount_reach)  # [R]
-        pattern[rays] += rng.uniform(8.0, 45.0, (cfg.mount_rays, 1)) * fall[None]
-        pattern += 8.0 * np.exp(-self.ranges / 1.5)[None]  # the disc of leakage right at the radar
+        pattern[rays] += rng.uniform(12.0, 60.0, (cfg.mount_rays, 1)) * fall[None]
+        pattern += 5.0 * np.exp(-self.ranges / 1.5)[None]  # the disc of leakage right at the radar
         streak = np.exp(-0.5 * ((np.arange(cfg.azimuths) - cfg.mount_streak_azimuth) / 1.2) ** 2)  # [A]
         pattern += 60.0 * streak[:, None] * np.exp(-self.ranges / cfg.mount_streak_reach)[None]
         return pattern * MOUNT_GAIN
