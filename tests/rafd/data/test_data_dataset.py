@@ -24,7 +24,7 @@ def root(sim_truth_and_folder, tmp_path_factory: pytest.TempPathFactory) -> Path
     """Two sequences: the 10-frame train_good_weather simulation with pedestrians added near the radar, and
     a 6-frame 256 px `test` one, in nested folders."""
     root = tmp_path_factory.mktemp("windows")
-    train = Path(shutil.copytree(sim_truth_and_folder[1], root / "good" / "sim_27_0"))
+    train = Path(shutil.copytree(sim_truth_and_folder[1], root / "good" / "sim_31_0"))
     path = train / "annotations" / "annotations.json"
     entries = json.loads(path.read_text())
     walker = {"position": [186.0, 180.0, 6.0, 6.0], "rotation": 0.0}  # 384 px scan: centre (189, 183) px
@@ -37,7 +37,7 @@ def root(sim_truth_and_folder, tmp_path_factory: pytest.TempPathFactory) -> Path
 
 
 def test_discovery_split_filter_and_window_counts(root: Path, caplog: pytest.LogCaptureFixture) -> None:
-    assert [p.name for p in find_sequences(root)] == ["sim_27_0", "sim_test"]
+    assert [p.name for p in find_sequences(root)] == ["sim_31_0", "sim_test"]
     assert len(RadarWindowDataset(root, split=None, cfg=CFG)) == 7 + 3
     assert len(RadarWindowDataset(root, split="train_good_weather", cfg=CFG)) == 7
     assert len(RadarWindowDataset(root, split="test", cfg=CFG)) == 3
@@ -49,16 +49,16 @@ def test_discovery_split_filter_and_window_counts(root: Path, caplog: pytest.Log
         assert len(RadarWindowDataset(root, split="train_good_and_bad_weather", cfg=CFG)) == 0
     assert "splits found" in caplog.text
     with pytest.raises(FileNotFoundError, match="no RADIATE sequence"):
-        RadarWindowDataset(root / "good" / "sim_27_0" / "annotations", split=None, cfg=CFG)
+        RadarWindowDataset(root / "good" / "sim_31_0" / "annotations", split=None, cfg=CFG)
 
 
 def test_window_content_follows_the_protocol(root: Path, sim_truth_and_folder) -> None:
     truth, _ = sim_truth_and_folder
     dataset = RadarWindowDataset(root, split="train_good_weather", cfg=CFG)
-    sequence = read_sequence(root / "good" / "sim_27_0")
+    sequence = read_sequence(root / "good" / "sim_31_0")
     for index in range(len(dataset)):
         window = dataset[index]
-        assert window["sequence"] == "sim_27_0" and window["frame"] == index + 4
+        assert window["sequence"] == "sim_31_0" and window["frame"] == index + 4
         assert window["frames"].shape == (4, 128, 128) and window["frames"].dtype == np.uint8
         np.testing.assert_allclose(window["poses"], truth.poses[index : index + 4], rtol=0, atol=1e-12)
         assert window["poses"].dtype == np.float64
@@ -89,7 +89,7 @@ def test_windows_collate_into_a_batch(root: Path) -> None:
     assert tuple(batch.frames.shape) == (2, 4, 1, 128, 128) and tuple(batch.poses.shape) == (2, 4, 3)
     assert tuple(batch.targets["heatmap"].shape) == (2, 1, 32, 32)
     assert tuple(batch.targets["flow"].shape) == (2, 3, 2, 32, 32)
-    assert batch.sequences == ["sim_27_0", "sim_test"] and batch.frame_numbers == [4, 6]
+    assert batch.sequences == ["sim_31_0", "sim_test"] and batch.frame_numbers == [4, 6]
 
 
 def test_windows_from_the_prepared_cache_equal_windows_decoded_from_the_pngs(root: Path, tmp_path: Path) -> None:
@@ -123,7 +123,7 @@ def test_cache_problems_name_the_fix(root: Path, tmp_path: Path) -> None:
 def test_only_the_selected_splits_are_read(root: Path, tmp_path: Path) -> None:
     """meta.json first: a sequence of another split is never read, even when it could not be."""
     broken = Path(shutil.copytree(root / "other" / "sim_test", tmp_path / "mixed" / "broken"))
-    shutil.copytree(root / "good" / "sim_27_0", tmp_path / "mixed" / "good")
+    shutil.copytree(root / "good" / "sim_31_0", tmp_path / "mixed" / "good")
     (broken / "annotations" / "annotations.json").write_text("{not json")
     (broken / "ego_poses.csv").unlink()
     assert len(RadarWindowDataset(tmp_path / "mixed", split="train_good_weather", cfg=CFG)) == 7

@@ -260,5 +260,5 @@ def test_annotations_longer_than_the_frames_and_missing_meta(sim_copy: Path, cap
     (sim_copy / "meta.json").unlink()
     with caplog.at_level(logging.WARNING, logger="rafd.data.reader"):
         sequence = read_sequence(sim_copy)
-    assert sequence.split is None and sequence.name == "sim_27_0" and "meta.json" in caplog.text
+    assert sequence.split is None and sequence.name == "sim_31_0" and "meta.json" in caplog.text
     assert [f.number for f in sequence.frames if any(o.id == 777 for o in f.objects)] == [3]

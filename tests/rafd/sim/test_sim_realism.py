@@ -99,7 +99,7 @@ def test_vehicles_are_faint_unsaturated_blobs_inside_wider_labels(town) -> None:
     assert 15 < np.median(means) < 70 and np.median(peaks) < 180 and np.mean(np.array(peaks) >= 250) < 0.2
     contrast = np.array(means) / np.array(rings)
     assert 1.05 < np.median(contrast) < 3.0 and contrast.min() < 1.3  # some barely stand out
-    assert 2.3 < np.median(widths) < 3.4  # the annotators' wide boxes
+    assert 2.3 < np.median(widths) < 3.6  # the annotators' wide boxes (simulated: ~3.4 m within 30 m, beam blur included)
 
 
 def test_drives_vary_from_empty_streets_to_busy_ones_and_in_weather() -> None:

@@ -17,6 +17,7 @@ def _points(xy, amplitude, occluder=False) -> Scatterers:
 
 def test_point_target_lands_on_its_pixel() -> None:
     sensor = NavtechSensor(512)
+    sensor.mount = np.zeros_like(sensor.mount)  # the fixed mounting pattern near the radar outshines a far point
     quiet = Difficulty(clutter=0.0, ghosts=0.0, noise=0.0)
     for xy in [(10.0, 20.0), (-25.0, -5.0), (3.0, -30.0)]:
         echoes = sensor.illuminate(_points(xy, 400.0))
