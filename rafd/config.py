@@ -31,6 +31,10 @@ class EnhanceConfig:
     enabled: bool = True  # False = the "without enhancement" ablation
     num_blocks: int = 2
     ffn_ratio: int = 2
+    # Speed option (changes the mathematics): attention window side in cells; 0 = Hf/2 x Wf/2 (the paper's
+    # 2 x 2 windows). A smaller window (e.g. 16 cells at 64 x 64) cuts the quadratic attention cost;
+    # the shifted layer shifts by half a window. Must divide the feature map side and be even.
+    window: int = 0
 
 
 @dataclass(frozen=True)
@@ -38,6 +42,10 @@ class FlowConfig:
     # Flow estimation: global single-head cross-attention blocks between aligned pair features.
     num_cross_blocks: int = 2
     ffn_ratio: int = 2
+    # Speed option (changes the mathematics): input pixels per flow cell. 4 = output_stride (the paper);
+    # 8 runs phi, alignment, cross-attention and the cost volume on a 2x average-pooled map (4x fewer
+    # cells, 16x smaller cost volume) and upsamples the flow (metres) bilinearly to the detection grid.
+    stride: int = 4
 
 
 @dataclass(frozen=True)
@@ -80,6 +88,14 @@ class RaFDConfig:
             raise ValueError("input_size must be divisible by 2 * output_stride (two attention windows per side)")
         if len(self.backbone.blocks) != len(self.backbone.channels):
             raise ValueError("backbone.blocks and backbone.channels must have the same length")
+        # flow.stride / enhance.window: the speed options
+        if self.flow.stride % self.output_stride or self.input_size % self.flow.stride:
+            raise ValueError(f"flow.stride {self.flow.stride} must be a multiple of output_stride "
+                             f"{self.output_stride} and divide input_size {self.input_size}")
+        window = self.enhance.window
+        if window and (window < 2 or window % 2 or self.feature_size % window):
+            raise ValueError(f"enhance.window {window} must be even and divide the feature map side "
+                             f"{self.feature_size} (0 = half the side, the paper)")
 
     @property
     def feature_size(self) -> int:
@@ -90,6 +106,16 @@ class RaFDConfig:
     def cell_size(self) -> float:
         """Metres per feature cell."""
         return self.resolution * self.output_stride
+
+    @property
+    def flow_size(self) -> int:
+        """Side of the map the flow is matched on (= feature_size unless flow.stride is coarser)."""
+        return self.input_size // self.flow.stride
+
+    @property
+    def enhance_window(self) -> int:
+        """Side of the enhancement attention windows in cells (enhance.window, 0 = half the map)."""
+        return self.enhance.window or self.feature_size // 2
 
     @classmethod
     def paper(cls) -> "RaFDConfig":

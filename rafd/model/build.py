@@ -26,8 +26,9 @@ def build_model(cfg: RaFDConfig) -> RaFD:
     if channels % 2:
         raise ValueError(f"neck.channels must be even (flow features have C/2), got {channels}")
     size = cfg.feature_size
-    if size % 4:
-        raise ValueError(f"feature map side {size} must be divisible by 4 (2 windows, shifted by half a window)")
+    window = cfg.enhance_window
+    if window % 2 or size % window:
+        raise ValueError(f"feature map side {size} must be a multiple of the even enhancement window {window}")
     centres = cell_centres(size, cfg.input_size, cfg.resolution)  # [Hf*Wf, 2] metres
     half_extent = cfg.input_size * cfg.resolution / 2.0  # metres from the radar to the map's edge
     grid = metres_to_grid(centres, half_extent)  # [Hf*Wf, 2] normalised
@@ -36,18 +37,19 @@ def build_model(cfg: RaFDConfig) -> RaFD:
     encoder = FrameEncoder(
         backbone,
         FPNNeck(backbone.out_channels, channels),
-        build_enhancement(channels, size, cfg.enhance.num_blocks, cfg.enhance.ffn_ratio, cfg.enhance.enabled),
+        build_enhancement(channels, size, cfg.enhance.num_blocks, cfg.enhance.ffn_ratio, cfg.enhance.enabled, window),
     )
 
     flow = propagation = None
     if cfg.num_frames > 1:
-        half = channels // 2
+        half, flow_size = channels // 2, cfg.flow_size  # flow.stride: matching grid Hm = Wm = flow_size
         flow = FlowEstimator(
             build_flow_encoder(channels),
             [AttentionLayer(half, cfg.flow.ffn_ratio) for _ in range(cfg.flow.num_cross_blocks)],
-            sine_position_encoding(half, size, size),
-            centres.clone(),
+            sine_position_encoding(half, flow_size, flow_size),
+            cell_centres(flow_size, cfg.input_size, cfg.resolution),
             half_extent,
+            pool=cfg.flow.stride // cfg.output_stride,
         )
         prop_cfg = cfg.propagation
         propagation = FlowGuidedPropagation(

@@ -1,8 +1,9 @@
 """Feature enhancement (paper 2.1): blocks of regular + shifted window single-head self-attention.
 
-Windows are Hf/2 x Wf/2 (2 x 2 windows); the shifted layer rolls the map by half a window and masks
-attention between pieces that the roll wrapped together (Swin), as GMFlow's
-single_head_split_window_attention does. The mask depends only on the static map size: a buffer.
+Windows are Hf/2 x Wf/2 (2 x 2 windows, the paper) or, as a speed option, any even side that divides the
+map; the shifted layer rolls the map by half a window and masks attention between pieces that the roll
+wrapped together (Swin), as GMFlow's single_head_split_window_attention does. The mask depends only on the
+static map size and window: a buffer.
 """
 from __future__ import annotations
 
@@ -79,13 +80,20 @@ def window_attention(
 
 
 class WindowBlock(nn.Module):
-    """Regular-window layer then shifted-window layer: [B, H*W, C] -> [B, H*W, C]."""
+    """Regular-window layer then shifted-window layer: [B, H*W, C] -> [B, H*W, C].
 
-    def __init__(self, regular: AttentionLayer, shifted: AttentionLayer, size: tuple[int, int]) -> None:
+    window: (wh, ww) cells, default half the map (2 x 2 windows, the paper); each side must divide the map.
+    """
+
+    def __init__(
+        self, regular: AttentionLayer, shifted: AttentionLayer, size: tuple[int, int], window: tuple[int, int] | None = None
+    ) -> None:
         super().__init__()
         self.regular, self.shifted = regular, shifted
         self.size = size
-        self.window = (size[0] // 2, size[1] // 2)
+        self.window = window or (size[0] // 2, size[1] // 2)
+        if size[0] % self.window[0] or size[1] % self.window[1]:
+            raise ValueError(f"window {self.window} does not tile the {size} map")
         self.shift = (self.window[0] // 2, self.window[1] // 2)
         # Derived from the static map size, not learned: kept out of the state dict.
         self.register_buffer("mask", shifted_window_mask(size[0], size[1], self.window, self.shift), persistent=False)
@@ -113,8 +121,15 @@ class FeatureEnhancement(nn.Module):
         return x.transpose(1, 2).reshape(batch, channels, height, width)  # [B, C, Hf, Wf]
 
 
-def build_enhancement(channels: int, feature_size: int, num_blocks: int, ffn_ratio: int, enabled: bool) -> FeatureEnhancement:
+def build_enhancement(
+    channels: int, feature_size: int, num_blocks: int, ffn_ratio: int, enabled: bool, window: int = 0
+) -> FeatureEnhancement:
+    """window: side in cells, 0 = half the map (the paper)."""
     size = (feature_size, feature_size)
+    windows = (window, window) if window else None
     count = num_blocks if enabled else 0
-    blocks = [WindowBlock(AttentionLayer(channels, ffn_ratio), AttentionLayer(channels, ffn_ratio), size) for _ in range(count)]
+    blocks = [
+        WindowBlock(AttentionLayer(channels, ffn_ratio), AttentionLayer(channels, ffn_ratio), size, windows)
+        for _ in range(count)
+    ]
     return FeatureEnhancement(blocks)

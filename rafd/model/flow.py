@@ -3,6 +3,10 @@
 Output flow [B, 2, Hf, Wf] in metres on the CURRENT frame's grid: where each cell's content is now
 minus where it was in the previous frame (ego motion removed by the alignment), channel 0 = x right,
 channel 1 = y forward.
+
+Speed option (flow.stride > output_stride, not the paper's): the features are average-pooled by
+`pool` before phi, the whole matching runs on the coarse grid, and the flow (metres, so no rescaling)
+is upsampled bilinearly to the detection grid.
 """
 from __future__ import annotations
 
@@ -10,6 +14,7 @@ import math
 
 import torch
 from torch import Tensor, nn
+from torch.nn import functional as F
 
 from rafd.model.align import align_to_current
 from rafd.model.attention import AttentionLayer
@@ -40,7 +45,11 @@ def build_flow_encoder(channels: int) -> nn.Sequential:
 
 
 class FlowEstimator(nn.Module):
-    """(S_prev, S_cur [B, C, Hf, Wf], relative_pose [B, 3]) -> flow [B, 2, Hf, Wf] metres."""
+    """(S_prev, S_cur [B, C, Hf, Wf], relative_pose [B, 3]) -> flow [B, 2, Hf, Wf] metres.
+
+    Matching runs on a grid of Hm = Hf / pool cells (pool = flow.stride / output_stride, 1 in the paper);
+    `position` and `centres` belong to that grid.
+    """
 
     def __init__(
         self,
@@ -49,26 +58,44 @@ class FlowEstimator(nn.Module):
         position: Tensor,
         centres: Tensor,
         half_extent: float,
+        pool: int = 1,
     ) -> None:
         super().__init__()
         self.encoder = encoder
         self.cross_layers = nn.ModuleList(cross_layers)
         self.half_extent = half_extent
+        self.pool = pool
         # Static per config, rebuilt by build_model: kept out of the state dict.
-        self.register_buffer("position", position, persistent=False)  # [Hf*Wf, C/2]
-        self.register_buffer("centres", centres, persistent=False)  # [Hf*Wf, 2] metres
+        self.register_buffer("position", position, persistent=False)  # [Hm*Wm, C/2]
+        self.register_buffer("centres", centres, persistent=False)  # [Hm*Wm, 2] metres
 
-    def forward(self, previous: Tensor, current: Tensor, relative_pose: Tensor) -> Tensor:
-        batch, _, height, width = current.shape
-        # phi on both frames in one call: same weights and (in training) the same BN batch statistics.
-        encoded = self.encoder(torch.cat([previous, current], dim=0))  # [2B, C/2, Hf, Wf]
-        e_prev, e_cur = encoded[:batch], encoded[batch:]
+    def encode(self, features: Tensor) -> Tensor:
+        """phi on the matching grid: [B, C, Hf, Wf] -> [B, C/2, Hm, Wm]."""
+        if self.pool > 1:
+            # a coarse cell is the mean of its pool x pool fine cells, centred where its centre is
+            features = F.avg_pool2d(features, self.pool)  # [B, C, Hm, Wm]
+        return self.encoder(features)
+
+    def match(self, e_prev: Tensor, e_cur: Tensor, relative_pose: Tensor) -> Tensor:
+        """E_prev, E_cur [B, C/2, Hm, Wm], relative_pose [B, 3] -> flow [B, 2, Hf, Wf] metres."""
+        batch, _, height, width = e_cur.shape
         e_prev = align_to_current(e_prev, e_cur, relative_pose, self.centres, self.half_extent)  # current grid
-        e_prev = e_prev.flatten(2).transpose(1, 2) + self.position  # [B, Hf*Wf, C/2]
-        e_cur = e_cur.flatten(2).transpose(1, 2) + self.position  # [B, Hf*Wf, C/2]
+        e_prev = e_prev.flatten(2).transpose(1, 2) + self.position  # [B, Hm*Wm, C/2]
+        e_cur = e_cur.flatten(2).transpose(1, 2) + self.position  # [B, Hm*Wm, C/2]
         for layer in self.cross_layers:
             # paper eq. (2): previous attends current, then current attends the updated previous (shared T_c)
             e_prev = layer(e_prev, e_cur)
             e_cur = layer(e_cur, e_prev)
-        flow = flow_from_correlation(global_correlation(e_cur, e_prev), self.centres)  # [B, Hf*Wf, 2]
-        return flow.transpose(1, 2).reshape(batch, 2, height, width)  # [B, 2, Hf, Wf]
+        flow = flow_from_correlation(global_correlation(e_cur, e_prev), self.centres)  # [B, Hm*Wm, 2]
+        flow = flow.transpose(1, 2).reshape(batch, 2, height, width)  # [B, 2, Hm, Wm]
+        if self.pool > 1:
+            # metres are metres on any grid: only resample (half-pixel centres match the cell geometry)
+            flow = F.interpolate(flow, size=(height * self.pool, width * self.pool), mode="bilinear",
+                                 align_corners=False)  # [B, 2, Hf, Wf]
+        return flow
+
+    def forward(self, previous: Tensor, current: Tensor, relative_pose: Tensor) -> Tensor:
+        batch = current.shape[0]
+        # phi on both frames in one call: same weights and (in training) the same BN batch statistics.
+        encoded = self.encode(torch.cat([previous, current], dim=0))  # [2B, C/2, Hm, Wm]
+        return self.match(encoded[:batch], encoded[batch:], relative_pose)
