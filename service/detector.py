@@ -117,7 +117,9 @@ class DetectService:
             "input": {"posted_size": decoded.posted_size, "model_size": cfg.input_size,
                       "crop_offset_px": decoded.crop_offset},
             "model": {"version": metadata.get("version", "unknown"),
-                      "checkpoint_sha256": metadata.get("checkpoint_sha256", "unknown")},
+                      "checkpoint_sha256": metadata.get("checkpoint_sha256", "unknown"),
+                      "runtime": getattr(self.runner, "runtime", "unknown"),
+                      "precision": getattr(self.runner, "precision", "unknown")},
         }
 
     def _boxes(self, result: Any, posted_size: int) -> list[dict[str, Any]]:

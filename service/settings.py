@@ -5,6 +5,7 @@ import math
 import os
 from functools import lru_cache
 from pathlib import Path
+from typing import Literal
 
 from pydantic import Field
 from pydantic_settings import BaseSettings, SettingsConfigDict
@@ -53,6 +54,12 @@ class Settings(BaseSettings):
     model_path: Path | None = None
     # onnxruntime intra-op threads: sized from the CPUs the container may really use.
     threads: int = Field(default_factory=available_cpus, ge=1)
+    # Inference runtime and precision (rafd.runtime.create_runner). "auto" times every supported choice on the
+    # model at start-up and keeps the fastest; bf16 (OpenVINO, CPUs with avx512_bf16 or AMX) is chosen
+    # automatically only for a model whose accuracy gate (rafd-export --gate) passed. onnxruntime fp32 is the
+    # reference path.
+    runtime: Literal["auto", "onnxruntime", "openvino"] = "auto"
+    precision: Literal["auto", "fp32", "bf16"] = "auto"
     # Live streams held at once; beyond it the least recently used stream is evicted.
     max_streams: int = Field(default=256, ge=1)
     # A stream idle for longer than this is forgotten (its next frame starts a new buffer).

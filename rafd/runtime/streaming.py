@@ -1,4 +1,4 @@
-"""Torch-free streaming runner over onnxruntime (numpy + onnxruntime only), shared by the service and the tests.
+"""The streaming logic every backend shares (numpy only): stream states, warm-up, the first-frame procedure.
 
 Warm-up rule (the same in PyTorch and ONNX): a window with fewer than T real frames is padded at the OLD end by
 repeating the oldest real frame with its pose, e.g. for T = 4 the windows of a stream f1, f2, f3, f4, f5, ... are
@@ -32,44 +32,21 @@ instead and every step runs the full padded window (the same results, without th
 
 `step` is pure: the old state stays valid and can be stepped again (the service commits the new state only when
 the whole request succeeded). States are immutable and their cached arrays are read-only.
+
+The runner is backend-independent: a rafd.runtime.backend.Backend (onnxruntime fp32, OpenVINO bf16/fp32) only runs
+the graph; states hold float32 numpy arrays whatever the backend computes in.
 """
 from __future__ import annotations
 
-import os
+import threading
 from collections.abc import Sequence
 from dataclasses import dataclass
-from pathlib import Path
 
 import numpy as np
 
 from rafd.config import RaFDConfig
-
-METADATA_KEYS = ("config", "input_size", "resolution", "num_frames", "class_names", "checkpoint_sha256", "version",
-                 "form", "feature_channels")
-FORMS = ("step", "window")
-
-
-def graph_inputs(form: str, num_frames: int) -> tuple[str, ...]:
-    """Input names of an exported graph, in order."""
-    if form == "window":
-        return ("frames", "poses")
-    return ("frame", "poses", "past_features", "past_flows")[: min(num_frames + 1, 4)]
-
-
-def graph_outputs(form: str, num_frames: int) -> tuple[str, ...]:
-    """Output names of an exported graph, in order."""
-    if num_frames == 1:
-        return ("heatmap", "scores", "boxes")
-    return ("heatmap", "scores", "boxes", "flow") + (("features",) if form == "step" else ())
-
-
-def default_threads() -> int:
-    """The CPUs this process may use (its affinity mask, e.g. a container's cpuset), not os.cpu_count()."""
-    try:
-        return max(1, len(os.sched_getaffinity(0)))
-    except AttributeError:  # not on Linux
-        return os.cpu_count() or 1
-
+from rafd.runtime.backend import Backend
+from rafd.runtime.contract import FORMS, graph_inputs, graph_outputs
 
 def window_from_history(frames: Sequence[np.ndarray], poses: np.ndarray | Sequence[np.ndarray],
                         num_frames: int) -> tuple[np.ndarray, np.ndarray]:
@@ -136,33 +113,24 @@ class StepResult:
     frames_used: int
 
 
-class OnnxRunner:
-    """One onnxruntime session over an exported RaFD model (step or window form); thread-safe, stateless."""
+class StreamRunner:
+    """Streams frames through one backend's exported RaFD graph (step or window form); thread-safe, stateless.
 
-    def __init__(self, model_path: str | os.PathLike[str], threads: int | None = None) -> None:
-        import onnxruntime as ort
+    At most `backend.concurrent_runs` graph runs execute at once (more callers wait): the backend's threads are
+    sized for that many.
+    """
 
-        path = Path(model_path)
-        if not path.is_file():
-            raise FileNotFoundError(f"ONNX model {path} does not exist")
-        self.path = path
-        self.threads = int(threads) if threads else default_threads()
-        options = ort.SessionOptions()
-        options.intra_op_num_threads = self.threads
-        options.inter_op_num_threads = 1
-        options.execution_mode = ort.ExecutionMode.ORT_SEQUENTIAL
-        options.graph_optimization_level = ort.GraphOptimizationLevel.ORT_ENABLE_ALL
-        try:
-            self.session = ort.InferenceSession(str(path), sess_options=options, providers=["CPUExecutionProvider"])
-        except Exception as error:  # onnxruntime raises its own exception types
-            raise ValueError(f"cannot load ONNX model {path}: {error}") from error
-        self.metadata: dict[str, str] = dict(self.session.get_modelmeta().custom_metadata_map)
+    def __init__(self, backend: Backend) -> None:
+        self.backend = backend
+        self.path = path = getattr(backend, "path", "the model")
+        self.selection: dict[str, float] = {}  # create_runner("auto"): median ms per run of each candidate
+        self.metadata: dict[str, str] = dict(backend.metadata)
         if "config" not in self.metadata:
             raise ValueError(f"{path} is not a RaFD export: its metadata has no 'config' "
                              f"(keys: {sorted(self.metadata)})")
         self.config = RaFDConfig.from_json(self.metadata["config"])
-        self.input_names = tuple(i.name for i in self.session.get_inputs())
-        self.output_names = tuple(o.name for o in self.session.get_outputs())
+        self.input_names = tuple(backend.input_shapes)
+        self.output_names = tuple(backend.output_names)
         self.form = self.metadata.get("form") or ("window" if "frames" in self.input_names else "step")
         T = self.config.num_frames
         expected, needed_outputs = graph_inputs(self.form, T), graph_outputs(self.form, T)
@@ -170,7 +138,7 @@ class OnnxRunner:
                 or not set(needed_outputs) <= set(self.output_names)):
             raise ValueError(f"{path}: not a RaFD {self.form!r} graph for T = {T}: inputs {self.input_names}, "
                              f"outputs {self.output_names} (expected inputs {expected}, outputs {needed_outputs})")
-        shapes = {i.name: tuple(i.shape) for i in self.session.get_inputs()}
+        shapes = backend.input_shapes
         size = self.config.input_size
         if self.form == "step" and T > 1:
             _, _, channels, height, width = shapes["past_features"]
@@ -179,14 +147,33 @@ class OnnxRunner:
         frame_shape = shapes["frames" if self.form == "window" else "frame"]
         if tuple(frame_shape[-2:]) != (size, size):
             raise ValueError(f"{path}: input frame shape {frame_shape} does not match input_size {size}")
+        self._slots = threading.BoundedSemaphore(max(1, backend.concurrent_runs))
+
+    @property
+    def runtime(self) -> str:
+        return self.backend.runtime
+
+    @property
+    def precision(self) -> str:
+        return self.backend.precision
+
+    @property
+    def threads(self) -> int:
+        return self.backend.threads
+
+    def describe(self) -> dict[str, object]:
+        """How the graph runs: runtime, precision, threads per run, concurrent runs."""
+        return {"runtime": self.runtime, "precision": self.precision, "threads": self.threads,
+                "concurrent_runs": self.backend.concurrent_runs, "selection_ms_per_run": dict(self.selection)}
 
     # ------------------------------------------------------------------ API
     def new_state(self) -> StreamState:
         return StreamState()
 
     def run(self, feeds: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
-        """One raw session run -> {output name: array}."""
-        return dict(zip(self.output_names, self.session.run(None, feeds)))
+        """One raw graph run -> {output name: array}."""
+        with self._slots:
+            return self.backend.run(feeds)
 
     def step(self, state: StreamState, frame: np.ndarray, pose: np.ndarray) -> tuple[StepResult, StreamState]:
         """Add one frame (float32 [S, S] in [0, 1]) with its world pose [3] -> (result for its window, new state)."""
