@@ -8,18 +8,22 @@ window from a stream's history (the PyTorch side of the comparison uses it).
 Step graph (exported by `rafd-export --form step`, the service's form): per frame it encodes only the new frame,
 computes only the newest pair's flow and runs the propagation chain + head:
     inputs  frame [1,1,S,S], poses [1,T,3] (window, oldest first, last = this frame),
-            past_features [1,T-1,C,Hf,Wf], past_flows [1,T-2,2,Hf,Wf] (T = 4 only)
-    outputs heatmap [1,1,Hf,Wf], scores [1,K], boxes [1,K,5], flow [1,T-1,2,Hf,Wf], features [1,C,Hf,Wf]
-For T = 1 the step graph is the single-frame model (inputs frame, poses [1,1,3]; no caches, no flow).
+            past_features [1,T-1,C,Hf,Wf], past_flows [1,T-2,2,Hf,Wf] (T = 4 only),
+            past_flow_features [1,C/2,Hm,Wm] (the previous frame's phi output)
+    outputs heatmap [1,1,Hf,Wf], scores [1,K], boxes [1,K,5], flow [1,T-1,2,Hf,Wf], features [1,C,Hf,Wf],
+            flow_features [1,C/2,Hm,Wm]
+For T = 1 the step graph is the single-frame model (inputs frame, poses [1,1,3]; no caches, no flow). Step graphs
+exported before the flow-feature cache (no past_flow_features input) are run the same way without it.
 
 Since each padded window is the previous one shifted by one frame, the state simply holds the previous window's
-caches, already padded: the last T-1 features, the last T-2 pair flows and the last T-1 world poses.
+caches, already padded: the last T-1 features, the last T-2 pair flows, the last T-1 world poses and the newest
+frame's flow features.
 
 First frame of a stream (no caches yet), for T > 1:
-  1. run with zero caches: only its `features` output F1 is used;
-  2. run with past_features = [F1] * (T-1) (and zero past_flows): its newest `flow` output is the self-pair flow
-     S1 = pair_flow(F1, F1, identity). For T = 2 there are no past flows, so this run is already the result for
-     the window [f1 f1];
+  1. run with zero caches: only its `features` output F1 (and `flow_features` E1) is used;
+  2. run with past_features = [F1] * (T-1), past_flow_features = E1 (and zero past_flows): its newest `flow`
+     output is the self-pair flow S1 = pair_flow(F1, F1, identity). For T = 2 there are no past flows, so this
+     run is already the result for the window [f1 f1];
   3. (T = 4 only) run with past_features = [F1] * 3 and past_flows = [S1] * 2: the result for [f1 f1 f1 f1].
   (The third run is needed because the detection of run 2 saw zero past flows; it happens once per stream.)
 
@@ -96,11 +100,12 @@ class StreamState:
     features: tuple[np.ndarray, ...] = ()  # step form: T-1 per-frame features [C, Hf, Wf]
     flows: tuple[np.ndarray, ...] = ()  # step form: T-2 pair flows [2, Hf, Wf]
     frames: tuple[np.ndarray, ...] = ()  # window form: T-1 frames [S, S]
+    flow_features: tuple[np.ndarray, ...] = ()  # step form with the flow cache: the newest frame's [C/2, Hm, Wm]
 
     @property
     def nbytes(self) -> int:
         """Bytes held (padding repeats one array, counted once)."""
-        unique = {id(a): a for a in self.poses + self.features + self.flows + self.frames}
+        unique = {id(a): a for a in self.poses + self.features + self.flows + self.frames + self.flow_features}
         return sum(a.nbytes for a in unique.values())
 
 
@@ -133,7 +138,9 @@ class StreamRunner:
         self.output_names = tuple(backend.output_names)
         self.form = self.metadata.get("form") or ("window" if "frames" in self.input_names else "step")
         T = self.config.num_frames
-        expected, needed_outputs = graph_inputs(self.form, T), graph_outputs(self.form, T)
+        self.flow_cache = "past_flow_features" in self.input_names  # False: a step graph from before the cache
+        expected = graph_inputs(self.form, T, self.flow_cache)
+        needed_outputs = graph_outputs(self.form, T, self.flow_cache)
         if (self.form not in FORMS or set(self.input_names) != set(expected)
                 or not set(needed_outputs) <= set(self.output_names)):
             raise ValueError(f"{path}: not a RaFD {self.form!r} graph for T = {T}: inputs {self.input_names}, "
@@ -144,6 +151,8 @@ class StreamRunner:
             _, _, channels, height, width = shapes["past_features"]
             self._zero_features = _frozen(np.zeros((channels, height, width), np.float32))
             self._zero_flow = _frozen(np.zeros((2, height, width), np.float32))
+            if self.flow_cache:
+                self._zero_flow_features = _frozen(np.zeros(shapes["past_flow_features"][1:], np.float32))
         frame_shape = shapes["frames" if self.form == "window" else "frame"]
         if tuple(frame_shape[-2:]) != (size, size):
             raise ValueError(f"{path}: input frame shape {frame_shape} does not match input_size {size}")
@@ -199,7 +208,7 @@ class StreamRunner:
     # ------------------------------------------------------------------ step form
     def _step(self, state: StreamState, frame: np.ndarray, pose: np.ndarray) -> tuple[StepResult, StreamState]:
         poses = state.poses + (pose,)
-        out = self._run_step(frame, poses, state.features, state.flows)
+        out = self._run_step(frame, poses, state.features, state.flows, state.flow_features)
         flows = state.flows
         if flows:  # T = 4: keep the newest T-2 pair flows (a copy: result.flow belongs to the caller)
             flows = flows[1:] + (_frozen(out["flow"][0, -1].copy()),)
@@ -208,6 +217,7 @@ class StreamRunner:
             poses=poses[1:],
             features=state.features[1:] + (_frozen(out["features"][0]),),
             flows=flows,
+            flow_features=self._flow_features(out),
         )
         return self._result(out, new_state.frames_used), new_state
 
@@ -215,18 +225,23 @@ class StreamRunner:
         T = self.config.num_frames
         poses = (pose,) * T
         zero_flows = (self._zero_flow,) * (T - 2)
-        features = (_frozen(self._run_step(frame, poses, (self._zero_features,) * (T - 1), zero_flows)
-                            ["features"][0]),) * (T - 1)
-        out = self._run_step(frame, poses, features, zero_flows)
+        zero_flow_features = (self._zero_flow_features,) if self.flow_cache else ()
+        first = self._run_step(frame, poses, (self._zero_features,) * (T - 1), zero_flows, zero_flow_features)
+        features, flow_features = (_frozen(first["features"][0]),) * (T - 1), self._flow_features(first)
+        out = self._run_step(frame, poses, features, zero_flows, flow_features)
         flows: tuple[np.ndarray, ...] = ()
         if T > 2:  # the self-pair flow S1 fills the flow caches; rerun with them
             flows = (_frozen(out["flow"][0, -1].copy()),) * (T - 2)
-            out = self._run_step(frame, poses, features, flows)
-        new_state = StreamState(frames_used=1, poses=poses[1:], features=features, flows=flows)
+            out = self._run_step(frame, poses, features, flows, flow_features)
+        new_state = StreamState(frames_used=1, poses=poses[1:], features=features, flows=flows,
+                                flow_features=flow_features)
         return self._result(out, 1), new_state
 
+    def _flow_features(self, out: dict[str, np.ndarray]) -> tuple[np.ndarray, ...]:
+        return (_frozen(out["flow_features"][0]),) if self.flow_cache else ()
+
     def _run_step(self, frame: np.ndarray, poses: tuple[np.ndarray, ...], features: tuple[np.ndarray, ...],
-                  flows: tuple[np.ndarray, ...]) -> dict[str, np.ndarray]:
+                  flows: tuple[np.ndarray, ...], flow_features: tuple[np.ndarray, ...] = ()) -> dict[str, np.ndarray]:
         feeds = {
             "frame": frame[None, None],
             "poses": poses_in_newest_frame(np.stack(poses))[None],
@@ -234,6 +249,8 @@ class StreamRunner:
         }
         if flows:
             feeds["past_flows"] = np.stack(flows)[None]
+        if flow_features:
+            feeds["past_flow_features"] = flow_features[0][None]
         return self.run(feeds)
 
     # ------------------------------------------------------------------ window form
