@@ -52,8 +52,12 @@ class Settings(BaseSettings):
 
     # ONNX file; None serves the model shipped in the package (rafd.assets.default_onnx()).
     model_path: Path | None = None
-    # onnxruntime intra-op threads: sized from the CPUs the container may really use.
+    # Threads of one model run when it runs alone (lowest latency for one stream): the CPUs the container may use.
     threads: int = Field(default_factory=available_cpus, ge=1)
+    # Model runs executing at once. Runs that overlap get threads // concurrent_runs threads each (a second
+    # compilation of the model), so several streams run side by side instead of contending for one thread pool;
+    # more requests wait. Default: one run per CPU. 1 = one run at a time.
+    concurrent_runs: int = Field(default_factory=available_cpus, ge=1)
     # Inference runtime and precision (rafd.runtime.create_runner). "auto" times every supported choice on the
     # model at start-up and keeps the fastest; bf16 (OpenVINO, CPUs with avx512_bf16 or AMX) is chosen
     # automatically only for a model whose accuracy gate (rafd-export --gate) passed. onnxruntime fp32 is the

@@ -13,7 +13,8 @@ class OrtBackend:
     runtime = "onnxruntime"
     precision = "fp32"
 
-    def __init__(self, model_path: str | os.PathLike[str], threads: int, concurrent_runs: int = 1) -> None:
+    def __init__(self, model_path: str | os.PathLike[str], threads: int, concurrent_runs: int = 1,
+                 spinning: bool = True) -> None:
         import onnxruntime as ort
 
         path = Path(model_path)
@@ -26,6 +27,8 @@ class OrtBackend:
         options.inter_op_num_threads = 1
         options.execution_mode = ort.ExecutionMode.ORT_SEQUENTIAL
         options.graph_optimization_level = ort.GraphOptimizationLevel.ORT_ENABLE_ALL
+        if not spinning:  # idle pool threads sleep instead of spinning on cores other runs need
+            options.add_session_config_entry("session.intra_op.allow_spinning", "0")
         try:
             self.session = ort.InferenceSession(str(path), sess_options=options, providers=["CPUExecutionProvider"])
         except Exception as error:  # onnxruntime raises its own exception types

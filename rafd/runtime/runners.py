@@ -26,11 +26,25 @@ def gate_passed(metadata: dict[str, str], precision: str) -> bool:
     return precision == "fp32" or metadata.get(GATE_KEY.format(precision=precision)) == "pass"
 
 
+def crowd_threads(threads: int, concurrent_runs: int) -> int | None:
+    """Threads per run while several run at once (the cores shared out), None when no second compilation is
+    needed (one run at a time, or already one thread per run)."""
+    if concurrent_runs <= 1 or threads <= 1:
+        return None
+    return max(1, threads // concurrent_runs)
+
+
 class OnnxRunner(StreamRunner):
-    """StreamRunner over onnxruntime, float32 (the reference path)."""
+    """StreamRunner over onnxruntime, float32 (the reference path). `threads`: intra-op threads of a run alone;
+    with concurrent_runs > 1, runs that overlap use a second session of threads // concurrent_runs threads."""
 
     def __init__(self, model_path: str | os.PathLike[str], threads: int | None = None, concurrent_runs: int = 1) -> None:
-        super().__init__(OrtBackend(model_path, threads or default_threads(), concurrent_runs))
+        threads = threads or default_threads()
+        shared = crowd_threads(threads, concurrent_runs)
+        # With overlapping runs, a finished run's pool threads must not spin on the cores the others need.
+        spinning = concurrent_runs == 1
+        super().__init__(OrtBackend(model_path, threads, 1 if shared else concurrent_runs, spinning),
+                         OrtBackend(model_path, shared, concurrent_runs, spinning) if shared else None)
 
     @property
     def session(self):  # noqa: ANN201 - onnxruntime.InferenceSession, not imported at module level
@@ -38,13 +52,17 @@ class OnnxRunner(StreamRunner):
 
 
 class OpenVinoRunner(StreamRunner):
-    """StreamRunner over OpenVINO's CPU plugin in `precision` ("bf16" or "fp32")."""
+    """StreamRunner over OpenVINO's CPU plugin in `precision` ("bf16" or "fp32"); threads and concurrent runs as
+    OnnxRunner (the overlapping runs use one compilation with concurrent_runs CPU streams)."""
 
     def __init__(self, model_path: str | os.PathLike[str], precision: str = "bf16", threads: int | None = None,
                  concurrent_runs: int = 1) -> None:
         from rafd.runtime.openvino_backend import OpenVinoBackend
 
-        super().__init__(OpenVinoBackend(model_path, precision, threads or default_threads(), concurrent_runs))
+        threads = threads or default_threads()
+        shared = crowd_threads(threads, concurrent_runs)
+        super().__init__(OpenVinoBackend(model_path, precision, threads, 1 if shared else concurrent_runs),
+                         OpenVinoBackend(model_path, precision, shared, concurrent_runs) if shared else None)
 
 
 def supported_choices() -> list[tuple[str, str]]:

@@ -121,12 +121,15 @@ class StepResult:
 class StreamRunner:
     """Streams frames through one backend's exported RaFD graph (step or window form); thread-safe, stateless.
 
-    At most `backend.concurrent_runs` graph runs execute at once (more callers wait): the backend's threads are
-    sized for that many.
+    Concurrency: a run that starts while no other run is in flight uses `backend` (all its threads: the lowest
+    latency for one stream); a run that starts while others are in flight uses `crowd` (the same graph compiled
+    with fewer threads per run, e.g. 1 of 2 cores each), so several streams run side by side instead of
+    contending for one thread pool. At most max(backend, crowd).concurrent_runs runs execute at once; more
+    callers wait.
     """
 
-    def __init__(self, backend: Backend) -> None:
-        self.backend = backend
+    def __init__(self, backend: Backend, crowd: Backend | None = None) -> None:
+        self.backend, self.crowd = backend, crowd
         self.path = path = getattr(backend, "path", "the model")
         self.selection: dict[str, float] = {}  # create_runner("auto"): median ms per run of each candidate
         self.metadata: dict[str, str] = dict(backend.metadata)
@@ -156,7 +159,13 @@ class StreamRunner:
         frame_shape = shapes["frames" if self.form == "window" else "frame"]
         if tuple(frame_shape[-2:]) != (size, size):
             raise ValueError(f"{path}: input frame shape {frame_shape} does not match input_size {size}")
-        self._slots = threading.BoundedSemaphore(max(1, backend.concurrent_runs))
+        if crowd is not None and (crowd.runtime, crowd.precision, crowd.input_shapes) != (
+                backend.runtime, backend.precision, backend.input_shapes):
+            raise ValueError("the crowd backend must run the same graph on the same runtime and precision")
+        self.concurrent_runs = max(1, backend.concurrent_runs, crowd.concurrent_runs if crowd is not None else 1)
+        self._slots = threading.BoundedSemaphore(self.concurrent_runs)
+        self._in_flight = 0
+        self._in_flight_lock = threading.Lock()
 
     @property
     def runtime(self) -> str:
@@ -171,9 +180,11 @@ class StreamRunner:
         return self.backend.threads
 
     def describe(self) -> dict[str, object]:
-        """How the graph runs: runtime, precision, threads per run, concurrent runs."""
+        """How the graph runs: runtime, precision, threads of a lone run, concurrent runs and their threads."""
+        crowd = self.crowd or self.backend
         return {"runtime": self.runtime, "precision": self.precision, "threads": self.threads,
-                "concurrent_runs": self.backend.concurrent_runs, "selection_ms_per_run": dict(self.selection)}
+                "concurrent_runs": self.concurrent_runs, "threads_per_concurrent_run": crowd.threads,
+                "selection_ms_per_run": dict(self.selection)}
 
     # ------------------------------------------------------------------ API
     def new_state(self) -> StreamState:
@@ -182,7 +193,14 @@ class StreamRunner:
     def run(self, feeds: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
         """One raw graph run -> {output name: array}."""
         with self._slots:
-            return self.backend.run(feeds)
+            with self._in_flight_lock:
+                alone = self._in_flight == 0
+                self._in_flight += 1
+            try:
+                return (self.backend if alone or self.crowd is None else self.crowd).run(feeds)
+            finally:
+                with self._in_flight_lock:
+                    self._in_flight -= 1
 
     def step(self, state: StreamState, frame: np.ndarray, pose: np.ndarray) -> tuple[StepResult, StreamState]:
         """Add one frame (float32 [S, S] in [0, 1]) with its world pose [3] -> (result for its window, new state)."""

@@ -35,7 +35,7 @@ def test_backends_share_the_interface_and_metadata(shipped_onnx):
     assert ov.backend.input_shapes == ort.backend.input_shapes
     assert ov.backend.output_names == ort.backend.output_names
     assert ov.describe() == {"runtime": "openvino", "precision": "fp32", "threads": 1, "concurrent_runs": 1,
-                             "selection_ms_per_run": {}}
+                             "threads_per_concurrent_run": 1, "selection_ms_per_run": {}}
 
 
 def test_openvino_fp32_streams_like_onnxruntime(shipped_onnx):
