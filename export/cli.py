@@ -33,8 +33,8 @@ def build_parser() -> argparse.ArgumentParser:
         "simulated sequences and, with RAFD_RADIATE_SAMPLE, the real sample's frames; the verdict is recorded in the "
         "ONNX metadata (the service picks bf16 automatically only after a pass)")
     gate.add_argument("--gate", action="store_true", help="run the accuracy gate (step form)")
-    gate.add_argument("--gate-sequences", type=_positive, default=6, help="simulated sequences (default %(default)s)")
-    gate.add_argument("--gate-frames", type=_positive, default=40, help="frames per sequence (default %(default)s)")
+    gate.add_argument("--gate-sequences", type=_positive, default=12, help="simulated sequences (default %(default)s)")
+    gate.add_argument("--gate-frames", type=_positive, default=60, help="frames per sequence (default %(default)s)")
     gate.add_argument("--gate-seed", type=int, default=None,
                       help="simulation seed; must be one the model was never trained or tested on "
                            "(default: export.gate.DEFAULT_SEED)")

@@ -468,8 +468,8 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--repeats", type=int, default=20, help="timed calls per model path")
     parser.add_argument("--concurrency-frames", type=int, default=8,
                         help="frames per stream in the 1-vs-8-streams runner comparison")
-    parser.add_argument("--gate-sequences", type=int, default=4, help="simulated sequences of the accuracy gate")
-    parser.add_argument("--gate-frames", type=int, default=30, help="frames per gate sequence")
+    parser.add_argument("--gate-sequences", type=int, default=6, help="simulated sequences of the accuracy gate")
+    parser.add_argument("--gate-frames", type=int, default=40, help="frames per gate sequence")
     parser.add_argument("--no-gate", action="store_true", help="skip the accuracy gate")
     parser.add_argument("--http-frames", type=int, default=40, help="frames per stream in the HTTP load")
     parser.add_argument("--concurrency", default="1,8", help="comma list of concurrent HTTP streams")
