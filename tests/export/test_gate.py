@@ -131,11 +131,3 @@ def test_gate_refuses_the_window_form(tmp_path):
     checkpoint = make_checkpoint(tmp_path / "model.pt", small_config(2))
     with pytest.raises(ExportError, match="step form"):
         export_onnx(checkpoint, tmp_path / "w.onnx", form="window", verify=False, gate=GateOptions())
-
-
-@pytest.fixture
-def radiate_sample_or_none(request):
-    try:
-        return request.getfixturevalue("radiate_sample")
-    except pytest.skip.Exception:
-        return None
