@@ -12,10 +12,12 @@ WORKDIR /src
 COPY pyproject.toml README.md ./
 COPY rafd ./rafd
 COPY service ./service
-# Checks: no torch in the image, the service imports none, and the shipped default model is inside.
+# Checks: no torch in the image, the service imports none, both runtimes are there (onnxruntime fp32, OpenVINO
+# for bf16), and the shipped default model is inside.
 RUN python -m venv /opt/venv \
  && /opt/venv/bin/pip install ".[serve]" \
  && /opt/venv/bin/python -c "import importlib.util as u; assert u.find_spec('torch') is None, 'torch installed'" \
+ && /opt/venv/bin/python -c "import onnxruntime, openvino; print('runtimes:', onnxruntime.__version__, openvino.__version__)" \
  && /opt/venv/bin/python -c "import sys, service.app; assert 'torch' not in sys.modules" \
  && /opt/venv/bin/python -c "from rafd.assets import default_onnx; print('default model:', default_onnx())"
 

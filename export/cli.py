@@ -28,12 +28,30 @@ def build_parser() -> argparse.ArgumentParser:
                         help="step: streaming step graph with feature/flow caches (the service's form); "
                              "window: model.forward on a full window (default %(default)s)")
     parser.add_argument("--no-verify", action="store_true", help="skip the onnxruntime vs PyTorch parity check")
+    gate = parser.add_argument_group(
+        "accuracy gate", "reduced precision (OpenVINO bf16, where the CPU has it) against onnxruntime fp32 on held-out "
+        "simulated sequences and, with RAFD_RADIATE_SAMPLE, the real sample's frames; the verdict is recorded in the "
+        "ONNX metadata (the service picks bf16 automatically only after a pass)")
+    gate.add_argument("--gate", action="store_true", help="run the accuracy gate (step form)")
+    gate.add_argument("--gate-sequences", type=_positive, default=12, help="simulated sequences (default %(default)s)")
+    gate.add_argument("--gate-frames", type=_positive, default=60, help="frames per sequence (default %(default)s)")
+    gate.add_argument("--gate-seed", type=int, default=None,
+                      help="simulation seed; must be one the model was never trained or tested on "
+                           "(default: export.gate.DEFAULT_SEED)")
     return parser
+
+
+def _positive(text: str) -> int:
+    value = int(text)
+    if value < 1:
+        raise argparse.ArgumentTypeError(f"must be >= 1, got {value}")
+    return value
 
 
 def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     # Heavy imports (torch, onnx) after argument parsing: --help stays fast.
+    from export.gate import DEFAULT_SEED, GateOptions
     from export.onnx_export import ExportError, export_onnx
     from export.verify import VerificationError
     from rafd.checkpoint import CheckpointError
@@ -41,9 +59,13 @@ def main(argv: list[str] | None = None) -> int:
     def log(message: str) -> None:
         print(message, flush=True)
 
+    gate = None
+    if args.gate:
+        seed = DEFAULT_SEED if args.gate_seed is None else args.gate_seed
+        gate = GateOptions(sequences=args.gate_sequences, frames=args.gate_frames, seed=seed)
     try:
         result = export_onnx(args.checkpoint, args.output, opset=args.opset, form=args.form,
-                             verify=not args.no_verify, log=log)
+                             verify=not args.no_verify, log=log, gate=gate)
     except CheckpointError as error:
         print(f"rafd-export: error: bad checkpoint: {error}", file=sys.stderr)
         return 1
@@ -51,8 +73,9 @@ def main(argv: list[str] | None = None) -> int:
         print(f"rafd-export: error: {error}", file=sys.stderr)
         return 1
     verified = "verified" if result.report is not None else "not verified (--no-verify)"
+    gated = "".join(f", {precision} gate {'PASS' if report.ok else 'FAIL'}" for precision, report in result.gates.items())
     print(f"wrote {result.path} ({result.size_bytes / 1e6:.2f} MB, {result.form} form, opset {result.opset}, "
-          f"{result.exporter} exporter, {verified})")
+          f"{result.exporter} exporter, {verified}{gated})")
     return 0
 
 

@@ -8,13 +8,14 @@ import tempfile
 import time
 import warnings
 from collections.abc import Callable
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import onnx
 import torch
 
 import rafd
+from export.gate import GateOptions, GateReport, gate_metadata, run_export_gates
 from export.step import build_graph, example_inputs, feature_channels
 from export.verify import Report, verify_export
 from rafd.checkpoint import load_checkpoint
@@ -39,6 +40,7 @@ class ExportResult:
     size_bytes: int
     metadata: dict[str, str]
     report: Report | None
+    gates: dict[str, GateReport] = field(default_factory=dict)  # reduced precision -> accuracy gate
 
 
 def check_output_path(output: Path) -> None:
@@ -111,8 +113,13 @@ def _restore_unused_inputs(proto: onnx.ModelProto, names: tuple[str, ...], examp
 
 
 def export_onnx(checkpoint: str | os.PathLike[str], output: str | os.PathLike[str], opset: int = MIN_OPSET,
-                form: str = "step", verify: bool = True, log: Callable[[str], None] = print) -> ExportResult:
+                form: str = "step", verify: bool = True, log: Callable[[str], None] = print,
+                gate: GateOptions | None = None) -> ExportResult:
     """Export a checkpoint; the output appears (atomically) only when checker and verification passed.
+
+    gate: also run the accuracy gate of every reduced precision this CPU runs (step form only) and record
+    "gate_<precision>" = pass / fail (+ "gate_<precision>_figures", JSON) in the metadata, which is what lets
+    rafd.runtime.create_runner pick that precision automatically.
 
     Raises rafd.checkpoint.CheckpointError (bad checkpoint), ExportError, export.verify.VerificationError.
     """
@@ -121,6 +128,8 @@ def export_onnx(checkpoint: str | os.PathLike[str], output: str | os.PathLike[st
         raise ExportError(f"opset {opset} is too old: RaFD needs opset >= {MIN_OPSET}")
     if form not in FORMS:
         raise ExportError(f"form must be one of {FORMS}, got {form!r}")
+    if gate is not None and form != "step":
+        raise ExportError("the accuracy gate streams the step form; export --form step to gate it")
     check_output_path(output)
     model, cfg, _ = load_checkpoint(checkpoint)
     model = model.eval()
@@ -158,8 +167,19 @@ def export_onnx(checkpoint: str | os.PathLike[str], output: str | os.PathLike[st
             start = time.perf_counter()
             report = verify_export(tmp, model, cfg, form, log=log)
             verify_seconds = time.perf_counter() - start
+        gates: dict[str, GateReport] = {}
+        if gate is not None:
+            gates = run_export_gates(tmp, gate, log)
+            if gates:  # record the verdicts in the file itself: the service reads them
+                proto = onnx.load(str(tmp))
+                for key, value in gate_metadata(gates).items():
+                    proto.metadata_props.add(key=key, value=value)
+                    metadata[key] = value
+                onnx.save(proto, str(tmp))
+                del proto
+                size = tmp.stat().st_size
         os.replace(tmp, output)
     finally:
         tmp.unlink(missing_ok=True)
     return ExportResult(path=output, form=form, opset=opset, exporter=exporter, export_seconds=export_seconds,
-                        verify_seconds=verify_seconds, size_bytes=size, metadata=metadata, report=report)
+                        verify_seconds=verify_seconds, size_bytes=size, metadata=metadata, report=report, gates=gates)

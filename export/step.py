@@ -16,8 +16,9 @@ from rafd.runtime import FORMS
 class StepGraph(nn.Module):
     """One new frame + the previous window's caches -> detections of the new window, its flows, the new features.
 
-    inputs:  frame [1,1,S,S], poses [1,T,3], past_features [1,T-1,C,Hf,Wf], past_flows [1,T-2,2,Hf,Wf] (T = 4)
-    outputs: heatmap, scores, boxes, flow [1,T-1,2,Hf,Wf], features [1,C,Hf,Wf]
+    inputs:  frame [1,1,S,S], poses [1,T,3], past_features [1,T-1,C,Hf,Wf], past_flows [1,T-2,2,Hf,Wf] (T = 4),
+             past_flow_features [1,C/2,Hm,Wm] (phi of the previous frame, computed by the previous step)
+    outputs: heatmap, scores, boxes, flow [1,T-1,2,Hf,Wf], features [1,C,Hf,Wf], flow_features [1,C/2,Hm,Wm]
     For T = 1 it is the single-frame model: inputs frame, poses [1,1,3]; outputs heatmap, scores, boxes.
     """
 
@@ -26,17 +27,20 @@ class StepGraph(nn.Module):
         self.model = model
         self.num_frames = num_frames
 
-    def forward(self, frame: Tensor, poses: Tensor, past_features: Tensor | None = None,
-                past_flows: Tensor | None = None) -> tuple[Tensor, ...]:
+    def forward(self, frame: Tensor, poses: Tensor, *caches: Tensor) -> tuple[Tensor, ...]:
         if self.num_frames == 1:
             out = self.model(frame[:, None], poses)
             return out["heatmap"], out["scores"], out["boxes"]
+        # caches in contract order: past_features, [past_flows (T = 4)], past_flow_features
+        past_features, past_flow_features = caches[0], caches[-1]
+        past_flows = caches[1] if self.num_frames > 2 else None
         features = self.model.encode_frame(frame)
+        flow_features = self.model.flow_features(features)  # phi once per frame; the previous one is cached
         relative = relative_pose_torch(poses[:, -2], poses[:, -1])
-        flow = self.model.pair_flow(past_features[:, -1], features, relative)[:, None]
+        flow = self.model.pair_flow_encoded(past_flow_features, flow_features, relative)[:, None]
         flows = flow if past_flows is None else torch.cat([past_flows, flow], 1)
         out = self.model.detect(torch.cat([past_features, features[:, None]], 1), flows, poses)
-        return out["heatmap"], out["scores"], out["boxes"], flows, features
+        return out["heatmap"], out["scores"], out["boxes"], flows, features, flow_features
 
 
 class WindowGraph(nn.Module):
@@ -67,7 +71,7 @@ def build_graph(model: nn.Module, cfg: RaFDConfig, form: str) -> nn.Module:
 
 
 def example_inputs(cfg: RaFDConfig, form: str, channels: int, seed: int = 0) -> tuple[Tensor, ...]:
-    """Random inputs of the graph's static shapes (frames in [0, 1], small ego motion)."""
+    """Random inputs of the graph's static shapes (frames in [0, 1], small ego motion), in contract order."""
     generator = torch.Generator().manual_seed(seed)
     T, S, F = cfg.num_frames, cfg.input_size, cfg.feature_size
     poses = torch.cumsum(torch.randn(1, T, 3, generator=generator) * torch.tensor([1.0, 1.0, 0.05]), 1)
@@ -78,4 +82,6 @@ def example_inputs(cfg: RaFDConfig, form: str, channels: int, seed: int = 0) -> 
         inputs += (torch.randn(1, T - 1, channels, F, F, generator=generator),)
     if T > 2:
         inputs += (torch.randn(1, T - 2, 2, F, F, generator=generator),)
+    if T > 1:  # past_flow_features: phi of the previous frame, C/2 channels on the flow grid
+        inputs += (torch.randn(1, channels // 2, cfg.flow_size, cfg.flow_size, generator=generator),)
     return inputs

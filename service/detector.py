@@ -63,7 +63,7 @@ class Executors:
 
         return cls(decode=make("decode", settings.decode_workers, settings.decode_queue_limit),
                    odometry=make("odometry", settings.odometry_workers, settings.odometry_queue_limit),
-                   model=make("model", settings.model_workers, settings.model_queue_limit))
+                   model=make("model", settings.concurrent_runs, settings.model_queue_limit))
 
     def shutdown(self) -> None:
         for executor in (self.decode, self.odometry, self.model):
@@ -188,7 +188,9 @@ class DetectService:
             "input": {"posted_size": decoded.posted_size, "model_size": cfg.input_size,
                       "crop_offset_px": decoded.crop_offset},
             "model": {"version": metadata.get("version", "unknown"),
-                      "checkpoint_sha256": metadata.get("checkpoint_sha256", "unknown")},
+                      "checkpoint_sha256": metadata.get("checkpoint_sha256", "unknown"),
+                      "runtime": getattr(self.runner, "runtime", "unknown"),
+                      "precision": getattr(self.runner, "precision", "unknown")},
         }
 
     def _boxes(self, result: Any, posted_size: int) -> list[dict[str, Any]]:

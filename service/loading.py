@@ -25,12 +25,17 @@ def resolve_model_path(settings: Settings) -> Path:
 
 
 def open_runner(settings: Settings) -> Any:
-    """An onnxruntime-backed rafd.runtime.OnnxRunner (imported here, never at service import)."""
+    """A rafd.runtime.StreamRunner on the configured runtime and precision (imported here, never at service
+    import); "auto" picks the fastest this CPU supports for this model."""
     path = resolve_model_path(settings)
-    from rafd.runtime import OnnxRunner
+    from rafd.runtime import create_runner
 
-    log.info("loading %s with %d onnxruntime threads", path, settings.threads)
-    return OnnxRunner(path, threads=settings.threads)
+    log.info("loading %s (runtime %s, precision %s, %d threads per run, %d concurrent runs)", path, settings.runtime,
+             settings.precision, settings.threads, settings.concurrent_runs)
+    runner = create_runner(path, settings.runtime, settings.precision, threads=settings.threads,
+                           concurrent_runs=settings.concurrent_runs)
+    log.info("serving on %s", runner.describe())
+    return runner
 
 
 def check_buffer_length(settings: Settings, runner: Any) -> None:

@@ -5,7 +5,7 @@ import math
 import os
 from functools import lru_cache
 from pathlib import Path
-from typing import Annotated
+from typing import Annotated, Literal
 
 from pydantic import Field, SecretStr, field_validator
 from pydantic_settings import BaseSettings, NoDecode, SettingsConfigDict
@@ -52,8 +52,18 @@ class Settings(BaseSettings):
 
     # ONNX file; None serves the model shipped in the package (rafd.assets.default_onnx()).
     model_path: Path | None = None
-    # onnxruntime intra-op threads: sized from the CPUs the container may really use.
+    # Threads of one model run when it runs alone (lowest latency for one stream): the CPUs the container may use.
     threads: int = Field(default_factory=available_cpus, ge=1)
+    # Model runs executing at once. Runs that overlap get threads // concurrent_runs threads each (a second
+    # compilation of the model), so several streams run side by side instead of contending for one thread pool;
+    # more requests wait. Default: one run per CPU. 1 = one run at a time.
+    concurrent_runs: int = Field(default_factory=available_cpus, ge=1)
+    # Inference runtime and precision (rafd.runtime.create_runner). "auto" times every supported choice on the
+    # model at start-up and keeps the fastest; bf16 (OpenVINO, CPUs with avx512_bf16 or AMX) is chosen
+    # automatically only for a model whose accuracy gate (rafd-export --gate) passed. onnxruntime fp32 is the
+    # reference path.
+    runtime: Literal["auto", "onnxruntime", "openvino"] = "auto"
+    precision: Literal["auto", "fp32", "bf16"] = "auto"
     # Live streams held at once; beyond it the least recently used stream is evicted.
     max_streams: int = Field(default=256, ge=1)
     # A stream idle for longer than this is forgotten (its next frame starts a new buffer).
@@ -68,12 +78,12 @@ class Settings(BaseSettings):
     # Seconds a request's body may take to arrive (a frame holds its stream's place while it does); beyond it 408.
     body_timeout_s: float = Field(default=30.0, gt=0)
     # Each stage runs on its own threads with its own queue limit (jobs waiting beyond the running ones); a full
-    # queue answers 503 + Retry-After at once. One model worker: onnxruntime already uses `threads` cores per step.
+    # queue answers 503 + Retry-After at once. The model stage runs `concurrent_runs` steps at once (the runner shares
+    # the threads out among them).
     decode_workers: int = Field(default=1, ge=1)
     decode_queue_limit: int = Field(default=16, ge=0)
     odometry_workers: int = Field(default=1, ge=1)
     odometry_queue_limit: int = Field(default=16, ge=0)
-    model_workers: int = Field(default=1, ge=1)
     model_queue_limit: int = Field(default=16, ge=0)
     # Seconds a 503 / 429 asks the client to wait (the Retry-After header).
     retry_after_s: int = Field(default=1, ge=1)

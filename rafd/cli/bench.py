@@ -1,9 +1,16 @@
-"""rafd-bench: speed and memory of the model and the service, side by side in one run on this machine.
+"""rafd-bench: speed, accuracy drift and memory of every runtime and precision, side by side in one run.
 
-For each config (the shipped default and the paper's): PyTorch eager on the full window, onnxruntime on
-the full window, onnxruntime streaming per frame (the service's path); then `POST /detect` over HTTP on
-loopback against a real `rafd-serve` process (1 and N concurrent streams), memory per stream and with
-100 streams, and FLOPs per frame against a measured float32 matmul peak. Prints one table.
+For each config (the shipped default model, the paper's network with random weights, and the paper's network with
+the speed options flow.stride 8 and enhance.window 16):
+  - PyTorch eager and onnxruntime on the full window (the references);
+  - the streaming step (the service's path) on every runtime and precision this CPU runs (onnxruntime fp32,
+    OpenVINO fp32, OpenVINO bf16 where the CPU has bf16), timed interleaved, with the achieved TFLOP/s against the
+    fp32 and bf16 matmul peaks measured in the same run;
+  - 1 stream against 8 concurrent streams through one runner, with one run at a time and with the service's
+    default of one concurrent run per CPU;
+  - the accuracy gate of every reduced precision against onnxruntime fp32 (export.gate, a small sample);
+then `POST /detect` over HTTP on loopback against a real `rafd-serve` per runtime (1 and N streams, memory with
+100 streams; for the default model also full 1152 px scans). Prints one table.
 """
 from __future__ import annotations
 
@@ -12,6 +19,7 @@ import base64
 import json
 import logging
 import os
+import re
 import socket
 import statistics
 import subprocess
@@ -26,9 +34,12 @@ from typing import Any, Callable, Sequence
 import cv2
 import numpy as np
 
-from rafd.preprocess import to_model_input
+from rafd.preprocess import model_crop, to_model_input
 
 log = logging.getLogger("rafd.bench")
+
+CONFIGS = ("default", "paper", "paper-options")
+FULL_SCAN = 1152  # a RADIATE Navtech Cartesian scan
 
 
 @dataclass
@@ -36,7 +47,7 @@ class Row:
     config: str
     path: str
     p50_ms: float
-    p95_ms: float
+    p95_ms: float | None  # None where only a mean is measured (aggregate throughput rows)
     fps: float
     note: str = ""
 
@@ -65,6 +76,17 @@ def time_calls(call: Callable[[int], Any], repeats: int, warmup: int = 2) -> lis
     return samples
 
 
+def time_interleaved(calls: dict[str, Callable[[int], Any]], repeats: int) -> dict[str, list[float]]:
+    """Seconds per call of each call(i), one call of each per round: load from other jobs hits all alike."""
+    samples: dict[str, list[float]] = {name: [] for name in calls}
+    for i in range(repeats):
+        for name, call in calls.items():
+            start = time.perf_counter()
+            call(i)
+            samples[name].append(time.perf_counter() - start)
+    return samples
+
+
 def simulated_frames(size: int, count: int, seed: int) -> tuple[list[np.ndarray], np.ndarray]:
     """`count` simulated scans of size x size (uint8) and their true world poses [count, 3]."""
     from rafd.sim.sensor import Difficulty
@@ -74,19 +96,22 @@ def simulated_frames(size: int, count: int, seed: int) -> tuple[list[np.ndarray]
     return list(sequence.images), np.asarray(sequence.poses, dtype=np.float64)
 
 
-def matmul_peak_gflops(threads: int, n: int = 1024, repeats: int = 10) -> float:
-    """Measured single-precision matmul throughput (GFLOP/s) with `threads` torch threads."""
+def matmul_peaks_gflops(threads: int, n: int = 2048, repeats: int = 5) -> dict[str, float]:
+    """Measured n^3 matmul throughput (GFLOP/s, best of `repeats`) in float32 and bfloat16 with `threads` torch
+    threads (oneDNN: AMX / avx512_bf16 where the CPU has them)."""
     import torch
 
     previous = torch.get_num_threads()
     torch.set_num_threads(threads)
+    peaks = {}
     try:
-        a = torch.randn(n, n)
-        b = torch.randn(n, n)
-        samples = time_calls(lambda _: torch.mm(a, b), repeats)
+        for name, dtype in (("fp32", torch.float32), ("bf16", torch.bfloat16)):
+            a, b = torch.randn(n, n, dtype=dtype), torch.randn(n, n, dtype=dtype)
+            samples = time_calls(lambda _: torch.mm(a, b), repeats)
+            peaks[name] = 2.0 * n**3 / min(samples) / 1e9
     finally:
         torch.set_num_threads(previous)
-    return 2.0 * n**3 / min(samples) / 1e9
+    return peaks
 
 
 def count_flops(module: Any, *inputs: Any) -> float:
@@ -98,6 +123,13 @@ def count_flops(module: Any, *inputs: Any) -> float:
     with torch.no_grad(), counter:
         module(*inputs)
     return float(counter.get_total_flops())
+
+
+def count_step_flops(model: Any, cfg: Any) -> float:
+    """FLOPs of one streaming step: the exported StepGraph itself (new frame, newest pair flow, detect)."""
+    from export.step import build_graph, example_inputs, feature_channels
+
+    return count_flops(build_graph(model, cfg, "step"), *example_inputs(cfg, "step", feature_channels(model, cfg)))
 
 
 # ----------------------------------------------------------------------------- model paths
@@ -116,18 +148,36 @@ def export_forms(checkpoint: Path, out_dir: Path) -> dict[str, Path]:
     return forms
 
 
-def bench_model(name: str, checkpoint: Path, work: Path, threads: int, repeats: int, report: Report) -> dict[str, Any]:
-    """PyTorch window, ORT window and ORT streaming times of one checkpoint -> rows + facts."""
+def stream_fps(runner: Any, inputs: list[np.ndarray], poses: np.ndarray, streams: int, frames: int) -> float:
+    """Aggregate frames/s of `streams` threads, each stepping its own stream `frames` times through `runner`."""
+    def client(offset: int) -> None:
+        state = runner.new_state()
+        for k in range(frames):
+            j = (offset + k) % len(inputs)
+            _, state = runner.step(state, inputs[j], poses[j])
+
+    workers = [threading.Thread(target=client, args=(i,)) for i in range(streams)]
+    start = time.perf_counter()
+    for worker in workers:
+        worker.start()
+    for worker in workers:
+        worker.join()
+    return streams * frames / (time.perf_counter() - start)
+
+
+def bench_model(name: str, checkpoint: Path, work: Path, threads: int, repeats: int, concurrency_frames: int,
+                gate: tuple[int, int] | None, peaks: dict[str, float], report: Report) -> dict[str, Any]:
+    """PyTorch window, ORT window, the streaming step on every runtime, concurrency and the gate -> rows + facts."""
     import onnxruntime as ort
     import torch
 
     from rafd.checkpoint import load_checkpoint
-    from rafd.runtime import OnnxRunner
+    from rafd.runtime import open_runner, supported_choices
 
     torch.set_num_threads(threads)
     model, cfg, _ = load_checkpoint(checkpoint)
     size, frames_per_window = cfg.input_size, cfg.num_frames
-    images, poses = simulated_frames(size, repeats + 8, seed=7)
+    images, poses = simulated_frames(size, max(repeats, 8) + frames_per_window, seed=7)
     inputs = [to_model_input(im) for im in images]
     window = torch.from_numpy(np.stack(inputs[:frames_per_window]))[None, :, None]  # [1, T, 1, S, S]
     window_poses = torch.from_numpy(poses[:frames_per_window].astype(np.float32))[None]  # [1, T, 3]
@@ -142,50 +192,92 @@ def bench_model(name: str, checkpoint: Path, work: Path, threads: int, repeats: 
     options.graph_optimization_level = ort.GraphOptimizationLevel.ORT_ENABLE_ALL
     session = ort.InferenceSession(str(forms["window"]), options, providers=["CPUExecutionProvider"])
     feeds = {"frames": window.numpy(), "poses": window_poses.numpy()}
-    names = {i.name for i in session.get_inputs()}
-    if names != set(feeds):
-        raise RuntimeError(f"window graph inputs {sorted(names)}, expected {sorted(feeds)}")
     ort_window = time_calls(lambda _: session.run(None, feeds), repeats)
-    report.rows.append(Row(name, "onnxruntime, full window", *percentiles(ort_window), 1.0 / np.median(ort_window)))
-
-    runner = OnnxRunner(forms["step"], threads=threads)
-    state = runner.new_state()
-    for i in range(frames_per_window):  # past the warm-up: every timed step is a steady-state frame
-        _, state = runner.step(state, inputs[i], poses[i])
-    states = [state]
-
-    def one_step(i: int) -> None:
-        _, new_state = runner.step(states[0], inputs[frames_per_window + i % 8], poses[frames_per_window + i % 8])
-        states[0] = new_state
-
-    stream = time_calls(one_step, repeats, warmup=0)
-    p50, p95 = percentiles(stream)
-    speedup = float(np.median(ort_window) / np.median(stream))
-    report.rows.append(Row(name, "onnxruntime streaming step", p50, p95, 1.0 / np.median(stream),
-                           f"{speedup:.2f}x faster than the ORT window"))
+    report.rows.append(Row(name, "onnxruntime fp32, full window", *percentiles(ort_window), 1.0 / np.median(ort_window)))
+    del session
 
     step_flops = count_step_flops(model, cfg)
     window_flops = count_flops(model, window, window_poses)
-    gflops = step_flops / np.median(stream) / 1e9
+    choices = supported_choices()
+    runners = {f"{r}/{p}": open_runner(forms["step"], r, p, threads) for r, p in choices}
+    states = {}
+    for key, runner in runners.items():  # past the warm-up: every timed step is a steady-state frame
+        state = runner.new_state()
+        for i in range(frames_per_window):
+            _, state = runner.step(state, inputs[i], poses[i])
+        states[key] = state
+
+    def stepper(key: str) -> Callable[[int], None]:
+        runner = runners[key]
+
+        def one_step(i: int) -> None:
+            j = frames_per_window + i % (len(inputs) - frames_per_window)
+            _, states[key] = runner.step(states[key], inputs[j], poses[j])
+        return one_step
+
+    samples = time_interleaved({key: stepper(key) for key in runners}, repeats)
+    reference = float(np.median(samples["onnxruntime/fp32"]))
+    achieved = {}
+    for key, seconds in samples.items():
+        precision = key.split("/")[1]
+        median = float(np.median(seconds))
+        tflops = step_flops / median / 1e12
+        achieved[key] = round(tflops, 3)
+        note = (f"{reference / median:.2f}x the ORT fp32 step; {tflops:.3f} TFLOP/s = "
+                f"{100 * tflops * 1e3 / peaks[precision]:.0f}% of the {precision} matmul peak")
+        if key == "onnxruntime/fp32":
+            note += f"; {float(np.median(ort_window)) / median:.2f}x faster than the ORT window"
+        report.rows.append(Row(name, f"streaming step, {key}", *percentiles(seconds), 1.0 / median, note))
+
+    concurrency = {}
+    for key in runners:
+        runtime, precision = key.split("/")
+        for runs in sorted({1, threads}):
+            runner = open_runner(forms["step"], runtime, precision, threads, concurrent_runs=runs)
+            stream_fps(runner, inputs, poses, 1, frames_per_window)  # warm both compilations up
+            stream_fps(runner, inputs, poses, 2, frames_per_window)
+            one = stream_fps(runner, inputs, poses, 1, concurrency_frames)
+            eight = stream_fps(runner, inputs, poses, 8, concurrency_frames)
+            concurrency[f"{key}, {runs} concurrent run(s)"] = {"1_stream_fps": round(one, 1),
+                                                                "8_streams_fps": round(eight, 1),
+                                                                "ratio": round(eight / one, 2)}
+            report.rows.append(Row(name, f"8 streams through one runner, {key}, {threads} threads, {runs} "
+                                         f"concurrent run(s)", 1e3 * 8 / eight, None, eight,
+                                   f"{eight / one:.2f}x one stream's {one:.1f} frames/s (p50 column: mean ms per "
+                                   f"frame of a stream)"))
+
+    gates = {}
+    if gate is not None:
+        from export.gate import gate_model
+
+        sample = os.environ.get("RAFD_RADIATE_SAMPLE")
+        radiate = sample if sample and Path(sample, "Navtech_Cartesian").is_dir() else None
+        for runtime, precision in choices:
+            if precision == "fp32":
+                continue
+            result = gate_model(forms["step"], (runtime, precision), sequences=gate[0], frames=gate[1],
+                                radiate=radiate, threads=threads)
+            for line in result.lines():
+                log.info("%s", line)
+            gates[f"{runtime}/{precision}"] = {"verdict": "PASS" if result.ok else "FAIL",
+                                               "failed": [f"{s}: {c}" for s, c, _, _, ok in result.checks() if not ok],
+                                               "figures": result.figures()}
+    runner = runners["onnxruntime/fp32"]
     report.facts[name] = {
         "input_size": size,
         "num_frames": frames_per_window,
+        "config_options": {"flow.stride": cfg.flow.stride, "enhance_window_cells": cfg.enhance_window},
         "parameters": int(sum(p.numel() for p in model.parameters())),
         "onnx_step_mb": round(forms["step"].stat().st_size / 1e6, 2),
         "gflop_per_step": round(step_flops / 1e9, 3),
         "gflop_per_window": round(window_flops / 1e9, 3),
-        "achieved_gflops_streaming": round(gflops, 1),
-        "stream_state_bytes": int(state.nbytes),
-        "streaming_speedup": round(speedup, 2),
+        "achieved_tflops_streaming": achieved,
+        "stream_state_bytes": int(states["onnxruntime/fp32"].nbytes),
+        "concurrency": concurrency,
+        "gate": gates,
     }
-    return {"step_onnx": forms["step"], "cfg": cfg, "model_ms": p50}
-
-
-def count_step_flops(model: Any, cfg: Any) -> float:
-    """FLOPs of one streaming step: the exported StepGraph itself (new frame, newest pair flow, detect)."""
-    from export.step import build_graph, example_inputs, feature_channels
-
-    return count_flops(build_graph(model, cfg, "step"), *example_inputs(cfg, "step", feature_channels(model, cfg)))
+    del runner, runners
+    return {"step_onnx": forms["step"], "cfg": cfg}
 
 
 # ----------------------------------------------------------------------------- HTTP path
@@ -195,17 +287,19 @@ def free_port() -> int:
         return int(sock.getsockname()[1])
 
 
-def start_server(model: Path, threads: int, max_streams: int) -> tuple[subprocess.Popen, str]:
+def start_server(model: Path, threads: int, max_streams: int, runtime: str, precision: str
+                 ) -> tuple[subprocess.Popen, str]:
     """A real `rafd-serve` process on loopback; returns once /health/ready answers 200."""
     import httpx
 
     port = free_port()
-    env = {**os.environ, "RAFD_MAX_STREAMS": str(max_streams), "RAFD_SCORE_THRESHOLD": "0.3"}
+    env = {**os.environ, "RAFD_MAX_STREAMS": str(max_streams), "RAFD_SCORE_THRESHOLD": "0.3",
+           "RAFD_RUNTIME": runtime, "RAFD_PRECISION": precision}
     command = [sys.executable, "-m", "service.cli", "--model", str(model), "--port", str(port),
                "--threads", str(threads), "--log-level", "warning"]
     process = subprocess.Popen(command, env=env)
     url = f"http://127.0.0.1:{port}"
-    deadline = time.monotonic() + 120
+    deadline = time.monotonic() + 300
     while time.monotonic() < deadline:
         if process.poll() is not None:
             raise RuntimeError(f"rafd-serve exited with {process.returncode}")
@@ -216,7 +310,7 @@ def start_server(model: Path, threads: int, max_streams: int) -> tuple[subproces
             pass
         time.sleep(0.2)
     process.kill()
-    raise RuntimeError("rafd-serve did not become ready in 120 s")
+    raise RuntimeError("rafd-serve did not become ready in 300 s")
 
 
 def rss_bytes(pid: int) -> int:
@@ -234,20 +328,22 @@ def encode_png(image: np.ndarray) -> str:
     return base64.b64encode(data.tobytes()).decode("ascii")
 
 
-def load_streams(url: str, bodies: list[str], poses: np.ndarray, streams: int, frames: int) -> dict[str, Any]:
+def load_streams(url: str, bodies: list[str], poses: np.ndarray, streams: int, frames: int, tag: str
+                 ) -> dict[str, Any]:
     """`streams` client threads, each posting `frames` frames of its own stream back to back."""
     import httpx
 
     latencies: list[float] = []
-    timings: list[dict[str, float]] = []
+    answers: list[dict[str, Any]] = []
     errors: list[str] = []
     lock = threading.Lock()
 
     def client(index: int) -> None:
-        with httpx.Client(base_url=url, timeout=60.0) as http:
+        with httpx.Client(base_url=url, timeout=120.0) as http:
             for k in range(frames):
                 j = k % len(bodies)
-                body = {"stream_id": f"bench-{streams}-{index}", "timestamp": 1000.0 + k * 0.25,
+                body = {"stream_id": re.sub(r"[^A-Za-z0-9._~:@+-]", "_", f"bench-{tag}-{streams}-{index}"),
+                        "timestamp": 1000.0 + k * 0.25,
                         "pose": {"x": float(poses[j, 0]), "y": float(poses[j, 1]), "yaw": float(poses[j, 2])},
                         "image": bodies[j]}
                 start = time.perf_counter()
@@ -258,7 +354,7 @@ def load_streams(url: str, bodies: list[str], poses: np.ndarray, streams: int, f
                         errors.append(answer.text[:200])
                     else:
                         latencies.append(elapsed)
-                        timings.append(answer.json()["timing"])
+                        answers.append(answer.json())
 
     start = time.perf_counter()
     workers = [threading.Thread(target=client, args=(i,)) for i in range(streams)]
@@ -269,31 +365,40 @@ def load_streams(url: str, bodies: list[str], poses: np.ndarray, streams: int, f
     wall = time.perf_counter() - start
     if errors:
         raise RuntimeError(f"{len(errors)} failed requests, first: {errors[0]}")
-    return {"latencies": latencies, "timings": timings, "fps": len(latencies) / wall}
+    return {"latencies": latencies, "answers": answers, "fps": len(latencies) / wall}
 
 
 def bench_http(name: str, model: Path, size: int, threads: int, frames: int, concurrency: Sequence[int],
-               report: Report) -> None:
+               runtime: str, precision: str, full_scans: bool, report: Report) -> None:
     import httpx
 
-    images, poses = simulated_frames(size, 16, seed=11)
-    bodies = [encode_png(image) for image in images]
-    process, url = start_server(model, threads, max_streams=1000)
+    images, poses = simulated_frames(max(FULL_SCAN, size) if full_scans else size, 16, seed=11)
+    inputs = {"model-size": [encode_png(model_crop(image, size)) for image in images]}
+    if full_scans:
+        inputs[f"full {FULL_SCAN} px scans"] = [encode_png(image) for image in images]
+    process, url = start_server(model, threads, max_streams=1000, runtime=runtime, precision=precision)
     try:
-        for streams in concurrency:
-            result = load_streams(url, bodies, poses, streams, frames)
-            p50, p95 = percentiles(result["latencies"])
-            server = {k: statistics.median(t[k] for t in result["timings"])
-                      for k in ("decode_ms", "model_ms", "post_ms", "total_ms", "wait_ms")}
-            client_ms = p50
-            overhead = (client_ms - server["model_ms"]) / server["model_ms"]
-            note = (f"median decode {server['decode_ms']:.1f} ms, model {server['model_ms']:.1f} ms, "
-                    f"post+JSON {server['post_ms']:.1f} ms, lock wait {server['wait_ms']:.1f} ms; "
-                    f"HTTP+decode+JSON = {overhead * 100:.0f}% of model time")
-            report.rows.append(Row(name, f"HTTP /detect, {streams} stream(s)", p50, p95, result["fps"], note))
+        served = httpx.get(f"{url}/model", timeout=10.0).json()["runtime"]
+        label = f"{served['runtime']}/{served['precision']}"
+        for kind, bodies in inputs.items():
+            for streams in (concurrency if kind == "model-size" else [1]):
+                result = load_streams(url, bodies, poses, streams, frames, f"{label}-{kind}")
+                p50, p95 = percentiles(result["latencies"])
+                timing = {k: statistics.median(a["timing"][k] for a in result["answers"])
+                          for k in ("decode_ms", "model_ms", "post_ms", "total_ms", "wait_ms")}
+                models = {(a["model"]["runtime"], a["model"]["precision"]) for a in result["answers"]}
+                on_top = p50 - timing["model_ms"] - timing["decode_ms"]
+                note = (f"{kind}; median decode {timing['decode_ms']:.1f} ms, model {timing['model_ms']:.1f} ms, "
+                        f"post+JSON {timing['post_ms']:.1f} ms; HTTP+JSON on top of model and decode "
+                        f"{on_top:.1f} ms (client p50)")
+                if models != {(served["runtime"], served["precision"])}:
+                    raise RuntimeError(f"answers report runtimes {models}, /model says {label}")
+                report.rows.append(Row(name, f"HTTP /detect, {label}, {streams} stream(s)", p50, p95, result["fps"],
+                                       note))
         before = rss_bytes(process.pid)
-        for index in range(100):  # 100 streams, each with a full buffer
-            with httpx.Client(base_url=url, timeout=60.0) as http:
+        bodies = inputs["model-size"]
+        with httpx.Client(base_url=url, timeout=120.0) as http:
+            for index in range(100):  # 100 streams, each with a full buffer
                 for k in range(4):
                     body = {"stream_id": f"mem-{index}", "timestamp": float(k),
                             "pose": {"x": float(poses[k, 0]), "y": float(poses[k, 1]), "yaw": float(poses[k, 2])},
@@ -301,9 +406,9 @@ def bench_http(name: str, model: Path, size: int, threads: int, frames: int, con
                     if http.post("/detect", json=body, params={"flow": "false"}).status_code != 200:
                         raise RuntimeError("memory fill request failed")
         after = rss_bytes(process.pid)
-        report.facts[name]["rss_before_100_streams_mb"] = round(before / 1e6, 1)
-        report.facts[name]["rss_with_100_streams_mb"] = round(after / 1e6, 1)
-        report.facts[name]["rss_per_stream_kb"] = round((after - before) / 100 / 1e3, 1)
+        memory = report.facts[name].setdefault("rss_mb", {})
+        memory[label] = {"before_100_streams": round(before / 1e6, 1), "with_100_streams": round(after / 1e6, 1),
+                         "per_stream_kb": round((after - before) / 100 / 1e3, 1)}
     finally:
         process.terminate()
         process.wait(timeout=30)
@@ -314,34 +419,41 @@ def format_report(report: Report, machine: str) -> str:
     lines = [f"machine: {machine}", "",
              "| config | path | p50 ms | p95 ms | frames/s | note |", "|---|---|---|---|---|---|"]
     for row in report.rows:
-        lines.append(f"| {row.config} | {row.path} | {row.p50_ms:.1f} | {row.p95_ms:.1f} | {row.fps:.1f} | {row.note} |")
+        p95 = "-" if row.p95_ms is None else f"{row.p95_ms:.1f}"
+        lines.append(f"| {row.config} | {row.path} | {row.p50_ms:.1f} | {p95} | {row.fps:.1f} | {row.note} |")
     lines.append("")
     for name, facts in report.facts.items():
-        lines.append(f"{name}: " + ", ".join(f"{k}={v}" for k, v in facts.items()))
+        lines.append(f"{name}: " + json.dumps(facts, sort_keys=False))
     return "\n".join(lines)
 
 
 def machine_description(threads: int) -> str:
-    cpu = "unknown CPU"
+    cpu, flags = "unknown CPU", set()
     try:
         for line in Path("/proc/cpuinfo").read_text().splitlines():
-            if line.startswith("model name"):
+            if line.startswith("model name") and cpu == "unknown CPU":
                 cpu = line.split(":", 1)[1].strip()
-                break
+            if line.startswith("flags"):
+                flags = set(line.split(":", 1)[1].split())
     except OSError:
         pass
-    return f"{cpu}, {len(os.sched_getaffinity(0))} usable cores, {threads} threads"
+    units = [f for f in ("avx512_bf16", "amx_bf16", "amx_int8", "avx512_vnni") if f in flags] or ["no bf16 units"]
+    return f"{cpu} ({', '.join(units)}), {len(os.sched_getaffinity(0))} usable cores, {threads} threads"
 
 
-def paper_checkpoint(work: Path, input_size: int) -> Path:
-    """The paper config with random weights (speed does not depend on the weights)."""
+def config_checkpoint(work: Path, name: str) -> Path:
+    """The paper config (optionally with the speed options) with random weights (speed does not depend on them)."""
+    import dataclasses
+
     import torch
 
     from rafd import RaFDConfig, build_model, save_checkpoint
 
     torch.manual_seed(0)
-    cfg = RaFDConfig.paper().replace(input_size=input_size)
-    path = work / "paper_random.pt"
+    cfg = RaFDConfig.paper()
+    if name == "paper-options":
+        cfg = cfg.replace(flow=dataclasses.replace(cfg.flow, stride=8), enhance=dataclasses.replace(cfg.enhance, window=16))
+    path = work / f"{name}_random.pt"
     save_checkpoint(path, build_model(cfg).eval(), cfg, meta={"note": "random weights for timing"})
     return path
 
@@ -350,11 +462,20 @@ def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="rafd-bench", description=__doc__,
                                      formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--checkpoint", type=Path, help="default: the shipped model (rafd.assets)")
-    parser.add_argument("--configs", default="default,paper", help="comma list of default, paper")
+    parser.add_argument("--configs", default="default,paper,paper-options",
+                        help=f"comma list of {', '.join(CONFIGS)}")
     parser.add_argument("--threads", type=int, default=len(os.sched_getaffinity(0)))
     parser.add_argument("--repeats", type=int, default=20, help="timed calls per model path")
+    parser.add_argument("--concurrency-frames", type=int, default=8,
+                        help="frames per stream in the 1-vs-8-streams runner comparison")
+    parser.add_argument("--gate-sequences", type=int, default=6, help="simulated sequences of the accuracy gate")
+    parser.add_argument("--gate-frames", type=int, default=40, help="frames per gate sequence")
+    parser.add_argument("--no-gate", action="store_true", help="skip the accuracy gate")
     parser.add_argument("--http-frames", type=int, default=40, help="frames per stream in the HTTP load")
-    parser.add_argument("--concurrency", default="1,8", help="comma list of concurrent streams")
+    parser.add_argument("--concurrency", default="1,8", help="comma list of concurrent HTTP streams")
+    parser.add_argument("--http-runtimes", default="onnxruntime/fp32,openvino/bf16",
+                        help="comma list of runtime/precision (or auto/auto) to serve over HTTP; unsupported ones "
+                             "are skipped")
     parser.add_argument("--no-http", action="store_true", help="model paths only")
     parser.add_argument("--json", type=Path, help="also write the figures as JSON")
     return parser
@@ -364,13 +485,29 @@ def main(argv: Sequence[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(levelname)s %(name)s: %(message)s")
     logging.getLogger("httpx").setLevel(logging.WARNING)  # one line per request would bury the table
-    report = Report()
     configs = [c.strip() for c in args.configs.split(",") if c.strip()]
-    unknown = set(configs) - {"default", "paper"}
+    unknown = set(configs) - set(CONFIGS)
     if unknown:
-        print(f"rafd-bench: error: unknown configs {sorted(unknown)}", file=sys.stderr)
+        print(f"rafd-bench: error: unknown configs {sorted(unknown)} (known: {', '.join(CONFIGS)})", file=sys.stderr)
         return 2
+    from rafd.runtime import supported_choices
+
+    supported = {f"{r}/{p}" for r, p in supported_choices()} | {"auto/auto"}
+    http_runtimes = [c.strip() for c in args.http_runtimes.split(",") if c.strip()]
+    bad = [c for c in http_runtimes if c.count("/") != 1]
+    if bad:
+        print(f"rafd-bench: error: --http-runtimes takes runtime/precision pairs, got {bad}", file=sys.stderr)
+        return 2
+    skipped = [c for c in http_runtimes if c not in supported]
+    if skipped:
+        log.warning("not served over HTTP (this machine does not run them): %s", skipped)
+    http_runtimes = [c for c in http_runtimes if c in supported]
     concurrency = [int(c) for c in args.concurrency.split(",") if c.strip()]
+    report = Report()
+    peaks = matmul_peaks_gflops(args.threads)
+    report.facts["machine"] = {"matmul_peak_gflops": {k: round(v, 1) for k, v in peaks.items()},
+                               "runtimes": sorted(supported - {"auto/auto"})}
+    gate = None if args.no_gate else (args.gate_sequences, args.gate_frames)
     with tempfile.TemporaryDirectory(prefix="rafd-bench-") as tmp:
         work = Path(tmp)
         for name in configs:
@@ -382,16 +519,21 @@ def main(argv: Sequence[str] | None = None) -> int:
 
                     checkpoint = default_checkpoint()
             else:
-                checkpoint = paper_checkpoint(work, 256)
+                checkpoint = config_checkpoint(work, name)
             if not Path(checkpoint).is_file():
                 print(f"rafd-bench: error: checkpoint {checkpoint} not found", file=sys.stderr)
                 return 2
             log.info("benchmarking %s (%s)", name, checkpoint)
-            paths = bench_model(name, Path(checkpoint), work, args.threads, args.repeats, report)
+            paths = bench_model(name, Path(checkpoint), work, args.threads, args.repeats, args.concurrency_frames,
+                                gate, peaks, report)
             if not args.no_http:
-                bench_http(name, paths["step_onnx"], paths["cfg"].input_size, args.threads, args.http_frames,
-                           concurrency, report)
-        report.facts["machine"] = {"matmul_peak_gflops": round(matmul_peak_gflops(args.threads), 1)}
+                for choice in http_runtimes:
+                    runtime, precision = choice.split("/")
+                    bench_http(name, paths["step_onnx"], paths["cfg"].input_size, args.threads, args.http_frames,
+                               concurrency, runtime, precision, name == "default", report)
+        # measured again at the end: the peaks of the same run, before and after (the machine may be shared)
+        after = matmul_peaks_gflops(args.threads)
+        report.facts["machine"]["matmul_peak_gflops_at_end"] = {k: round(v, 1) for k, v in after.items()}
     text = format_report(report, machine_description(args.threads))
     print(text)
     if args.json:

@@ -3,6 +3,12 @@
 Every query reads `num_points` bilinear samples of a value map around its reference point; the offsets
 (in cells) and the softmax weights are predicted from the query. Locations are grid_sample
 coordinates (x, y down) in [-1, 1], align_corners=False, zeros padding outside the map.
+
+Two layouts of the same mathematics: token-major (queries [B, Q, C], the decoder's few peak queries) and
+channel-major maps (queries = every cell of a [B, C, H, W] map, the propagation's case): there every Linear
+is applied as a 1x1 convolution and LayerNorm normalises over the channel axis, so the map is never
+transposed, GridSample writes [B, C, P, Q] and the point weighting reduces over the P axis of whole
+contiguous rows of queries (sampling and weighting fused into one pass over the samples).
 """
 from __future__ import annotations
 
@@ -20,6 +26,32 @@ def deformable_sample(value: Tensor, locations: Tensor, weights: Tensor) -> Tens
     sampled = F.grid_sample(value, locations, mode="bilinear", padding_mode="zeros", align_corners=False)  # [B, C, Q, P]
     out = (sampled * weights[:, None]).sum(dim=-1)  # [B, C, Q]
     return out.transpose(1, 2)  # [B, Q, C]
+
+
+def deformable_sample_points_major(value: Tensor, locations: Tensor, weights: Tensor) -> Tensor:
+    """value [B, C, H, W], locations [B, P, Q, 2] (normalised), weights [B, P, Q] -> [B, C, Q] (channel-major)."""
+    sampled = F.grid_sample(value, locations, mode="bilinear", padding_mode="zeros", align_corners=False)  # [B, C, P, Q]
+    weighted = sampled * weights[:, None]  # [B, C, P, Q]
+    # a chain of adds of the P point planes, not ReduceSum: runtimes fuse the adds into one element-wise pass
+    # (OpenVINO's ReduceSum over this axis took ~4 ms per call on the paper map, the adds a fraction of it)
+    out = weighted[:, :, 0]
+    for point in range(1, weighted.shape[2]):
+        out = out + weighted[:, :, point]
+    return out  # [B, C, Q]
+
+
+def linear_on_map(linear: nn.Linear, x: Tensor) -> Tensor:
+    """A Linear applied to every cell of a channel-major map: [B, C_in, H, W] -> [B, C_out, H, W] (a 1x1 conv)."""
+    return F.conv2d(x, linear.weight[:, :, None, None], linear.bias)
+
+
+def layer_norm_on_map(norm: nn.LayerNorm, x: Tensor) -> Tensor:
+    """nn.LayerNorm over the channels of every cell of [B, C, H, W] (the same statistics, eps and affine)."""
+    mean = x.mean(dim=1, keepdim=True)  # [B, 1, H, W]
+    centred = x - mean
+    variance = centred.square().mean(dim=1, keepdim=True)  # biased, as nn.LayerNorm
+    normalised = centred * torch.rsqrt(variance + norm.eps)
+    return normalised * norm.weight[:, None, None] + norm.bias[:, None, None]
 
 
 class DeformableAttention(nn.Module):
@@ -60,6 +92,16 @@ class DeformableAttention(nn.Module):
         out = deformable_sample(self.value_proj(value), locations, weights)  # [B, Q, C]
         return self.output_proj(out)
 
+    def forward_map(self, query: Tensor, reference: Tensor, value: Tensor) -> Tensor:
+        """forward for every cell of a query map: query [B, C, H, W], reference [B, H*W, 2] -> [B, C, H, W]."""
+        batch, channels, height, width = query.shape
+        offsets = linear_on_map(self.sampling_offsets, query)  # [B, P*2, H, W] cells, channel = p * 2 + xy
+        offsets = offsets.reshape(batch, self.num_points, 2, height * width).transpose(2, 3)  # [B, P, Q, 2] (small)
+        locations = reference[:, None] + offsets * self.cell  # [B, P, Q, 2]
+        weights = linear_on_map(self.attention_weights, query).flatten(2).softmax(dim=1)  # [B, P, Q]
+        out = deformable_sample_points_major(self.value_proj(value), locations, weights)  # [B, C, Q]
+        return linear_on_map(self.output_proj, out.reshape(batch, channels, height, width))  # [B, C, H, W]
+
 
 class DeformableLayer(nn.Module):
     """Post-norm deformable cross-attention + FFN: query [B, Q, C] -> [B, Q, C]."""
@@ -74,3 +116,9 @@ class DeformableLayer(nn.Module):
     def forward(self, query: Tensor, reference: Tensor, value: Tensor) -> Tensor:
         x = self.norm1(query + self.attention(query, reference, value))
         return self.norm2(x + self.ffn(x))
+
+    def forward_map(self, query: Tensor, reference: Tensor, value: Tensor) -> Tensor:
+        """forward for every cell of a channel-major query map: [B, C, H, W] -> [B, C, H, W]."""
+        x = layer_norm_on_map(self.norm1, query + self.attention.forward_map(query, reference, value))
+        hidden, activation, out = self.ffn.net  # Linear, GELU, Linear
+        return layer_norm_on_map(self.norm2, x + linear_on_map(out, activation(linear_on_map(hidden, x))))

@@ -63,6 +63,19 @@ class RaFD(nn.Module):
             raise RuntimeError("a single-frame RaFD has no flow branch")
         return self.flow(features_prev, features_cur, relative_pose.to(features_cur.dtype))
 
+    def flow_features(self, features: Tensor) -> Tensor:
+        """S [B, C, Hf, Wf] -> E = phi(S) [B, C/2, Hm, Wm]: per frame, so a stream caches it beside S."""
+        if self.flow is None:
+            raise RuntimeError("a single-frame RaFD has no flow branch")
+        return self.flow.encode(features)
+
+    def pair_flow_encoded(self, encoded_prev: Tensor, encoded_cur: Tensor, relative_pose: Tensor) -> Tensor:
+        """pair_flow from cached E_prev, E_cur [B, C/2, Hm, Wm] (flow_features): equal to pair_flow in eval mode
+        (phi's BN uses its running statistics there, so phi of a frame does not depend on its pair)."""
+        if self.flow is None:
+            raise RuntimeError("a single-frame RaFD has no flow branch")
+        return self.flow.match(encoded_prev, encoded_cur, relative_pose.to(encoded_cur.dtype))
+
     def detect(
         self,
         features: Tensor,

@@ -33,10 +33,10 @@ class FlowGuidedPropagation(nn.Module):
         return metres_to_grid(here, self.half_extent)
 
     def forward(self, current: Tensor, previous: Tensor, flow: Tensor, relative_pose: Tensor) -> Tensor:
-        batch, channels, height, width = current.shape
         aligned = align_to_current(previous, current, relative_pose, self.centres, self.half_extent)  # [B, C, Hf, Wf]
         reference = self.reference_points(flow)  # [B, Hf*Wf, 2]
-        x = current.flatten(2).transpose(1, 2)  # [B, Hf*Wf, C]
+        # every cell is a query: the layers work on the channel-major map itself (no [B, Hf*Wf, C] transposes)
+        x = current
         for layer in self.layers:
-            x = layer(x, reference, aligned)
-        return x.transpose(1, 2).reshape(batch, channels, height, width)  # [B, C, Hf, Wf]
+            x = layer.forward_map(x, reference, aligned)  # [B, C, Hf, Wf]
+        return x

@@ -25,4 +25,6 @@ async def model_info(service: DetectService = Depends(get_service)) -> dict[str,
         "class_names": list(cfg.class_names),
         "accepted_image_sizes": list(service.accepted_sizes),
         "score_threshold": service.settings.score_threshold,
+        # how the graph runs: runtime, precision, threads per run, concurrent runs, start-up timings
+        "runtime": service.runner.describe() if hasattr(service.runner, "describe") else None,
     }

@@ -43,13 +43,14 @@ def test_graph_inputs_and_outputs_follow_the_contract(exported, runners):
     S, F, K = cfg.input_size, cfg.feature_size, cfg.head.num_queries
     C = int(runners["step"].metadata["feature_channels"])
     step = {i.name: i.shape for i in runners["step"].session.get_inputs()}
-    expected = {"frame": [1, 1, S, S], "poses": [1, T, 3], "past_features": [1, T - 1, C, F, F]}
+    expected = {"frame": [1, 1, S, S], "poses": [1, T, 3], "past_features": [1, T - 1, C, F, F],
+                "past_flow_features": [1, C // 2, F, F]}
     if T == 4:
         expected["past_flows"] = [1, T - 2, 2, F, F]
     assert step == expected
     outputs = {o.name: o.shape for o in runners["step"].session.get_outputs()}
     assert outputs == {"heatmap": [1, 1, F, F], "scores": [1, K], "boxes": [1, K, 5], "flow": [1, T - 1, 2, F, F],
-                       "features": [1, C, F, F]}
+                       "features": [1, C, F, F], "flow_features": [1, C // 2, F, F]}
     window = {i.name: i.shape for i in runners["window"].session.get_inputs()}
     assert window == {"frames": [1, T, 1, S, S], "poses": [1, T, 3]}
 
@@ -117,9 +118,10 @@ def test_step_is_pure_with_the_real_model(exported, runners):
     again, _ = runner.step(state, frames[3], poses[3])
     for name in ("heatmap", "boxes", "scores", "flow"):
         np.testing.assert_array_equal(getattr(first, name), getattr(again, name))
-    C, F = int(runner.metadata["feature_channels"]), exported.cfg.feature_size
+    C, F, M = int(runner.metadata["feature_channels"]), exported.cfg.feature_size, exported.cfg.flow_size
     T = exported.cfg.num_frames
-    assert state.nbytes == (T - 1) * C * F * F * 4 + (T - 2) * 2 * F * F * 4 + (T - 1) * 3 * 8
+    # T-1 features, T-2 pair flows, T-1 poses and the newest frame's flow features (phi output, C/2 channels)
+    assert state.nbytes == (T - 1) * C * F * F * 4 + (T - 2) * 2 * F * F * 4 + (T - 1) * 3 * 8 + C // 2 * M * M * 4
 
 
 def test_single_frame_model(tmp_path):
@@ -162,11 +164,3 @@ def test_shipped_onnx_matches_the_shipped_checkpoint(radiate_sample_or_none):
         verify_stream(runner, model, *radiate_sequence(radiate_sample_or_none, cfg, cfg.num_frames + 2), report,
                       "radiate")
     assert report.ok, "\n".join(report.lines())
-
-
-@pytest.fixture
-def radiate_sample_or_none(request):
-    try:
-        return request.getfixturevalue("radiate_sample")
-    except pytest.skip.Exception:
-        return None

@@ -29,7 +29,7 @@ def stream_frames(k: int) -> tuple[list[np.ndarray], list[tuple[float, float, fl
 
 
 def test_twenty_concurrent_streams_stay_isolated(settings):
-    settings.model_workers = 2  # two steps at once, so different streams really run concurrently
+    settings.concurrent_runs = 2  # two steps at once, so different streams really run concurrently
     settings.model_queue_limit = STREAMS  # every stream's frame may wait: this test is not about overload
     runner = FakeRunner(delay_s=0.003)
     data = {k: stream_frames(k) for k in range(STREAMS)}

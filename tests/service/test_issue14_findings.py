@@ -59,7 +59,7 @@ def gated_app(**overrides):
     gate = threading.Event()
     gate.set()
     runner = FakeRunner(gate=gate)
-    settings = Settings(threads=1, **overrides)
+    settings = Settings(threads=1, concurrent_runs=1, **overrides)  # one model step at a time
     with TestClient(create_app(settings, runner=runner)) as client:
         wait_ready(client)
         gate.clear()

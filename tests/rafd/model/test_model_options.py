@@ -145,4 +145,3 @@ def test_options_survive_the_config_json(make_config) -> None:
     legacy = cfg.to_dict()  # a config written before the options existed reads as the paper's mathematics
     del legacy["flow"]["stride"], legacy["enhance"]["window"]
     assert RaFDConfig.from_dict(legacy) == make_config(4)
-

@@ -1,4 +1,4 @@
-"""Torch-free streaming runner over onnxruntime (numpy + onnxruntime only), shared by the service and the tests.
+"""The streaming logic every backend shares (numpy only): stream states, warm-up, the first-frame procedure.
 
 Warm-up rule (the same in PyTorch and ONNX): a window with fewer than T real frames is padded at the OLD end by
 repeating the oldest real frame with its pose, e.g. for T = 4 the windows of a stream f1, f2, f3, f4, f5, ... are
@@ -8,18 +8,22 @@ window from a stream's history (the PyTorch side of the comparison uses it).
 Step graph (exported by `rafd-export --form step`, the service's form): per frame it encodes only the new frame,
 computes only the newest pair's flow and runs the propagation chain + head:
     inputs  frame [1,1,S,S], poses [1,T,3] (window, oldest first, last = this frame),
-            past_features [1,T-1,C,Hf,Wf], past_flows [1,T-2,2,Hf,Wf] (T = 4 only)
-    outputs heatmap [1,1,Hf,Wf], scores [1,K], boxes [1,K,5], flow [1,T-1,2,Hf,Wf], features [1,C,Hf,Wf]
-For T = 1 the step graph is the single-frame model (inputs frame, poses [1,1,3]; no caches, no flow).
+            past_features [1,T-1,C,Hf,Wf], past_flows [1,T-2,2,Hf,Wf] (T = 4 only),
+            past_flow_features [1,C/2,Hm,Wm] (the previous frame's phi output)
+    outputs heatmap [1,1,Hf,Wf], scores [1,K], boxes [1,K,5], flow [1,T-1,2,Hf,Wf], features [1,C,Hf,Wf],
+            flow_features [1,C/2,Hm,Wm]
+For T = 1 the step graph is the single-frame model (inputs frame, poses [1,1,3]; no caches, no flow). Step graphs
+exported before the flow-feature cache (no past_flow_features input) are run the same way without it.
 
 Since each padded window is the previous one shifted by one frame, the state simply holds the previous window's
-caches, already padded: the last T-1 features, the last T-2 pair flows and the last T-1 world poses.
+caches, already padded: the last T-1 features, the last T-2 pair flows, the last T-1 world poses and the newest
+frame's flow features.
 
 First frame of a stream (no caches yet), for T > 1:
-  1. run with zero caches: only its `features` output F1 is used;
-  2. run with past_features = [F1] * (T-1) (and zero past_flows): its newest `flow` output is the self-pair flow
-     S1 = pair_flow(F1, F1, identity). For T = 2 there are no past flows, so this run is already the result for
-     the window [f1 f1];
+  1. run with zero caches: only its `features` output F1 (and `flow_features` E1) is used;
+  2. run with past_features = [F1] * (T-1), past_flow_features = E1 (and zero past_flows): its newest `flow`
+     output is the self-pair flow S1 = pair_flow(F1, F1, identity). For T = 2 there are no past flows, so this
+     run is already the result for the window [f1 f1];
   3. (T = 4 only) run with past_features = [F1] * 3 and past_flows = [S1] * 2: the result for [f1 f1 f1 f1].
   (The third run is needed because the detection of run 2 saw zero past flows; it happens once per stream.)
 
@@ -32,44 +36,21 @@ instead and every step runs the full padded window (the same results, without th
 
 `step` is pure: the old state stays valid and can be stepped again (the service commits the new state only when
 the whole request succeeded). States are immutable and their cached arrays are read-only.
+
+The runner is backend-independent: a rafd.runtime.backend.Backend (onnxruntime fp32, OpenVINO bf16/fp32) only runs
+the graph; states hold float32 numpy arrays whatever the backend computes in.
 """
 from __future__ import annotations
 
-import os
+import threading
 from collections.abc import Sequence
 from dataclasses import dataclass
-from pathlib import Path
 
 import numpy as np
 
 from rafd.config import RaFDConfig
-
-METADATA_KEYS = ("config", "input_size", "resolution", "num_frames", "class_names", "checkpoint_sha256", "version",
-                 "form", "feature_channels")
-FORMS = ("step", "window")
-
-
-def graph_inputs(form: str, num_frames: int) -> tuple[str, ...]:
-    """Input names of an exported graph, in order."""
-    if form == "window":
-        return ("frames", "poses")
-    return ("frame", "poses", "past_features", "past_flows")[: min(num_frames + 1, 4)]
-
-
-def graph_outputs(form: str, num_frames: int) -> tuple[str, ...]:
-    """Output names of an exported graph, in order."""
-    if num_frames == 1:
-        return ("heatmap", "scores", "boxes")
-    return ("heatmap", "scores", "boxes", "flow") + (("features",) if form == "step" else ())
-
-
-def default_threads() -> int:
-    """The CPUs this process may use (its affinity mask, e.g. a container's cpuset), not os.cpu_count()."""
-    try:
-        return max(1, len(os.sched_getaffinity(0)))
-    except AttributeError:  # not on Linux
-        return os.cpu_count() or 1
-
+from rafd.runtime.backend import Backend
+from rafd.runtime.contract import FORMS, graph_inputs, graph_outputs
 
 def window_from_history(frames: Sequence[np.ndarray], poses: np.ndarray | Sequence[np.ndarray],
                         num_frames: int) -> tuple[np.ndarray, np.ndarray]:
@@ -119,11 +100,12 @@ class StreamState:
     features: tuple[np.ndarray, ...] = ()  # step form: T-1 per-frame features [C, Hf, Wf]
     flows: tuple[np.ndarray, ...] = ()  # step form: T-2 pair flows [2, Hf, Wf]
     frames: tuple[np.ndarray, ...] = ()  # window form: T-1 frames [S, S]
+    flow_features: tuple[np.ndarray, ...] = ()  # step form with the flow cache: the newest frame's [C/2, Hm, Wm]
 
     @property
     def nbytes(self) -> int:
         """Bytes held (padding repeats one array, counted once)."""
-        unique = {id(a): a for a in self.poses + self.features + self.flows + self.frames}
+        unique = {id(a): a for a in self.poses + self.features + self.flows + self.frames + self.flow_features}
         return sum(a.nbytes for a in unique.values())
 
 
@@ -136,57 +118,89 @@ class StepResult:
     frames_used: int
 
 
-class OnnxRunner:
-    """One onnxruntime session over an exported RaFD model (step or window form); thread-safe, stateless."""
+class StreamRunner:
+    """Streams frames through one backend's exported RaFD graph (step or window form); thread-safe, stateless.
 
-    def __init__(self, model_path: str | os.PathLike[str], threads: int | None = None) -> None:
-        import onnxruntime as ort
+    Concurrency: a run that starts while no other run is in flight uses `backend` (all its threads: the lowest
+    latency for one stream); a run that starts while others are in flight uses `crowd` (the same graph compiled
+    with fewer threads per run, e.g. 1 of 2 cores each), so several streams run side by side instead of
+    contending for one thread pool. At most max(backend, crowd).concurrent_runs runs execute at once; more
+    callers wait.
+    """
 
-        path = Path(model_path)
-        if not path.is_file():
-            raise FileNotFoundError(f"ONNX model {path} does not exist")
-        self.path = path
-        self.threads = int(threads) if threads else default_threads()
-        options = ort.SessionOptions()
-        options.intra_op_num_threads = self.threads
-        options.inter_op_num_threads = 1
-        options.execution_mode = ort.ExecutionMode.ORT_SEQUENTIAL
-        options.graph_optimization_level = ort.GraphOptimizationLevel.ORT_ENABLE_ALL
-        try:
-            self.session = ort.InferenceSession(str(path), sess_options=options, providers=["CPUExecutionProvider"])
-        except Exception as error:  # onnxruntime raises its own exception types
-            raise ValueError(f"cannot load ONNX model {path}: {error}") from error
-        self.metadata: dict[str, str] = dict(self.session.get_modelmeta().custom_metadata_map)
+    def __init__(self, backend: Backend, crowd: Backend | None = None) -> None:
+        self.backend, self.crowd = backend, crowd
+        self.path = path = getattr(backend, "path", "the model")
+        self.selection: dict[str, float] = {}  # create_runner("auto"): median ms per run of each candidate
+        self.metadata: dict[str, str] = dict(backend.metadata)
         if "config" not in self.metadata:
             raise ValueError(f"{path} is not a RaFD export: its metadata has no 'config' "
                              f"(keys: {sorted(self.metadata)})")
         self.config = RaFDConfig.from_json(self.metadata["config"])
-        self.input_names = tuple(i.name for i in self.session.get_inputs())
-        self.output_names = tuple(o.name for o in self.session.get_outputs())
+        self.input_names = tuple(backend.input_shapes)
+        self.output_names = tuple(backend.output_names)
         self.form = self.metadata.get("form") or ("window" if "frames" in self.input_names else "step")
         T = self.config.num_frames
-        expected, needed_outputs = graph_inputs(self.form, T), graph_outputs(self.form, T)
+        self.flow_cache = "past_flow_features" in self.input_names  # False: a step graph from before the cache
+        expected = graph_inputs(self.form, T, self.flow_cache)
+        needed_outputs = graph_outputs(self.form, T, self.flow_cache)
         if (self.form not in FORMS or set(self.input_names) != set(expected)
                 or not set(needed_outputs) <= set(self.output_names)):
             raise ValueError(f"{path}: not a RaFD {self.form!r} graph for T = {T}: inputs {self.input_names}, "
                              f"outputs {self.output_names} (expected inputs {expected}, outputs {needed_outputs})")
-        shapes = {i.name: tuple(i.shape) for i in self.session.get_inputs()}
+        shapes = backend.input_shapes
         size = self.config.input_size
         if self.form == "step" and T > 1:
             _, _, channels, height, width = shapes["past_features"]
             self._zero_features = _frozen(np.zeros((channels, height, width), np.float32))
             self._zero_flow = _frozen(np.zeros((2, height, width), np.float32))
+            if self.flow_cache:
+                self._zero_flow_features = _frozen(np.zeros(shapes["past_flow_features"][1:], np.float32))
         frame_shape = shapes["frames" if self.form == "window" else "frame"]
         if tuple(frame_shape[-2:]) != (size, size):
             raise ValueError(f"{path}: input frame shape {frame_shape} does not match input_size {size}")
+        if crowd is not None and (crowd.runtime, crowd.precision, crowd.input_shapes) != (
+                backend.runtime, backend.precision, backend.input_shapes):
+            raise ValueError("the crowd backend must run the same graph on the same runtime and precision")
+        self.concurrent_runs = max(1, backend.concurrent_runs, crowd.concurrent_runs if crowd is not None else 1)
+        self._slots = threading.BoundedSemaphore(self.concurrent_runs)
+        self._in_flight = 0
+        self._in_flight_lock = threading.Lock()
+
+    @property
+    def runtime(self) -> str:
+        return self.backend.runtime
+
+    @property
+    def precision(self) -> str:
+        return self.backend.precision
+
+    @property
+    def threads(self) -> int:
+        return self.backend.threads
+
+    def describe(self) -> dict[str, object]:
+        """How the graph runs: runtime, precision, threads of a lone run, concurrent runs and their threads."""
+        crowd = self.crowd or self.backend
+        return {"runtime": self.runtime, "precision": self.precision, "threads": self.threads,
+                "concurrent_runs": self.concurrent_runs, "threads_per_concurrent_run": crowd.threads,
+                "selection_ms_per_run": dict(self.selection)}
 
     # ------------------------------------------------------------------ API
     def new_state(self) -> StreamState:
         return StreamState()
 
     def run(self, feeds: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
-        """One raw session run -> {output name: array}."""
-        return dict(zip(self.output_names, self.session.run(None, feeds)))
+        """One raw graph run -> {output name: array}."""
+        with self._slots:
+            with self._in_flight_lock:
+                alone = self._in_flight == 0
+                self._in_flight += 1
+            try:
+                return (self.backend if alone or self.crowd is None else self.crowd).run(feeds)
+            finally:
+                with self._in_flight_lock:
+                    self._in_flight -= 1
 
     def step(self, state: StreamState, frame: np.ndarray, pose: np.ndarray) -> tuple[StepResult, StreamState]:
         """Add one frame (float32 [S, S] in [0, 1]) with its world pose [3] -> (result for its window, new state)."""
@@ -212,7 +226,7 @@ class OnnxRunner:
     # ------------------------------------------------------------------ step form
     def _step(self, state: StreamState, frame: np.ndarray, pose: np.ndarray) -> tuple[StepResult, StreamState]:
         poses = state.poses + (pose,)
-        out = self._run_step(frame, poses, state.features, state.flows)
+        out = self._run_step(frame, poses, state.features, state.flows, state.flow_features)
         flows = state.flows
         if flows:  # T = 4: keep the newest T-2 pair flows (a copy: result.flow belongs to the caller)
             flows = flows[1:] + (_frozen(out["flow"][0, -1].copy()),)
@@ -221,6 +235,7 @@ class OnnxRunner:
             poses=poses[1:],
             features=state.features[1:] + (_frozen(out["features"][0]),),
             flows=flows,
+            flow_features=self._flow_features(out),
         )
         return self._result(out, new_state.frames_used), new_state
 
@@ -228,18 +243,23 @@ class OnnxRunner:
         T = self.config.num_frames
         poses = (pose,) * T
         zero_flows = (self._zero_flow,) * (T - 2)
-        features = (_frozen(self._run_step(frame, poses, (self._zero_features,) * (T - 1), zero_flows)
-                            ["features"][0]),) * (T - 1)
-        out = self._run_step(frame, poses, features, zero_flows)
+        zero_flow_features = (self._zero_flow_features,) if self.flow_cache else ()
+        first = self._run_step(frame, poses, (self._zero_features,) * (T - 1), zero_flows, zero_flow_features)
+        features, flow_features = (_frozen(first["features"][0]),) * (T - 1), self._flow_features(first)
+        out = self._run_step(frame, poses, features, zero_flows, flow_features)
         flows: tuple[np.ndarray, ...] = ()
         if T > 2:  # the self-pair flow S1 fills the flow caches; rerun with them
             flows = (_frozen(out["flow"][0, -1].copy()),) * (T - 2)
-            out = self._run_step(frame, poses, features, flows)
-        new_state = StreamState(frames_used=1, poses=poses[1:], features=features, flows=flows)
+            out = self._run_step(frame, poses, features, flows, flow_features)
+        new_state = StreamState(frames_used=1, poses=poses[1:], features=features, flows=flows,
+                                flow_features=flow_features)
         return self._result(out, 1), new_state
 
+    def _flow_features(self, out: dict[str, np.ndarray]) -> tuple[np.ndarray, ...]:
+        return (_frozen(out["flow_features"][0]),) if self.flow_cache else ()
+
     def _run_step(self, frame: np.ndarray, poses: tuple[np.ndarray, ...], features: tuple[np.ndarray, ...],
-                  flows: tuple[np.ndarray, ...]) -> dict[str, np.ndarray]:
+                  flows: tuple[np.ndarray, ...], flow_features: tuple[np.ndarray, ...] = ()) -> dict[str, np.ndarray]:
         feeds = {
             "frame": frame[None, None],
             "poses": poses_in_newest_frame(np.stack(poses))[None],
@@ -247,6 +267,8 @@ class OnnxRunner:
         }
         if flows:
             feeds["past_flows"] = np.stack(flows)[None]
+        if flow_features:
+            feeds["past_flow_features"] = flow_features[0][None]
         return self.run(feeds)
 
     # ------------------------------------------------------------------ window form

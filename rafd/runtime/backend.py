@@ -1,0 +1,34 @@
+"""The one interface every runtime backend implements (one file per backend), and what they share."""
+from __future__ import annotations
+
+import os
+from typing import Protocol
+
+import numpy as np
+
+RUNTIMES = ("onnxruntime", "openvino")
+PRECISIONS = ("fp32", "bf16")
+
+
+class Backend(Protocol):
+    """A compiled RaFD graph: thread-safe `run`, static input shapes, the export's metadata."""
+
+    runtime: str  # one of RUNTIMES
+    precision: str  # one of PRECISIONS: what the backend really computes in, read back after compilation
+    threads: int  # threads one run uses
+    concurrent_runs: int  # runs the backend is prepared to execute at once
+    metadata: dict[str, str]  # the ONNX metadata_props (rafd.runtime.contract.METADATA_KEYS and more)
+    input_shapes: dict[str, tuple[int, ...]]  # graph inputs in graph order -> static shapes
+    output_names: tuple[str, ...]  # graph outputs in graph order
+
+    def run(self, feeds: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
+        """One inference -> {output name: array owned by the caller}."""
+        ...
+
+
+def default_threads() -> int:
+    """The CPUs this process may use (its affinity mask, e.g. a container's cpuset), not os.cpu_count()."""
+    try:
+        return max(1, len(os.sched_getaffinity(0)))
+    except AttributeError:  # not on Linux
+        return os.cpu_count() or 1

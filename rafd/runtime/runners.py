@@ -1,0 +1,158 @@
+"""Opening a RaFD graph on a runtime: OnnxRunner (the fp32 reference), OpenVinoRunner, and create_runner, which
+picks the fastest runtime and precision this CPU supports by timing them on the model itself."""
+from __future__ import annotations
+
+import logging
+import os
+import statistics
+import time
+from collections.abc import Callable
+
+import numpy as np
+
+from rafd.runtime.backend import PRECISIONS, RUNTIMES, default_threads
+from rafd.runtime.ort_backend import OrtBackend
+from rafd.runtime.streaming import StreamRunner
+
+log = logging.getLogger(__name__)
+
+# Metadata key rafd-export --gate writes ("pass"/"fail" per reduced precision): precision "auto" picks a reduced
+# precision only where this model's gate passed (fp32 is the reference and needs no gate).
+GATE_KEY = "gate_{precision}"
+
+
+def gate_passed(metadata: dict[str, str], precision: str) -> bool:
+    """fp32, or a reduced precision whose accuracy gate passed for this model."""
+    return precision == "fp32" or metadata.get(GATE_KEY.format(precision=precision)) == "pass"
+
+
+def crowd_threads(threads: int, concurrent_runs: int) -> int | None:
+    """Threads per run while several run at once (the cores shared out), None when no second compilation is
+    needed (one run at a time, or already one thread per run)."""
+    if concurrent_runs <= 1 or threads <= 1:
+        return None
+    return max(1, threads // concurrent_runs)
+
+
+class OnnxRunner(StreamRunner):
+    """StreamRunner over onnxruntime, float32 (the reference path). `threads`: intra-op threads of a run alone;
+    with concurrent_runs > 1, runs that overlap use a second session of threads // concurrent_runs threads."""
+
+    def __init__(self, model_path: str | os.PathLike[str], threads: int | None = None, concurrent_runs: int = 1) -> None:
+        threads = threads or default_threads()
+        shared = crowd_threads(threads, concurrent_runs)
+        # With overlapping runs, a finished run's pool threads must not spin on the cores the others need.
+        spinning = concurrent_runs == 1
+        super().__init__(OrtBackend(model_path, threads, 1 if shared else concurrent_runs, spinning),
+                         OrtBackend(model_path, shared, concurrent_runs, spinning) if shared else None)
+
+    @property
+    def session(self):  # noqa: ANN201 - onnxruntime.InferenceSession, not imported at module level
+        return self.backend.session
+
+
+class OpenVinoRunner(StreamRunner):
+    """StreamRunner over OpenVINO's CPU plugin in `precision` ("bf16" or "fp32"); threads and concurrent runs as
+    OnnxRunner (the overlapping runs use one compilation with concurrent_runs CPU streams)."""
+
+    def __init__(self, model_path: str | os.PathLike[str], precision: str = "bf16", threads: int | None = None,
+                 concurrent_runs: int = 1) -> None:
+        from rafd.runtime.openvino_backend import OpenVinoBackend
+
+        threads = threads or default_threads()
+        shared = crowd_threads(threads, concurrent_runs)
+        super().__init__(OpenVinoBackend(model_path, precision, threads, 1 if shared else concurrent_runs),
+                         OpenVinoBackend(model_path, precision, shared, concurrent_runs) if shared else None)
+
+
+def supported_choices() -> list[tuple[str, str]]:
+    """(runtime, precision) pairs this machine can run: onnxruntime fp32 always; OpenVINO when installed, bf16 only
+    where the CPU computes it (avx512_bf16 or AMX)."""
+    from rafd.runtime.openvino_backend import openvino_supports_bf16
+
+    choices = [("onnxruntime", "fp32")]
+    try:
+        import openvino  # noqa: F401
+    except ImportError:
+        return choices
+    if openvino_supports_bf16():
+        choices.append(("openvino", "bf16"))
+    choices.append(("openvino", "fp32"))
+    return choices
+
+
+def open_runner(model_path: str | os.PathLike[str], runtime: str, precision: str, threads: int | None = None,
+                concurrent_runs: int = 1) -> StreamRunner:
+    """One explicit (runtime, precision)."""
+    if runtime == "onnxruntime":
+        if precision != "fp32":
+            raise ValueError(f"onnxruntime runs RaFD in fp32 only, not {precision!r} (use runtime openvino)")
+        return OnnxRunner(model_path, threads, concurrent_runs)
+    if runtime == "openvino":
+        try:
+            import openvino  # noqa: F401
+        except ImportError as error:
+            raise ValueError("runtime openvino needs the `openvino` package (pip install 'rafd[serve]')") from error
+        return OpenVinoRunner(model_path, precision, threads, concurrent_runs)
+    raise ValueError(f"runtime must be one of {RUNTIMES} or 'auto', got {runtime!r}")
+
+
+def time_runner(runner: StreamRunner, repeats: int = 5, warmup: int = 2, seed: int = 0) -> float:
+    """Median seconds of one graph run on random inputs of the graph's shapes (frames in [0, 1])."""
+    rng = np.random.default_rng(seed)
+    feeds = {name: rng.random(shape, dtype=np.float32) for name, shape in runner.backend.input_shapes.items()}
+    for _ in range(warmup):
+        runner.run(feeds)
+    samples = []
+    for _ in range(repeats):
+        start = time.perf_counter()
+        runner.run(feeds)
+        samples.append(time.perf_counter() - start)
+    return statistics.median(samples)
+
+
+def create_runner(model_path: str | os.PathLike[str], runtime: str = "auto", precision: str = "auto",
+                  threads: int | None = None, concurrent_runs: int = 1,
+                  timer: Callable[[StreamRunner], float] = time_runner) -> StreamRunner:
+    """Open the model on the given runtime and precision; "auto" (either) times every supported candidate on this
+    model and keeps the fastest. With precision "auto" a reduced precision is a candidate only when the model's
+    accuracy gate passed for it (metadata GATE_KEY); an explicit precision is the operator's choice (logged
+    when ungated).
+
+    The chosen runner's `selection` maps "runtime/precision" to the measured median ms of one run.
+    """
+    if runtime not in RUNTIMES + ("auto",):
+        raise ValueError(f"runtime must be one of {RUNTIMES} or 'auto', got {runtime!r}")
+    if precision not in PRECISIONS + ("auto",):
+        raise ValueError(f"precision must be one of {PRECISIONS} or 'auto', got {precision!r}")
+    if runtime != "auto" and precision != "auto":
+        runner = open_runner(model_path, runtime, precision, threads, concurrent_runs)
+        if not gate_passed(runner.metadata, runner.precision):
+            log.warning("%s runs in %s without a passed accuracy gate (rafd-export --gate)", model_path, precision)
+        return runner
+    candidates = [(r, p) for r, p in supported_choices()
+                  if runtime in ("auto", r) and precision in ("auto", p)]
+    if not candidates:
+        raise ValueError(f"no supported runtime for runtime={runtime!r}, precision={precision!r} on this machine "
+                         f"(supported: {supported_choices()})")
+    runners: list[StreamRunner] = []
+    metadata: dict[str, str] | None = None  # known after the first candidate is open
+    for candidate in candidates:
+        if precision == "auto" and metadata is not None and not gate_passed(metadata, candidate[1]):
+            log.info("%s/%s not considered: no passed accuracy gate for this model in that precision", *candidate)
+            continue
+        runner = open_runner(model_path, *candidate, threads, concurrent_runs)
+        metadata = runner.metadata
+        if precision == "auto" and not gate_passed(metadata, runner.precision):
+            log.info("%s/%s not considered: no passed accuracy gate for this model in that precision", *candidate)
+            continue
+        runners.append(runner)
+    if not runners:
+        raise ValueError(f"no runtime for runtime={runtime!r}, precision={precision!r}: {model_path} has no passed "
+                         "accuracy gate for a reduced precision (rafd-export --gate), and fp32 was excluded")
+    selection = {f"{r.runtime}/{r.precision}": (timer(r) if len(runners) > 1 else 0.0) for r in runners}
+    best = min(runners, key=lambda r: selection[f"{r.runtime}/{r.precision}"])
+    selection = {name: round(seconds * 1e3, 3) for name, seconds in selection.items()}
+    log.info("runtime %s/%s (median ms per run: %s)", best.runtime, best.precision, selection)
+    best.selection = selection
+    return best

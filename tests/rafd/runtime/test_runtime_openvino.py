@@ -1,0 +1,81 @@
+"""The OpenVINO backend behind the one runner interface: same graph contract and metadata as onnxruntime, fp32
+results equal to onnxruntime's, bf16 really in effect, thread-safe concurrent runs."""
+from __future__ import annotations
+
+import concurrent.futures
+
+import numpy as np
+import pytest
+
+from rafd.runtime import OnnxRunner, OpenVinoRunner
+
+pytest.importorskip("openvino", reason="the serve extra installs openvino")
+from rafd.runtime.openvino_backend import openvino_supports_bf16  # noqa: E402
+
+
+def _sequence(cfg, n: int, seed: int = 0):
+    rng = np.random.default_rng(seed)
+    frames = (rng.random((n, cfg.input_size, cfg.input_size)) * 0.4).astype(np.float32)
+    poses = np.cumsum(rng.normal(0.0, 1.0, (n, 3)) * [1.0, 1.5, 0.03], axis=0)
+    return frames, poses
+
+
+def _stream(runner, frames, poses):
+    state, results = runner.new_state(), []
+    for frame, pose in zip(frames, poses):
+        result, state = runner.step(state, frame, pose)
+        results.append(result)
+    return results
+
+
+def test_backends_share_the_interface_and_metadata(shipped_onnx):
+    ort, ov = OnnxRunner(shipped_onnx, threads=1), OpenVinoRunner(shipped_onnx, "fp32", threads=1)
+    assert (ort.runtime, ort.precision, ov.runtime, ov.precision) == ("onnxruntime", "fp32", "openvino", "fp32")
+    assert ov.metadata == ort.metadata and ov.config == ort.config and ov.form == ort.form
+    assert ov.backend.input_shapes == ort.backend.input_shapes
+    assert ov.backend.output_names == ort.backend.output_names
+    assert ov.describe() == {"runtime": "openvino", "precision": "fp32", "threads": 1, "concurrent_runs": 1,
+                             "threads_per_concurrent_run": 1, "selection_ms_per_run": {}}
+
+
+def test_openvino_fp32_streams_like_onnxruntime(shipped_onnx):
+    ort, ov = OnnxRunner(shipped_onnx, threads=1), OpenVinoRunner(shipped_onnx, "fp32", threads=1)
+    frames, poses = _sequence(ort.config, 6)
+    for a, b in zip(_stream(ort, frames, poses), _stream(ov, frames, poses)):
+        assert a.frames_used == b.frames_used
+        np.testing.assert_allclose(b.heatmap, a.heatmap, atol=1e-4, rtol=1e-4)
+        np.testing.assert_allclose(b.flow, a.flow, atol=1e-4, rtol=1e-4)
+        np.testing.assert_allclose(np.sort(b.scores), np.sort(a.scores), atol=1e-5)
+
+
+@pytest.mark.skipif(not openvino_supports_bf16(), reason="this CPU has no bf16 (avx512_bf16 or AMX)")
+def test_bf16_is_really_bf16_and_close(shipped_onnx):
+    ort, bf16 = OnnxRunner(shipped_onnx, threads=1), OpenVinoRunner(shipped_onnx, "bf16", threads=1)
+    assert bf16.precision == "bf16"
+    frames, poses = _sequence(ort.config, 5, seed=1)
+    differences = [np.abs(a.heatmap - b.heatmap).max() for a, b in
+                   zip(_stream(ort, frames, poses), _stream(bf16, frames, poses))]
+    # bf16 keeps 8 significant bits: the logits move, but stay in the same range (the accuracy gate judges more)
+    assert 1e-4 < max(differences) < 5.0, differences
+
+
+def test_bf16_refused_where_the_cpu_lacks_it(shipped_onnx, monkeypatch):
+    from rafd.runtime import openvino_backend, runners
+
+    monkeypatch.setattr(openvino_backend, "openvino_supports_bf16", lambda: False)
+    with pytest.raises(ValueError, match="no bf16"):
+        OpenVinoRunner(shipped_onnx, "bf16", threads=1)
+    assert ("openvino", "bf16") not in runners.supported_choices()
+
+
+def test_concurrent_runs_give_the_serial_results(shipped_onnx):
+    runner = OpenVinoRunner(shipped_onnx, "fp32", threads=1, concurrent_runs=2)
+    rng = np.random.default_rng(3)
+    feeds = [{name: rng.random(shape, dtype=np.float32) for name, shape in runner.backend.input_shapes.items()}
+             for _ in range(6)]
+    serial = [runner.run(f) for f in feeds]
+    with concurrent.futures.ThreadPoolExecutor(4) as pool:
+        parallel = list(pool.map(runner.run, feeds))
+    for a, b in zip(serial, parallel):
+        for name in a:
+            np.testing.assert_array_equal(a[name], b[name])

@@ -1,0 +1,53 @@
+"""The runtime and precision settings: validated, applied when the model loads, and reported in /model and in
+every /detect answer's `model` field."""
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from fastapi.testclient import TestClient
+from pydantic import ValidationError
+from service_testing import detect_json, wait_ready
+
+from service.app import create_app
+from service.settings import Settings
+
+
+def test_runtime_and_precision_from_the_environment(monkeypatch):
+    monkeypatch.setenv("RAFD_RUNTIME", "openvino")
+    monkeypatch.setenv("RAFD_PRECISION", "bf16")
+    assert (Settings().runtime, Settings().precision) == ("openvino", "bf16")
+    assert (Settings.model_fields["runtime"].default, Settings.model_fields["precision"].default) == ("auto", "auto")
+
+
+def test_concurrent_runs_default_to_one_per_cpu(monkeypatch):
+    from service.settings import available_cpus
+
+    assert Settings().threads == Settings().concurrent_runs == available_cpus()
+    monkeypatch.setenv("RAFD_CONCURRENT_RUNS", "1")
+    assert Settings().concurrent_runs == 1
+
+
+@pytest.mark.parametrize("name,value", [("RAFD_RUNTIME", "tensorrt"), ("RAFD_PRECISION", "int8"),
+                                        ("RAFD_CONCURRENT_RUNS", "0")])
+def test_unknown_runtime_or_precision_is_refused(monkeypatch, name, value):
+    monkeypatch.setenv(name, value)
+    with pytest.raises(ValidationError, match=name.removeprefix("RAFD_").lower()):
+        Settings()
+
+
+@pytest.mark.parametrize("runtime", ["onnxruntime", "openvino"])
+def test_the_served_runtime_is_reported(runtime):
+    if runtime == "openvino":
+        pytest.importorskip("openvino")
+    from rafd.assets import default_onnx
+
+    settings = Settings(threads=2, concurrent_runs=2, runtime=runtime, precision="fp32", model_path=default_onnx())
+    with TestClient(create_app(settings)) as client:
+        wait_ready(client, timeout=60.0)
+        served = client.get("/model").json()["runtime"]
+        assert (served["runtime"], served["precision"], served["threads"]) == (runtime, "fp32", 2)
+        assert (served["concurrent_runs"], served["threads_per_concurrent_run"]) == (2, 1)
+        size = client.get("/model").json()["input_size"]
+        answer = client.post("/detect", json=detect_json("s", 1.0, np.zeros((size, size), np.uint8), (0, 0, 0)))
+        assert answer.status_code == 200, answer.text
+        assert answer.json()["model"]["runtime"] == runtime and answer.json()["model"]["precision"] == "fp32"
