@@ -24,7 +24,7 @@ async def model_info(service: DetectService = Depends(get_service)) -> dict[str,
         "resolution_m_per_px": cfg.resolution,
         "class_names": list(cfg.class_names),
         "accepted_image_sizes": list(service.accepted_sizes),
-        "score_threshold": service.settings.score_threshold,
+        "score_threshold": service.score_threshold,
         # how the graph runs: runtime, precision, threads per run, concurrent runs, start-up timings
         "runtime": service.runner.describe() if hasattr(service.runner, "describe") else None,
     }
