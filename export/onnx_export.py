@@ -66,9 +66,11 @@ def file_sha256(path: Path) -> str:
 
 
 def build_metadata(cfg: RaFDConfig, checkpoint_sha256: str, form: str, channels: int, opset: int,
-                   exporter: str) -> dict[str, str]:
-    """rafd.runtime.METADATA_KEYS (+ opset, exporter): everything the service needs besides the graph."""
-    return {
+                   exporter: str, operating_threshold: float | None = None) -> dict[str, str]:
+    """rafd.runtime.METADATA_KEYS (+ opset, exporter, and the checkpoint's operating threshold when it has one, chosen
+    by `rafd-eval --calibrate`): everything the service needs besides the graph."""
+    optional = {} if operating_threshold is None else {"operating_threshold": repr(float(operating_threshold))}
+    return optional | {
         "config": cfg.to_json(),
         "input_size": str(cfg.input_size),
         "resolution": repr(float(cfg.resolution)),
@@ -131,9 +133,10 @@ def export_onnx(checkpoint: str | os.PathLike[str], output: str | os.PathLike[st
     if gate is not None and form != "step":
         raise ExportError("the accuracy gate streams the step form; export --form step to gate it")
     check_output_path(output)
-    model, cfg, _ = load_checkpoint(checkpoint)
+    model, cfg, meta = load_checkpoint(checkpoint)
     model = model.eval()
     sha = file_sha256(checkpoint)
+    operating_threshold = meta.get("operating_threshold") if isinstance(meta, dict) else None
 
     start = time.perf_counter()
     channels = feature_channels(model, cfg)
@@ -147,7 +150,7 @@ def export_onnx(checkpoint: str | os.PathLike[str], output: str | os.PathLike[st
                 exporter = _torch_export(graph, example, raw, cfg, form, opset, log)
             proto = onnx.load(str(raw))  # also pulls in external data, if the exporter wrote any
         _restore_unused_inputs(proto, graph_inputs(form, cfg.num_frames), example)
-        metadata = build_metadata(cfg, sha, form, channels, opset, exporter)
+        metadata = build_metadata(cfg, sha, form, channels, opset, exporter, operating_threshold)
         del proto.metadata_props[:]
         for key, value in metadata.items():
             proto.metadata_props.add(key=key, value=value)

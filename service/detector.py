@@ -45,6 +45,23 @@ class DetectOptions:
     flow_format: FlowFormat = "list"
 
 
+DEFAULT_SCORE_THRESHOLD = 0.3  # for a model exported without an operating threshold
+
+
+def score_threshold_of(settings: Settings, runner: Any) -> float:
+    """RAFD_SCORE_THRESHOLD when set, else the model's documented operating threshold, else 0.3."""
+    if settings.score_threshold is not None:
+        return settings.score_threshold
+    value = getattr(runner, "metadata", {}).get("operating_threshold")
+    try:
+        threshold = DEFAULT_SCORE_THRESHOLD if value is None else float(value)
+    except ValueError as error:
+        raise ValueError(f"the model's operating_threshold metadata is not a number: {value!r}") from error
+    if not 0.0 <= threshold <= 1.0:
+        raise ValueError(f"the model's operating_threshold metadata is outside [0, 1]: {threshold}")
+    return threshold
+
+
 @dataclass(frozen=True)
 class Executors:
     """One bounded executor per stage, so a slow stage never queues the others' work (or health checks)."""
@@ -83,6 +100,7 @@ class DetectService:
         self.executors = executors or Executors.from_settings(settings, metrics)
         self.admission = AdmissionLimit(settings.max_inflight_requests, settings.retry_after_s)
         self._odometry = odometry
+        self.score_threshold = score_threshold_of(settings, runner)
 
     @property
     def accepted_sizes(self) -> tuple[int, ...]:
@@ -194,7 +212,7 @@ class DetectService:
         }
 
     def _boxes(self, result: Any, posted_size: int) -> list[dict[str, Any]]:
-        detections = decode_detections(result.boxes, result.scores, self.settings.score_threshold)
+        detections = decode_detections(result.boxes, result.scores, self.score_threshold)
         polygons = box_polygons_pixels(detections.boxes, posted_size, self.config.resolution)  # [N, 4, 2]
         names = self.config.class_names
         out = []

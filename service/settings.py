@@ -101,8 +101,9 @@ class Settings(BaseSettings):
 
     # Frames per stream buffer; must equal the model's num_frames (None: take it from the model).
     buffer_length: int | None = Field(default=None, ge=1)
-    # Detections with a score below this are dropped from the answer.
-    score_threshold: float = Field(default=0.3, ge=0.0, le=1.0)
+    # Detections with a score below this are dropped from the answer. None: the model's operating threshold (ONNX
+    # metadata "operating_threshold", chosen on validation data by `rafd-eval --calibrate`), else 0.3.
+    score_threshold: float | None = Field(default=None, ge=0.0, le=1.0)
 
 
 @lru_cache(maxsize=1)

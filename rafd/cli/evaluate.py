@@ -28,6 +28,11 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--score-threshold", type=float,
                         help="operating threshold for recall and false positives per frame (default: the "
                              "checkpoint's documented operating threshold, else 0.3)")
+    parser.add_argument("--calibrate", type=float, metavar="FP_PER_FRAME",
+                        help="choose the checkpoint's operating threshold on this data: the lowest score threshold "
+                             "with at most FP_PER_FRAME false positives per frame (centre matching), written into "
+                             "the checkpoint's meta (rafd-export carries it into the ONNX; the service uses it). "
+                             "Use a validation split, never test data")
     parser.add_argument("--json", type=Path, help="write the metrics here")
     parser.add_argument("--plots", type=Path, help="folder for the precision-recall plot and example frames")
     parser.add_argument("--examples", type=int, default=4, help="example frames drawn into --plots")
@@ -47,6 +52,30 @@ def _jsonable(value: Any) -> Any:
     if isinstance(value, dict):
         return {k: _jsonable(v) for k, v in value.items()}
     return value
+
+
+def calibrate(args: argparse.Namespace, results: list, cfg: Any, model: Any, meta: dict[str, Any]) -> float | None:
+    """--calibrate: the lowest threshold within the false-positive budget -> written into the checkpoint's meta
+    (atomically; weights and config untouched). None (and a message) when no threshold meets the budget."""
+    from rafd.checkpoint import save_checkpoint
+    from rafd.train.predict import CENTRE_DISTANCE_M
+    from rafd.metrics import match_centres
+
+    centres = match_centres([r.predictions for r in results], [r.ground_truth for r in results], CENTRE_DISTANCE_M)
+    recall, threshold = centres.recall_at_fp_rate(args.calibrate)
+    if not math.isfinite(threshold):
+        print(f"rafd-eval: error: no score threshold keeps within {args.calibrate} false positives per frame",
+              file=sys.stderr)
+        return None
+    meta = dict(meta or {})
+    meta["operating_threshold"] = threshold
+    meta["operating_point"] = {"fp_per_frame_budget": args.calibrate, "recall": 100.0 * recall,
+                               "data": str(args.data), "split": args.split, "full_scan": args.full_scan,
+                               "frames": len(results)}
+    save_checkpoint(args.checkpoint, model, cfg, meta)  # CPU copies of the weights, unchanged
+    print(f"operating threshold {threshold:.4f} (recall {100 * recall:.1f}% with at most {args.calibrate:g} false "
+          f"positives per frame on {args.split}) written into {args.checkpoint}")
+    return threshold
 
 
 def format_table(overall: dict[str, Any], per_sequence: dict[str, dict[str, Any]]) -> str:
@@ -129,6 +158,10 @@ def main(argv: Sequence[str] | None = None) -> int:
     if not args.checkpoint.is_file():
         print(f"rafd-eval: error: checkpoint {args.checkpoint} does not exist", file=sys.stderr)
         return 2
+    if args.calibrate is not None and not (math.isfinite(args.calibrate) and args.calibrate > 0):
+        print(f"rafd-eval: error: --calibrate needs a positive number of false positives per frame, got {args.calibrate}",
+              file=sys.stderr)
+        return 2
     if args.full_scan and (args.plots is not None or args.mcap is not None):
         print("rafd-eval: error: --plots and --mcap draw the model's crop; run them without --full-scan", file=sys.stderr)
         return 2
@@ -162,6 +195,10 @@ def main(argv: Sequence[str] | None = None) -> int:
     except ValueError as error:
         print(f"rafd-eval: error: {error}", file=sys.stderr)
         return 2
+    if args.calibrate is not None:
+        threshold = calibrate(args, results, cfg, model, meta)
+        if threshold is None:
+            return 1
     overall = summarise(results, score_threshold=threshold)
     per_sequence = summarise_by_sequence(results, score_threshold=threshold)
     report = {

@@ -56,10 +56,10 @@ RECIPES: dict[str, Recipe] = {
         Recipe(
             "default",
             "the shipped model: tiny RaFD at 256 px, 4 frames, flow at stride 8, 16-cell attention windows, "
-            "gain-robust input; AdamW 1e-3 with cosine decay, batch 4, bf16-friendly; flip + rotation, radar "
+            "gain-robust input; AdamW 1e-3 with cosine decay, batch 4, 6 epochs, bf16-friendly; flip + rotation, radar "
             "intensity changes and crops up to 65 m from the radar (full-scan tiles)",
             shipped_model_config(),
-            TrainConfig(epochs=12, batch_size=4, lr=1e-3, weight_decay=1e-2, optimizer="adamw", lr_schedule="cosine"),
+            TrainConfig(epochs=6, batch_size=4, lr=1e-3, weight_decay=1e-2, optimizer="adamw", lr_schedule="cosine"),
             augment=AugmentConfig(intensity_probability=0.8, shift_probability=0.6, shift_max_m=65.0),
         ),
     )

@@ -231,3 +231,31 @@ def test_the_stream_can_be_named_in_a_header_or_the_path(client):
                 assert answer[key] == by_body[key], (name, key)
     assert {s["stream_id"] for s in client.get("/streams").json()["streams"]} == {"body", "header", "path", "both",
                                                                                   "form"}
+
+
+@pytest.mark.parametrize("metadata, setting, expected", [
+    ({}, None, 0.3),  # a model without an operating threshold: 0.3
+    ({"operating_threshold": "0.55"}, None, 0.55),  # the model's own
+    ({"operating_threshold": "0.55"}, 0.2, 0.2),  # RAFD_SCORE_THRESHOLD wins
+])
+def test_score_threshold_is_the_models_operating_threshold_unless_set(settings, metadata, setting, expected):
+    settings.score_threshold = setting
+    runner = FakeRunner()
+    runner.metadata.update(metadata)
+    with TestClient(create_app(settings, runner=runner)) as client:
+        wait_ready(client)
+        assert client.get("/model").json()["score_threshold"] == expected
+        answer = client.post("/detect", json=detect_json("t", 1.0, FRAMES[0], POSES[0])).json()
+    assert all(b["score"] >= expected for b in answer["boxes"])
+    assert_boxes_match(answer["boxes"], offline(FRAMES[:1], POSES[:1])[0], 128, threshold=expected)
+
+
+@pytest.mark.parametrize("value", ["high", "1.5"])
+def test_a_bad_operating_threshold_in_the_model_is_an_error_at_start_up(value):
+    from service.detector import score_threshold_of
+    from service.settings import Settings
+
+    runner = FakeRunner()
+    runner.metadata["operating_threshold"] = value
+    with pytest.raises(ValueError, match="operating_threshold"):
+        score_threshold_of(Settings(threads=1), runner)

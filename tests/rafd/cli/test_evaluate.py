@@ -36,3 +36,36 @@ def test_bad_split_and_missing_checkpoint_fail_clearly(trained_checkpoint: Path,
     assert "nope" in capsys.readouterr().err
     assert main([str(tmp_path / "none.pt"), "--data", str(sim_root), "--split", "train"]) != 0
     assert "none.pt" in capsys.readouterr().err
+
+
+def test_calibrate_writes_the_operating_threshold_into_a_copy_of_the_checkpoint(
+        trained_checkpoint: Path, sim_root: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    import shutil
+
+    import numpy as np
+
+    from rafd.checkpoint import read_checkpoint
+
+    checkpoint = Path(shutil.copy(trained_checkpoint, tmp_path / "model.pt"))
+    before, cfg_before, _ = read_checkpoint(checkpoint)
+    out_json = tmp_path / "metrics.json"
+    code = main([str(checkpoint), "--data", str(sim_root), "--split", "train", "--calibrate", "2",
+                 "--json", str(out_json), "--device", "cpu", "--no-progress", "--max-windows", "6"])
+    assert code == 0, capsys.readouterr().err
+    after, cfg_after, meta = read_checkpoint(checkpoint)
+    threshold = meta["operating_threshold"]
+    assert 0.0 < threshold <= 1.0 and meta["operating_point"]["fp_per_frame_budget"] == 2.0
+    assert cfg_after == cfg_before and all(np.array_equal(before[k], after[k]) for k in before)  # weights untouched
+    overall = json.loads(out_json.read_text())["overall"]
+    # the chosen threshold is the one the report scores at, and it keeps within the budget
+    assert overall["score_threshold"] == threshold and overall["fp_per_frame_at_threshold"] <= 2.0
+    # a later evaluation uses it by default
+    assert main([str(checkpoint), "--data", str(sim_root), "--split", "train", "--json", str(out_json),
+                 "--device", "cpu", "--no-progress", "--max-windows", "6"]) == 0
+    assert json.loads(out_json.read_text())["overall"]["score_threshold"] == threshold
+
+
+def test_calibrate_refuses_a_budget_that_is_not_positive(trained_checkpoint: Path, sim_root: Path,
+                                                         capsys: pytest.CaptureFixture[str]) -> None:
+    assert main([str(trained_checkpoint), "--data", str(sim_root), "--split", "train", "--calibrate", "0"]) == 2
+    assert "--calibrate" in capsys.readouterr().err
