@@ -3,12 +3,11 @@ RADIATE's Navtech_Polar layout, -> the model's crop.
 
 `decode_frame` is THE decode: every posted image goes through it (on the decode executor), and it ends in
 rafd.preprocess, the one torch-free path from a scan to the model input. A polar scan is recognised by its
-shape (576 rows of range x 400 columns of azimuth: no Cartesian input is 400 x 576, they are square) and
-converted there with rafd.preprocess.polar_to_cartesian to RADIATE's 1152 px Cartesian scan, which then takes
-the Cartesian path unchanged. `check_posted_image` is its cheap
-first half (chunk headers only), run on the event loop as soon as the body is parsed so a hostile file is
-refused before it takes a decode slot; `upload_check` runs the same rules on a multipart upload while it
-streams in.
+shape (576 rows of range x 400 columns of azimuth; Cartesian inputs are square, so none has it) and converted
+there with rafd.preprocess.polar_to_cartesian to RADIATE's 1152 px Cartesian scan, which then takes the
+Cartesian path unchanged. `check_posted_image` is its cheap first half (chunk headers only), run on the event
+loop as soon as the body is parsed so a hostile file is refused before it takes a decode slot; `upload_check`
+runs the same rules on a multipart upload while it streams in.
 """
 from __future__ import annotations
 

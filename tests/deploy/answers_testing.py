@@ -1,9 +1,14 @@
-"""Two /detect answers of one model on one frame, compared field by field (timings aside)."""
+"""The single in-process service the deployed ones are compared with, and the comparison of two /detect answers
+of one model on one frame, field by field (timings aside)."""
 from __future__ import annotations
 
+import contextlib
+import time
+from collections.abc import Iterator
 from typing import Any
 
 import numpy as np
+from fastapi.testclient import TestClient
 
 # Same model, same library versions, same CPU; the thread count may differ (onnxruntime's reductions then sum in
 # another order: float32 differences of ~1e-6). The answer rounds boxes to 0.1 mm and flow to 1 mm.
@@ -36,3 +41,17 @@ def assert_same_answer(served: dict[str, Any], reference: dict[str, Any]) -> Non
     if served["flow"] is not None:
         assert served["flow"]["grid"] == reference["flow"]["grid"] and served["flow"]["pair"] == reference["flow"]["pair"]
         np.testing.assert_allclose(served["flow"]["values"], reference["flow"]["values"], atol=FLOW_ATOL)
+
+
+@contextlib.contextmanager
+def in_process_service(**settings: Any) -> Iterator[TestClient]:
+    """The service on the shipped model in this process (service.settings.Settings(**settings)), once ready."""
+    from service.app import create_app
+    from service.settings import Settings
+
+    with TestClient(create_app(Settings(**settings))) as client:
+        deadline = time.monotonic() + 120.0
+        while client.get("/health/ready").status_code != 200:
+            assert time.monotonic() < deadline, client.get("/health/ready").json()
+            time.sleep(0.05)
+        yield client

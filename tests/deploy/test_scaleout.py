@@ -8,7 +8,6 @@ from __future__ import annotations
 
 import base64
 import json
-import time
 import urllib.error
 import urllib.request
 from collections.abc import Iterator
@@ -16,7 +15,7 @@ from pathlib import Path
 from typing import Any
 
 import pytest
-from answers_testing import assert_same_answer
+from answers_testing import assert_same_answer, in_process_service
 from fastapi.testclient import TestClient
 
 from service.deploy.loopback import LoopbackCluster, get, nginx_binary
@@ -43,14 +42,7 @@ def cluster(tmp_path_factory: pytest.TempPathFactory) -> Iterator[LoopbackCluste
 @pytest.fixture(scope="module")
 def reference() -> Iterator[TestClient]:
     """The single process: the same service in this process, same settings."""
-    from service.app import create_app
-    from service.settings import Settings
-
-    with TestClient(create_app(Settings(**PINNED))) as client:
-        deadline = time.monotonic() + 120.0
-        while client.get("/health/ready").status_code != 200:
-            assert time.monotonic() < deadline, client.get("/health/ready").json()
-            time.sleep(0.05)
+    with in_process_service(**PINNED) as client:
         yield client
 
 
