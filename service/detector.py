@@ -204,7 +204,7 @@ class DetectService:
             "boxes": self._boxes(result, decoded.posted_size),
             "flow": self._flow(result, decoded, previous_timestamp, fields.timestamp, options),
             "input": {"posted_size": decoded.posted_size, "model_size": cfg.input_size,
-                      "crop_offset_px": decoded.crop_offset},
+                      "crop_offset_px": decoded.crop_offset, "posted_format": decoded.posted_format},
             "model": {"version": metadata.get("version", "unknown"),
                       "checkpoint_sha256": metadata.get("checkpoint_sha256", "unknown"),
                       "runtime": getattr(self.runner, "runtime", "unknown"),

@@ -1,10 +1,13 @@
-"""Posted radar frames: 8-bit greyscale PNG, a full RADIATE scan or the model's input size, -> the model's crop.
+"""Posted radar frames: 8-bit greyscale PNG, a full RADIATE scan, the model's input size or a polar scan in
+RADIATE's Navtech_Polar layout, -> the model's crop.
 
 `decode_frame` is THE decode: every posted image goes through it (on the decode executor), and it ends in
-rafd.preprocess, the one torch-free path from a scan to the model input. `check_posted_image` is its cheap
-first half (chunk headers only), run on the event loop as soon as the body is parsed so a hostile file is
-refused before it takes a decode slot; `upload_check` runs the same rules on a multipart upload while it
-streams in.
+rafd.preprocess, the one torch-free path from a scan to the model input. A polar scan is recognised by its
+shape (576 rows of range x 400 columns of azimuth; Cartesian inputs are square, so none has it) and converted
+there with rafd.preprocess.polar_to_cartesian to RADIATE's 1152 px Cartesian scan, which then takes the
+Cartesian path unchanged. `check_posted_image` is its cheap first half (chunk headers only), run on the event
+loop as soon as the body is parsed so a hostile file is refused before it takes a decode slot; `upload_check`
+runs the same rules on a multipart upload while it streams in.
 """
 from __future__ import annotations
 
@@ -16,7 +19,8 @@ import cv2
 import numpy as np
 
 from rafd.geometry import RADIATE_RESOLUTION, RADIATE_SCAN_SIZE
-from rafd.preprocess import model_crop, to_model_input
+from rafd.polar import RADIATE_AZIMUTHS, RADIATE_RANGE_BINS
+from rafd.preprocess import model_crop, polar_to_cartesian, to_model_input
 from service import png
 from service.errors import ApiError
 
@@ -25,6 +29,8 @@ from service.errors import ApiError
 # onto vehicles that move with the ego.
 ODOMETRY_VIEW_SIZE = 512
 DATA_URL_PREFIX = "data:image/png;base64,"
+# A posted polar scan: (height, width) = (range bins, azimuths), RADIATE's Navtech_Polar PNGs as they are on disk.
+POLAR_SHAPE = (RADIATE_RANGE_BINS, RADIATE_AZIMUTHS)
 
 # A posted image: PNG bytes (multipart file) or base64 text of them (JSON field).
 PostedImage = bytes | str
@@ -33,9 +39,12 @@ PostedImage = bytes | str
 @dataclass(frozen=True)
 class DecodedFrame:
     crop: np.ndarray  # [S, S] uint8, the model's input crop centred on the radar
-    posted_size: int  # side of the posted image (polygons are answered in its pixels)
-    crop_offset: int  # posted pixel of the crop's top-left corner (0 when posted at model size)
-    odometry_view: np.ndarray  # [V, V] uint8 centre of the posted image that odometry registers (V >= S)
+    # Side of the Cartesian scan that polygons and the flow grid are answered in: the posted image, or the
+    # RADIATE scan a posted polar scan was converted to (1152).
+    posted_size: int
+    crop_offset: int  # pixel of that scan where the crop's top-left corner lies (0 when posted at model size)
+    odometry_view: np.ndarray  # [V, V] uint8 centre of that scan that odometry registers (V >= S)
+    posted_format: str = "cartesian"  # or "polar"
 
     def model_input(self) -> np.ndarray:
         """[S, S] uint8 -> [S, S] float32 in [0, 1], the runner's frame."""
@@ -48,6 +57,11 @@ def accepted_sizes(input_size: int, resolution: float) -> tuple[int, ...]:
     if input_size < RADIATE_SCAN_SIZE and abs(resolution - RADIATE_RESOLUTION) < 1e-6:
         sizes.append(RADIATE_SCAN_SIZE)
     return tuple(sizes)
+
+
+def accepts_polar(input_size: int, resolution: float) -> bool:
+    """Polar scans are accepted wherever a full RADIATE scan is: they are converted to one."""
+    return RADIATE_SCAN_SIZE in accepted_sizes(input_size, resolution)
 
 
 def strip_data_url(text: str) -> str:
@@ -63,36 +77,45 @@ def _source(image: PostedImage) -> png.ByteSource:
     return png.Base64Bytes(strip_data_url(image)) if isinstance(image, str) else png.RawBytes(image)
 
 
-def _check_size(header: png.PngHeader, sizes: tuple[int, ...]) -> None:
+def _check_size(header: png.PngHeader, input_size: int, resolution: float) -> None:
+    """422 unless the PNG is an accepted square Cartesian size or (where accepted) a RADIATE polar scan."""
+    sizes = accepted_sizes(input_size, resolution)
+    polar = accepts_polar(input_size, resolution)
+    if (header.height, header.width) == POLAR_SHAPE and polar:
+        return
     if header.width != header.height or header.width not in sizes:
         accepted = " or ".join(f"{s}x{s}" for s in sizes)
+        if polar:
+            accepted += (f" (Cartesian), or {POLAR_SHAPE[1]}x{POLAR_SHAPE[0]} (a polar scan: {POLAR_SHAPE[1]} "
+                         f"azimuth columns x {POLAR_SHAPE[0]} range rows, RADIATE's Navtech_Polar layout)")
         raise ApiError("unsupported_image_size",
-                       f"image is {header.width}x{header.height}; accepted sizes: {accepted}")
+                       f"image is {header.width}x{header.height} (width x height); accepted sizes: {accepted}")
 
 
 def check_posted_image(image: PostedImage, input_size: int, resolution: float) -> png.PngLayout:
     """Chunk structure, format and size from the headers alone: 422 before any pixel is decoded."""
     layout = png.read_layout(_source(image))
-    _check_size(layout.header, accepted_sizes(input_size, resolution))
+    _check_size(layout.header, input_size, resolution)
     return layout
 
 
 def upload_check(input_size: int, resolution: float) -> Callable[[bytes], None]:
     """A feeder for a PNG file upload as it streams in: refuses by chunk headers, format and size as soon as they
     arrive, so a hostile upload is answered before the rest of its body is received."""
-    check, sizes = png.StreamingCheck(), accepted_sizes(input_size, resolution)
+    check = png.StreamingCheck()
 
     def feed(data: bytes) -> None:
         had_header = check.header is not None
         check.feed(data)
         if not had_header and check.header is not None:
-            _check_size(check.header, sizes)
+            _check_size(check.header, input_size, resolution)
 
     return feed
 
 
 def decode_frame(image: PostedImage, input_size: int, resolution: float) -> DecodedFrame:
-    """A posted PNG (bytes, or base64 text) -> the model's [S, S] uint8 crop; 422 naming what was expected."""
+    """A posted PNG (bytes, or base64 text; Cartesian or polar) -> the model's [S, S] uint8 crop; 422 naming what
+    was expected."""
     layout = check_posted_image(image, input_size, resolution)
     if isinstance(image, str):
         try:
@@ -107,7 +130,10 @@ def decode_frame(image: PostedImage, input_size: int, resolution: float) -> Deco
         raise ApiError("invalid_image", "the PNG could not be decoded (corrupt chunk CRC or image data)")
     if decoded.ndim != 2 or decoded.dtype != np.uint8:  # the header said 8-bit greyscale: a decoder mismatch
         raise ApiError("unsupported_image_format", f"decoded {decoded.dtype} {decoded.shape}; expected 8-bit grey")
+    posted_format = "cartesian"
+    if decoded.shape == POLAR_SHAPE:  # the size check let it through: polar scans are accepted here
+        decoded, posted_format = polar_to_cartesian(decoded), "polar"  # [576, 400] -> [1152, 1152] uint8
     width = decoded.shape[1]
     view = model_crop(decoded, max(input_size, min(width, ODOMETRY_VIEW_SIZE)))
     return DecodedFrame(crop=model_crop(decoded, input_size), posted_size=width,
-                        crop_offset=(width - input_size) // 2, odometry_view=view)
+                        crop_offset=(width - input_size) // 2, odometry_view=view, posted_format=posted_format)

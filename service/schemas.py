@@ -83,6 +83,9 @@ class InputOut(BaseModel):
     posted_size: int
     model_size: int
     crop_offset_px: int = Field(description="posted pixel of the model crop's top-left corner")
+    posted_format: Literal["cartesian", "polar"] = Field(
+        description="polar: a Navtech_Polar scan was posted and converted to RADIATE's Cartesian scan; posted_size, "
+                    "crop_offset_px and every polygon are in that Cartesian scan's pixels")
 
 
 class TimingOut(BaseModel):

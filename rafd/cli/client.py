@@ -1,10 +1,11 @@
 """`rafd-client SEQ_DIR --url URL [--out DIR] [--mcap FILE]`: stream a RADIATE-format sequence to a running rafd-serve.
 
 Posts every radar frame in timestamp order (with its pose from ego_poses.csv when present, else the
-service estimates ego motion). A folder with only the sensor's polar scans (Navtech_Polar/) is converted
-to RADIATE's Cartesian grid first (rafd.polar). With --out: each frame's picture (rafd.viz_answer: the
-model's crop zoomed, predictions with scores, ground truth where labelled, flow, legend), the answers as
-JSON lines and an MP4. With --mcap: a Foxglove/MCAP log of scans, poses, boxes, flow and ground truth
+service estimates ego motion). A folder with only the sensor's polar scans (Navtech_Polar/) posts them as
+they are (the service converts them with the same rafd.polar conversion the client draws and logs), or
+converted first when meta.json asks for another size or resolution. With --out: each frame's picture
+(rafd.viz_answer: the model's crop zoomed, predictions with scores, ground truth where labelled, flow,
+legend), the answers as JSON lines and an MP4. With --mcap: a Foxglove/MCAP log of scans, poses, boxes, flow and ground truth
 (rafd.mcap_log, `logs` extra). Uses only the standard library for HTTP.
 """
 from __future__ import annotations
@@ -23,6 +24,17 @@ import cv2
 import numpy as np
 
 from rafd.data.reader import RadarFrame
+from rafd.geometry import RADIATE_RESOLUTION, RADIATE_SCAN_SIZE
+from rafd.polar import RADIATE_AZIMUTHS, RADIATE_RANGE_BINS
+
+
+def _png_size(path: Path) -> tuple[int, int] | None:
+    """(width, height) from a PNG's IHDR, None when the file is not a PNG (then it is posted converted)."""
+    with path.open("rb") as file:
+        head = file.read(24)
+    if head[:8] != b"\x89PNG\r\n\x1a\n" or head[12:16] != b"IHDR":
+        return None
+    return int.from_bytes(head[16:20], "big"), int.from_bytes(head[20:24], "big")
 
 
 @dataclass(frozen=True)
@@ -33,7 +45,7 @@ class ClientFrame:
     pose: np.ndarray | None  # [3] world pose, None to let the service use odometry
 
     def scan_and_png(self) -> tuple[np.ndarray, bytes]:
-        """(uint8 [N, N] scan, PNG bytes to post): a Cartesian PNG is posted as it is on disk."""
+        """(uint8 [N, N] Cartesian scan, its PNG bytes): a Cartesian PNG as it is on disk, a polar scan converted."""
         scan = self.source.load()
         if self.source.polar is None:
             return scan, self.source.image_path.read_bytes()
@@ -41,6 +53,15 @@ class ClientFrame:
         if not ok:
             raise OSError(f"could not encode the converted scan of {self.source.image_path}")
         return scan, encoded.tobytes()
+
+    def posted_png(self, scan_png: bytes) -> bytes:
+        """The PNG to post: a RADIATE polar scan as it is on disk when it was converted to RADIATE's own grid (the
+        service converts it the same way, and the answer's pixels are that grid's); else the scan's PNG."""
+        polar = self.source.polar
+        if (polar is not None and polar.size == RADIATE_SCAN_SIZE and polar.resolution == RADIATE_RESOLUTION
+                and _png_size(self.source.image_path) == (RADIATE_AZIMUTHS, RADIATE_RANGE_BINS)):
+            return self.source.image_path.read_bytes()
+        return scan_png
 
 
 @dataclass(frozen=True)
@@ -188,7 +209,8 @@ def main(argv: list[str] | None = None) -> int:
             log = RadarMcapLog(args.mcap)
         for frame in frames:
             scan, png = frame.scan_and_png()
-            answer = last_answer = post_frame(args.url, stream_id, frame, png, not args.no_pose, args.timeout)
+            answer = last_answer = post_frame(args.url, stream_id, frame, frame.posted_png(png), not args.no_pose,
+                                              args.timeout)
             print(f"frame {frame.number:06d} t={frame.timestamp:.3f}: {len(answer['boxes'])} boxes, "
                   f"frames_used {answer['frames_used']}, pose {answer['pose_source']}, "
                   f"{answer['timing']['total_ms']:.1f} ms")

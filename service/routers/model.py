@@ -7,6 +7,7 @@ from fastapi import APIRouter, Depends
 
 from service.dependencies import get_service
 from service.detector import DetectService
+from service.images import POLAR_SHAPE, accepts_polar
 
 router = APIRouter(tags=["model"])
 
@@ -24,6 +25,8 @@ async def model_info(service: DetectService = Depends(get_service)) -> dict[str,
         "resolution_m_per_px": cfg.resolution,
         "class_names": list(cfg.class_names),
         "accepted_image_sizes": list(service.accepted_sizes),
+        # a Navtech_Polar scan [range rows, azimuth columns] is accepted where a full RADIATE scan is
+        "accepted_polar_shape": list(POLAR_SHAPE) if accepts_polar(cfg.input_size, cfg.resolution) else None,
         "score_threshold": service.score_threshold,
         # how the graph runs: runtime, precision, threads per run, concurrent runs, start-up timings
         "runtime": service.runner.describe() if hasattr(service.runner, "describe") else None,

@@ -48,7 +48,8 @@ def test_json_stream_warms_up_then_uses_full_window(client):
         assert answer["warming_up"] is (t < 3)
         assert answer["pose_source"] == "request"
         assert answer["pose"] == pytest.approx({"x": pose[0], "y": pose[1], "yaw": pose[2]})
-        assert answer["input"] == {"posted_size": 128, "model_size": 128, "crop_offset_px": 0}
+        assert answer["input"] == {"posted_size": 128, "model_size": 128, "crop_offset_px": 0,
+                                   "posted_format": "cartesian"}
         assert answer["model"]["version"] == "fake-1"
         assert set(answer["timing"]) == {"decode_ms", "wait_ms", "odometry_ms", "model_ms", "post_ms", "total_ms"}
         assert_boxes_match(answer["boxes"], expected[t], 128)
@@ -68,7 +69,8 @@ def test_full_scan_is_centre_cropped_and_polygons_use_its_pixels(client):
     scan[0:50, 0:50] = 255  # outside the crop: must not matter
     from_scan = client.post("/detect", json=detect_json("scan", 1.0, scan, POSES[0])).json()
     from_crop = client.post("/detect", json=detect_json("crop", 1.0, crop, POSES[0])).json()
-    assert from_scan["input"] == {"posted_size": 1152, "model_size": 128, "crop_offset_px": 512}
+    assert from_scan["input"] == {"posted_size": 1152, "model_size": 128, "crop_offset_px": 512,
+                                 "posted_format": "cartesian"}
     assert [b["score"] for b in from_scan["boxes"]] == [b["score"] for b in from_crop["boxes"]]
     scan_polygons = np.array([b["polygon"] for b in from_scan["boxes"]])
     crop_polygons = np.array([b["polygon"] for b in from_crop["boxes"]])

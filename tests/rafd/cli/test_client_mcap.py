@@ -135,7 +135,7 @@ def test_mcap_log_holds_the_services_answers(simulated: Path, service_url: str, 
                                atol=1e-9)
 
 
-def test_polar_only_folder_is_converted_posted_and_logged(simulated: Path, service_url: str, tmp_path: Path):
+def test_polar_only_folder_is_posted_polar_and_logged_converted(simulated: Path, service_url: str, tmp_path: Path):
     polar = Path(shutil.copytree(simulated, tmp_path / "polar_only"))
     shutil.rmtree(polar / "Navtech_Cartesian")
     (polar / "Navtech_Cartesian.txt").unlink()
@@ -143,6 +143,7 @@ def test_polar_only_folder_is_converted_posted_and_logged(simulated: Path, servi
     assert main([str(polar), "--url", service_url, "--mcap", str(log), "--out", str(out), "--limit", "2"]) == 0
     answers = [json.loads(line) for line in (out / "answers.jsonl").read_text().splitlines()]
     assert [a["input"]["posted_size"] for a in answers] == [1152, 1152]  # meta.json's image_size
+    assert [a["input"]["posted_format"] for a in answers] == ["polar", "polar"]  # posted as on disk
     check_log_against_answers(log, answers, polar, labelled=True)
 
 

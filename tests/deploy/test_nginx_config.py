@@ -1,0 +1,51 @@
+"""The shipped nginx.conf: what the loopback harness changes in it, and (where nginx is installed) that nginx
+accepts it."""
+from __future__ import annotations
+
+import subprocess
+from pathlib import Path
+
+import pytest
+
+from service.deploy.loopback import NGINX_CONF, loopback_config, nginx_binary
+
+
+def test_loopback_config_changes_only_addresses_and_temporary_paths(tmp_path: Path):
+    shipped = NGINX_CONF.read_text().splitlines()
+    used = loopback_config([5001, 5002, 5003, 5004], 6000, tmp_path).splitlines()
+    removed = [line.strip() for line in shipped if line not in used]
+    added = [line.strip() for line in used if line not in shipped]
+    assert sorted(removed) == sorted(line.strip() for line in shipped if line.strip().startswith(("server rafd-", "listen ")))
+    assert len([line for line in removed if line.startswith("server rafd-")]) == 3  # the compose file's replicas
+    assert [line for line in added if line.startswith("server ")] == [
+        f"server 127.0.0.1:{port} max_fails=1 fail_timeout=10s;" for port in (5001, 5002, 5003, 5004)]
+    assert "listen 127.0.0.1:6000;" in added
+    assert all(line.startswith(("server 127.0.0.1:", "listen 127.0.0.1:")) or "_temp_path " in line
+               for line in added), added
+
+
+def test_shipped_config_hashes_consistently_on_the_stream():
+    text = NGINX_CONF.read_text()
+    assert "hash $rafd_stream consistent;" in text
+    assert "$http_x_stream_id" in text and "^/streams/" in text
+
+
+@pytest.mark.skipif(nginx_binary() is None, reason="nginx is not installed (Debian: apt-get install nginx)")
+def test_nginx_accepts_the_loopback_config(tmp_path: Path):
+    conf = tmp_path / "nginx.conf"
+    conf.write_text(loopback_config([5001, 5002, 5003], 6000, tmp_path))
+    done = subprocess.run([nginx_binary(), "-t", "-p", str(tmp_path), "-c", str(conf), "-e", "stderr",
+                           "-g", f"pid {tmp_path / 'nginx.pid'};"], capture_output=True, text=True)
+    assert done.returncode == 0, done.stderr
+
+
+def test_compose_file_places_exactly_the_replicas_nginx_routes_to():
+    """compose.yaml's replica services are the `server` lines of nginx.conf (a replica added to one file only
+    would get no traffic, or nginx would not start)."""
+    import re
+
+    compose = (NGINX_CONF.parent / "compose.yaml").read_text()
+    services = re.findall(r"^  (rafd-\d+): \*replica$", compose, re.MULTILINE)
+    servers = re.findall(r"^\s*server (rafd-\d+):8000\b", NGINX_CONF.read_text(), re.MULTILINE)
+    assert services and services == servers
+    assert "./nginx.conf:/etc/nginx/nginx.conf:ro" in compose
