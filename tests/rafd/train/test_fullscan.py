@@ -13,12 +13,20 @@ from rafd.tiled import TileGrid, detect_windows
 from rafd.train.fullscan import predict_full_scan, scan_config
 
 
+def _scan_size() -> int:
+    """2.5 model inputs: 3 x 3 overlapping tiles for any shipped model's input size."""
+    from rafd.assets import default_checkpoint
+    from rafd.checkpoint import read_checkpoint
+
+    return 2 * (5 * read_checkpoint(default_checkpoint())[1].input_size // 4)
+
+
 @pytest.fixture(scope="module")
 def scans(tmp_path_factory: pytest.TempPathFactory) -> Path:
     from rafd.sim import simulate_sequence
 
     root = tmp_path_factory.mktemp("full")
-    simulate_sequence(root / "seq", seed=9, num_frames=6, split="test", size=384)
+    simulate_sequence(root / "seq", seed=9, num_frames=6, split="test", size=_scan_size())
     return root
 
 
@@ -31,8 +39,8 @@ def test_streamed_tiles_equal_each_tiles_window(scans: Path, monkeypatch: pytest
     from rafd.checkpoint import load_checkpoint
 
     model, cfg, _ = load_checkpoint(default_checkpoint())  # trained weights: stable scores, as in use
-    dataset = RadarWindowDataset(scans, split="test", cfg=scan_config(cfg, 384))
-    grid = TileGrid.for_model(cfg.input_size, scan_size=384)
+    dataset = RadarWindowDataset(scans, split="test", cfg=scan_config(cfg, _scan_size()))
+    grid = TileGrid.for_model(cfg.input_size, scan_size=_scan_size())
     tiles = grid.per_side**2
     raw: dict[str, list] = {"streamed": [], "windows": []}
 
