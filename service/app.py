@@ -20,6 +20,7 @@ from starlette.concurrency import run_in_threadpool
 from rafd import __version__
 from service.auth import OPEN_PATHS, ApiKeyMiddleware, load_api_keys
 from service.detector import DetectService, Executors
+from service.penalty import RefusalPenalty
 from service.errors import ERRORS, error_responses, install_error_handlers
 from service.limits import BodySizeLimitMiddleware
 from service.loading import check_buffer_length, open_runner, warm_up
@@ -87,6 +88,7 @@ def create_app(
     app = FastAPI(title="RaFD radar detection service", version=__version__, lifespan=lifespan,
                   description=ANY_ROUTE_ERRORS)
     app.state.settings = settings
+    app.state.refusal_penalty = RefusalPenalty(settings.refusal_penalty_s, settings.refusal_penalty_after)
     app.state.metrics = service_metrics
     app.state.service = None
     app.state.load_error = None

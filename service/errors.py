@@ -6,6 +6,7 @@ the OpenAPI responses are built from the registry (`error_responses`) and servic
 """
 from __future__ import annotations
 
+import asyncio
 import logging
 from collections.abc import Mapping
 from dataclasses import dataclass
@@ -127,7 +128,16 @@ def error_responses(*codes: str) -> dict[int | str, dict[str, Any]]:
     }
 
 
+# Refusals of the request's content that a flood repeats (service/penalty.py slows their answers).
+PENALISED_CODES = frozenset({"invalid_image", "request_too_large", "unsupported_image_size", "unsupported_image_format"})
+
+
 async def _api_error(request: Request, exc: ApiError) -> JSONResponse:
+    penalty = getattr(request.app.state, "refusal_penalty", None)
+    if penalty is not None and exc.code in PENALISED_CODES:
+        delay = penalty.record(request.client.host if request.client else "unknown")
+        if delay:
+            await asyncio.sleep(delay)
     return error_response(exc.status, exc.code, exc.message, exc.headers)
 
 

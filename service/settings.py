@@ -87,6 +87,10 @@ class Settings(BaseSettings):
     model_queue_limit: int = Field(default=16, ge=0)
     # Seconds a 503 / 429 asks the client to wait (the Retry-After header).
     retry_after_s: int = Field(default=1, ge=1)
+    # A client refused more than REFUSAL_PENALTY_AFTER times within a second (invalid or oversized images) gets each
+    # further refusal only after REFUSAL_PENALTY_S seconds (service/penalty.py); 0 turns this off.
+    refusal_penalty_s: float = Field(default=0.5, ge=0.0, le=30.0)
+    refusal_penalty_after: int = Field(default=3, ge=0)
     # API keys, "KEY" or "NAME:KEY", comma-separated (e.g. RAFD_API_KEYS=car-fleet:4f9c...); empty: no keys.
     api_keys: Annotated[list[SecretStr], NoDecode] = Field(default_factory=list)
     # A file of API keys, one "KEY" or "NAME:KEY" per line (# comments); read once at start-up.
