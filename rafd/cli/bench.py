@@ -26,6 +26,7 @@ import subprocess
 import sys
 import tempfile
 import threading
+from concurrent.futures import ThreadPoolExecutor
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -156,12 +157,9 @@ def stream_fps(runner: Any, inputs: list[np.ndarray], poses: np.ndarray, streams
             j = (offset + k) % len(inputs)
             _, state = runner.step(state, inputs[j], poses[j])
 
-    workers = [threading.Thread(target=client, args=(i,)) for i in range(streams)]
     start = time.perf_counter()
-    for worker in workers:
-        worker.start()
-    for worker in workers:
-        worker.join()
+    with ThreadPoolExecutor(max_workers=streams) as pool:
+        list(pool.map(client, range(streams)))  # list(): a client's exception surfaces here
     return streams * frames / (time.perf_counter() - start)
 
 
@@ -357,11 +355,8 @@ def load_streams(url: str, bodies: list[str], poses: np.ndarray, streams: int, f
                         answers.append(answer.json())
 
     start = time.perf_counter()
-    workers = [threading.Thread(target=client, args=(i,)) for i in range(streams)]
-    for worker in workers:
-        worker.start()
-    for worker in workers:
-        worker.join()
+    with ThreadPoolExecutor(max_workers=streams) as pool:
+        list(pool.map(client, range(streams)))
     wall = time.perf_counter() - start
     if errors:
         raise RuntimeError(f"{len(errors)} failed requests, first: {errors[0]}")

@@ -15,16 +15,15 @@ Exit status 0 on success, 2 on bad input, 1 when a sequence failed (the others a
 from __future__ import annotations
 
 import argparse
+import functools
 import logging
 import sys
 import time
-from concurrent.futures import ProcessPoolExecutor, as_completed
 from pathlib import Path
 
 import numpy as np
-from tqdm import tqdm
 
-from rafd.cli.prepare import default_workers
+from rafd.cli.per_sequence import default_workers, run_per_sequence
 from rafd.data.dataset import select_sequences
 from rafd.data.poses import POSES_FILE, read_ego_poses, write_ego_poses
 from rafd.data.reader import list_frames
@@ -148,20 +147,14 @@ def main(argv: list[str] | None = None) -> int:
         if not args.out.parent.is_dir():
             return _fail(f"folder of --out does not exist: {args.out.parent}")
     start = time.perf_counter()
-    counts, frames, failures = {"written": 0, "skipped": 0}, 0, []
-    with ProcessPoolExecutor(max_workers=min(args.workers, len(folders))) as pool:
-        jobs = {pool.submit(prepare_poses, folder, args.out, args.force): folder for folder in folders}
-        for job in tqdm(as_completed(jobs), total=len(jobs), desc="odometry", unit="seq", dynamic_ncols=True,
-                        disable=len(jobs) == 1):
-            try:
-                status, count, ms_per_pair = job.result()
-            except (OSError, ValueError) as error:
-                failures.append(f"{jobs[job]}: {error}")
-                continue
-            counts[status] += 1
-            frames += count
-            if status == "written" and len(jobs) == 1:
-                print(f"wrote {args.out or jobs[job] / POSES_FILE}: {count} poses, {ms_per_pair:.1f} ms per pair")
+    job = functools.partial(prepare_poses, out=args.out, force=args.force)
+    results, failures = run_per_sequence(job, folders, args.workers, "odometry", progress=len(folders) > 1)
+    counts, frames = {"written": 0, "skipped": 0}, 0
+    for folder, (status, count, ms_per_pair) in results:
+        counts[status] += 1
+        frames += count
+        if status == "written" and len(folders) == 1:
+            print(f"wrote {args.out or folder / POSES_FILE}: {count} poses, {ms_per_pair:.1f} ms per pair")
     seconds = time.perf_counter() - start
     print(f"{counts['written']} sequences given poses ({frames} frames in {seconds:.1f} s), "
           f"{counts['skipped']} already had {POSES_FILE} (--force re-estimates them)")

@@ -10,26 +10,20 @@ resumed by running the same command again. Exit status 0 on success, 2 on bad in
 from __future__ import annotations
 
 import argparse
+import functools
 import logging
-import os
 import sys
 import time
-from concurrent.futures import ProcessPoolExecutor, as_completed
 from pathlib import Path
 
 import numpy as np
-from tqdm import tqdm
 
+from rafd.cli.per_sequence import default_workers, run_per_sequence
 from rafd.data.cache import DEFAULT_CROP, CacheError, cache_folder, read_cached, write_cached
 from rafd.data.dataset import select_sequences
 from rafd.data.reader import read_sequence
 
 log = logging.getLogger("rafd.prepare")
-
-
-def default_workers() -> int:
-    """The CPUs this process may use (affinity mask)."""
-    return max(1, len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else (os.cpu_count() or 1))
 
 
 def prepare_sequence(folder: Path, root: Path, cache_root: Path, crop: int, force: bool) -> tuple[str, int, float]:
@@ -82,18 +76,13 @@ def main(argv: list[str] | None = None) -> int:
         return 2
     args.cache.mkdir(parents=True, exist_ok=True)
     start = time.perf_counter()
+    job = functools.partial(prepare_sequence, root=args.root, cache_root=args.cache, crop=args.crop, force=args.force)
+    results, failures = run_per_sequence(job, folders, args.workers, "prepare")
     counts = {"prepared": 0, "skipped": 0}
-    frames, failures = 0, []
-    with ProcessPoolExecutor(max_workers=min(args.workers, len(folders))) as pool:
-        jobs = {pool.submit(prepare_sequence, f, args.root, args.cache, args.crop, args.force): f for f in folders}
-        for job in tqdm(as_completed(jobs), total=len(jobs), desc="prepare", unit="seq", dynamic_ncols=True):
-            try:
-                status, count, _ = job.result()
-            except (OSError, ValueError) as error:
-                failures.append(f"{jobs[job]}: {error}")
-                continue
-            counts[status] += 1
-            frames += count if status == "prepared" else 0
+    frames = 0
+    for _, (status, count, _) in results:
+        counts[status] += 1
+        frames += count if status == "prepared" else 0
     seconds = time.perf_counter() - start
     print(f"{args.cache}: {counts['prepared']} sequences prepared ({frames} frames, {frames / max(seconds, 1e-9):.0f} "
           f"frames/s), {counts['skipped']} already complete, in {seconds:.1f} s")

@@ -17,6 +17,7 @@ import statistics
 import sys
 import tempfile
 import threading
+from concurrent.futures import ThreadPoolExecutor
 import time
 import urllib.request
 from pathlib import Path
@@ -51,12 +52,9 @@ def run_load(url: str, scans: list[Path], streams: int, frames: int) -> tuple[fl
                 latencies.append(time.perf_counter() - start)
                 replicas[replica] = replicas.get(replica, 0) + 1
 
-    threads = [threading.Thread(target=client, args=(k,)) for k in range(streams)]
     start = time.perf_counter()
-    for thread in threads:
-        thread.start()
-    for thread in threads:
-        thread.join()
+    with ThreadPoolExecutor(max_workers=streams) as pool:
+        list(pool.map(client, range(streams)))  # list(): a client's exception surfaces here
     wall = time.perf_counter() - start
     if errors:
         raise RuntimeError(f"{len(errors)} requests failed, e.g. {errors[0]}")
