@@ -71,6 +71,14 @@ class PropagationConfig:
     # False = vanilla deformable attention (reference r_t, no flow): the paper's ablation baseline.
     flow_guided: bool = True
     ffn_ratio: int = 2
+    # "post": Deformable DETR's post-norm blocks (every propagated cell normalised); "pre": pre-norm residual blocks
+    # that start as the identity (rafd.model.deformable.DeformableLayer), so the newest frame's features reach the
+    # head unchanged until the propagation learns what the past adds.
+    norm: str = "post"
+
+    def __post_init__(self) -> None:
+        if self.norm not in ("post", "pre"):
+            raise ValueError(f"propagation.norm must be 'post' or 'pre', got {self.norm!r}")
 
 
 @dataclass(frozen=True)

@@ -34,6 +34,7 @@ BENCHMARK_SPLITS = (
     SplitSpec(split="val", sequences=6, frames=30, seed=3000, size=1152),
 )
 BENCHMARK_INPUT_SIZE = 256
+SCORED_HISTORY = 4  # frames: every variant is scored on the frames the 4-frame model scores
 BENCHMARK_RECIPE = "default"
 CACHE = "cache"
 
@@ -50,6 +51,9 @@ class Variant:
     legacy_targets: bool = False
     flow_stride: int | None = None  # None: the recipe's (8); 4 = the paper's flow branch
     enhance_window: int | None = None  # None: the recipe's (16); 0 = the paper's Hf/2 windows
+    propagation_norm: str | None = None  # None: the recipe's ("pre"); "post" = Deformable DETR's blocks
+    # Two-stage training: start from the weights of this variant's model in the same out_dir (rafd-train --init).
+    init: str | None = None
 
     def train_flags(self) -> list[str]:
         flags = ["--frames", str(self.frames)]
@@ -57,6 +61,8 @@ class Variant:
             flags += ["--flow-stride", str(self.flow_stride)]
         if self.enhance_window is not None:
             flags += ["--enhance-window", str(self.enhance_window)]
+        if self.propagation_norm is not None:
+            flags += ["--propagation-norm", self.propagation_norm]
         if self.legacy_targets:
             flags += ["--box-encoding", "as_labelled", "--heatmap-min-overlap", "0.7", "--heatmap-min-radius", "1"]
         if not self.enhancement:
@@ -74,6 +80,15 @@ VARIANTS = {
     v.name: v
     for v in (
         Variant("rafd4", "RaFD, 4 frames"),
+        Variant("rafd4_post_norm", "RaFD, 4 frames, post-norm propagation blocks (Deformable DETR's)",
+                propagation_norm="post"),
+        # Second stage of a two-stage recipe: run after `single` in the same out_dir; `single_continued` gives the
+        # single-frame model the same extra epochs, so the pair compares equal budgets.
+        Variant("rafd4_from_single", "RaFD, 4 frames, initialised from the single-frame model", init="single"),
+        Variant("rafd2_from_single", "RaFD, 2 frames, initialised from the single-frame model", frames=2, init="single"),
+        Variant("no_guidance_from_single", "4 frames, vanilla deformable attention, initialised from the single-frame "
+                "model", flow_guidance=False, init="single"),
+        Variant("single_continued", "single frame, continued from the single-frame model", frames=1, init="single"),
         Variant("rafd4_legacy_targets", "RaFD, 4 frames, targets as labelled (sin/cos yaw, radius 0.7 / 1)",
                 legacy_targets=True),
         Variant("rafd4_paper_flow", "RaFD, 4 frames, flow branch at stride 4 (the paper's)", flow_stride=4),
@@ -187,6 +202,13 @@ def run_benchmark(args: argparse.Namespace) -> int:
     for name in names:
         variant = VARIANTS[name]
         ckpt = args.out_dir / name / "model.pt"
+        init_flags: list[str] = []
+        if variant.init is not None:
+            init_ckpt = args.out_dir / variant.init / "model.pt"
+            if not init_ckpt.is_file():
+                raise FileNotFoundError(f"variant {name} starts from {init_ckpt}: train variant {variant.init} into "
+                                        f"{args.out_dir} first")
+            init_flags = ["--init", str(init_ckpt)]
         train_argv = [
             "--data", str(args.data_root), "--split", manifest["train_split"], "--config", args.config,
             "--out", str(ckpt), "--seed", str(args.seed), "--device", args.device, "--precision", args.precision,
@@ -194,7 +216,7 @@ def run_benchmark(args: argparse.Namespace) -> int:
               if value is not None for flag in (name, str(value))],
             "--input-size", str(manifest["input_size"]), "--val-every", "0", "--no-progress",
             *(["--cache", str(args.data_root / manifest["cache"])] if manifest.get("cache") else []),
-            *variant.train_flags(),
+            *variant.train_flags(), *init_flags,
         ]
         if args.max_windows:
             train_argv += ["--max-windows", str(args.max_windows)]
@@ -206,12 +228,14 @@ def run_benchmark(args: argparse.Namespace) -> int:
             raise RuntimeError(f"training variant {name} failed")
         seconds = time.perf_counter() - start
         metrics_path = args.out_dir / name / "test_metrics.json"
+        # every variant scores the same frames: those a 4-frame model scores (a drive's first 3 have no window)
         common = [str(ckpt), "--data", str(args.data_root), "--split", manifest["test_split"], "--device", args.device,
-                  "--no-progress", *(["--cache", str(args.data_root / manifest["cache"])] if manifest.get("cache") else [])]
+                  "--no-progress", "--like-frames", str(SCORED_HISTORY), *(["--cache", str(args.data_root / manifest["cache"])] if manifest.get("cache") else [])]
         if eval_cli.main(common + ["--json", str(metrics_path), "--examples", "0"]) != 0:
             raise RuntimeError(f"evaluating variant {name} failed")
         overall = json.loads(metrics_path.read_text())["overall"]
-        row = {"variant": name, "description": variant.description, "train_seconds": seconds, **overall}
+        row = {"variant": name, "description": variant.description, "train_seconds": seconds, "epochs": args.epochs,
+               "init": variant.init, **overall}
         if args.full_scan:
             full_path = args.out_dir / name / "test_full_scan.json"
             if eval_cli.main(common + ["--full-scan", "--json", str(full_path)]) != 0:
@@ -219,8 +243,12 @@ def run_benchmark(args: argparse.Namespace) -> int:
             full = json.loads(full_path.read_text())["overall"]
             row.update({f"full_{k}": v for k, v in full.items()})
         rows.append(row)
-    results = {"manifest": manifest, "epochs": args.epochs, "seed": args.seed, "config": args.config, "rows": rows}
-    (args.out_dir / "results.json").write_text(json.dumps(results, indent=2, default=lambda v: None))
+    # rows of variants trained by earlier runs into the same out_dir are kept (two-stage recipes run twice)
+    results_path = args.out_dir / "results.json"
+    earlier = json.loads(results_path.read_text()).get("rows", []) if results_path.is_file() else []
+    rows = [row for row in earlier if row.get("variant") not in names] + rows
+    results = {"manifest": manifest, "seed": args.seed, "config": args.config, "rows": rows}
+    results_path.write_text(json.dumps(results, indent=2, default=lambda v: None))
     table = markdown_table(rows)
     (args.out_dir / "results.md").write_text(table + "\n")
     print(table)

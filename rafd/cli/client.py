@@ -14,6 +14,7 @@ import argparse
 import base64
 import json
 import sys
+import os
 import urllib.error
 import urllib.request
 from dataclasses import dataclass
@@ -93,8 +94,8 @@ class ServiceError(RuntimeError):
 
 
 def post_frame(url: str, stream_id: str, frame: ClientFrame, png: bytes, use_pose: bool,
-               timeout: float) -> dict[str, Any]:
-    """One POST /detect (JSON body, base64 PNG)."""
+               timeout: float, api_key: str | None = None) -> dict[str, Any]:
+    """One POST /detect (JSON body, base64 PNG); `api_key` goes in the X-API-Key header the service checks."""
     body: dict[str, Any] = {
         "stream_id": stream_id,
         "timestamp": frame.timestamp,
@@ -102,8 +103,11 @@ def post_frame(url: str, stream_id: str, frame: ClientFrame, png: bytes, use_pos
     }
     if use_pose and frame.pose is not None:
         body["pose"] = {"x": float(frame.pose[0]), "y": float(frame.pose[1]), "yaw": float(frame.pose[2])}
+    headers = {"content-type": "application/json"}
+    if api_key:
+        headers["x-api-key"] = api_key
     request = urllib.request.Request(f"{url.rstrip('/')}/detect", data=json.dumps(body).encode(),
-                                     headers={"content-type": "application/json"}, method="POST")
+                                     headers=headers, method="POST")
     try:
         with urllib.request.urlopen(request, timeout=timeout) as response:
             return json.loads(response.read())
@@ -174,6 +178,8 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--flow-step", type=int, default=2, help="draw every n-th flow cell (default 2)")
     parser.add_argument("--view", type=int, default=768, help="side in pixels of the zoomed model view (default 768)")
     parser.add_argument("--timeout", type=float, default=30.0, help="seconds per request")
+    parser.add_argument("--api-key", default=os.environ.get("RAFD_API_KEY"),
+                        help="key for a service run with RAFD_API_KEYS (default: $RAFD_API_KEY; sent as X-API-Key)")
     return parser
 
 
@@ -210,7 +216,7 @@ def main(argv: list[str] | None = None) -> int:
         for frame in frames:
             scan, png = frame.scan_and_png()
             answer = last_answer = post_frame(args.url, stream_id, frame, frame.posted_png(png), not args.no_pose,
-                                              args.timeout)
+                                              args.timeout, args.api_key)
             print(f"frame {frame.number:06d} t={frame.timestamp:.3f}: {len(answer['boxes'])} boxes, "
                   f"frames_used {answer['frames_used']}, pose {answer['pose_source']}, "
                   f"{answer['timing']['total_ms']:.1f} ms")

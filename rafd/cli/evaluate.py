@@ -40,6 +40,9 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--batch-size", type=int, default=8)
     parser.add_argument("--device", default="auto", help="cpu | cuda | cuda:N | auto")
     parser.add_argument("--max-windows", type=int, help="evaluate at most N (evenly spaced) windows")
+    parser.add_argument("--like-frames", type=int, metavar="N",
+                        help="score only the frames an N-frame model scores (each sequence's first N-1 frames have "
+                             "no full window): compares models of different frame counts on equal frames")
     parser.add_argument("--threads", type=int, help="torch CPU threads")
     parser.add_argument("--no-progress", action="store_true")
     return parser
@@ -174,7 +177,7 @@ def main(argv: Sequence[str] | None = None) -> int:
 
             data_cfg = scan_config(cfg, scan_size_of(args.data, args.split))
         dataset = open_windows(args.data, args.split, data_cfg, args.max_windows, augment=False, cache=args.cache,
-                               estimate_poses=args.estimate_poses)
+                               estimate_poses=args.estimate_poses, history=args.like_frames)
     except (DatasetError, ValueError, RuntimeError) as error:
         print(f"rafd-eval: error: {error}", file=sys.stderr)
         return 2
@@ -206,6 +209,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         "data": str(args.data),
         "split": args.split,
         "num_frames": cfg.num_frames,
+        "like_frames": args.like_frames,
         "input_size": cfg.input_size,
         "full_scan": args.full_scan,
         "overall": overall,

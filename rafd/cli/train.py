@@ -51,6 +51,8 @@ def build_parser() -> argparse.ArgumentParser:
     recipe.add_argument("--augment", action=argparse.BooleanOptionalAction, help="window-consistent flip + rotation")
     recipe.add_argument("--flow-stride", type=int, help="input pixels per flow cell (4 = the paper's)")
     recipe.add_argument("--enhance-window", type=int, help="attention window side in cells (0 = the paper's Hf/2)")
+    recipe.add_argument("--propagation-norm", choices=("post", "pre"),
+                        help="propagation blocks: post-norm (Deformable DETR) or pre-norm starting as the identity")
     recipe.add_argument("--box-encoding", choices=BOX_ENCODINGS,
                         help="symmetric: 180-degree periodic orientation, width <= length; as_labelled: the old targets")
     recipe.add_argument("--heatmap-min-overlap", type=float, help="heatmap radius overlap (CenterPoint 0.1)")
@@ -61,6 +63,9 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--grad-clip", type=float, default=35.0)
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--resume", type=Path, help="checkpoint written by rafd-train to continue from")
+    parser.add_argument("--init", type=Path,
+                        help="start from this checkpoint's weights where names and shapes match (e.g. a single-frame "
+                             "model under a 4-frame run); optimizer, schedule and epochs start fresh")
     parser.add_argument("--device", default="auto", help="cpu | cuda | cuda:N | auto")
     parser.add_argument("--val-data", type=Path, help="validation data root (default: none)")
     parser.add_argument("--val-split", action="append", help="validation split(s) (default: test)")
@@ -91,6 +96,9 @@ def model_config(args: argparse.Namespace, base: RaFDConfig) -> RaFDConfig:
         changes["enhance"] = dataclasses.replace(base.enhance, enabled=False)
     if args.no_flow_guidance:
         changes["propagation"] = dataclasses.replace(base.propagation, flow_guided=False)
+    if args.propagation_norm is not None:
+        changes["propagation"] = dataclasses.replace(changes.get("propagation", base.propagation),
+                                                     norm=args.propagation_norm)
     if args.flow_stride is not None:
         changes["flow"] = dataclasses.replace(base.flow, stride=args.flow_stride)
     if args.enhance_window is not None:
@@ -150,6 +158,10 @@ def main(argv: Sequence[str] | None = None) -> int:
         loss_cfg = LossConfig(flow_weight=0.0 if args.no_flow_supervision else 1.0)
         if args.resume is not None and not args.resume.is_file():
             raise DatasetError(f"--resume {args.resume} does not exist")
+        if args.init is not None and args.resume is not None:
+            raise ValueError("--init starts a new run and --resume continues one: give one of them")
+        if args.init is not None and not args.init.is_file():
+            raise DatasetError(f"--init {args.init} does not exist")
         train_set = open_windows(args.data, args.split, cfg, args.max_windows, augment=augment, cache=args.cache,
                                  estimate_poses=args.estimate_poses, seed=args.seed)
         val_set = None
@@ -173,6 +185,8 @@ def main(argv: Sequence[str] | None = None) -> int:
     try:
         trainer = Trainer(cfg, train_cfg, train_set, args.out, ctx, loss_cfg=loss_cfg, val_set=val_set,
                           run_meta=run_meta)
+        if args.init is not None:
+            trainer.initialise_from(args.init)
         if args.resume is not None:
             trainer.resume(args.resume)
         log.info(

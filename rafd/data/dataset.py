@@ -178,6 +178,18 @@ class RadarWindowDataset(_Base):
                  len(self.windows), span, len(self.sequences), split, root,
                  "" if self.cache_root is None else f", scans from the cache {self.cache_root}")
 
+    def keep_newest_with_history(self, frames: int) -> int:
+        """Keep only the windows whose newest frame has `frames` - 1 consecutive predecessors in its sequence: the
+        frames a `frames`-frame model scores, so a model of fewer frames is compared on equal frames. -> windows kept."""
+        kept = []
+        for s, start in self.windows:
+            newest = start + self.cfg.num_frames - 1
+            first = newest - (frames - 1)
+            if first >= 0 and np.all(np.diff(self.sequences[s].numbers[first : newest + 1]) == 1):
+                kept.append((s, start))
+        self.windows = kept
+        return len(kept)
+
     def _meta(self, sequence, root: Path) -> _SequenceMeta:
         if not sequence.annotated:
             raise FileNotFoundError(f"{sequence.path}: annotations/annotations.json not found (a training/evaluation dataset needs them)")

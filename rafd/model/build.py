@@ -56,7 +56,10 @@ def build_model(cfg: RaFDConfig) -> RaFD:
         prop_cfg = cfg.propagation
         propagation = FlowGuidedPropagation(
             [
-                DeformableLayer(DeformableAttention(channels, prop_cfg.num_points, (size, size)), channels, prop_cfg.ffn_ratio)
+                DeformableLayer(
+                    DeformableAttention(channels, prop_cfg.num_points, (size, size)), channels, prop_cfg.ffn_ratio,
+                    norm=prop_cfg.norm,
+                )
                 for _ in range(prop_cfg.num_blocks)
             ],
             centres.clone(),

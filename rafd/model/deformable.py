@@ -104,21 +104,44 @@ class DeformableAttention(nn.Module):
 
 
 class DeformableLayer(nn.Module):
-    """Post-norm deformable cross-attention + FFN: query [B, Q, C] -> [B, Q, C]."""
+    """Deformable cross-attention + FFN, each a residual branch: query [B, Q, C] -> [B, Q, C].
 
-    def __init__(self, attention: DeformableAttention, channels: int, ffn_ratio: int) -> None:
+    norm "post" (Deformable DETR): x = LN(q + attn(q)), out = LN(x + ffn(x)); every output cell is normalised.
+    norm "pre": x = q + attn(LN(q)), out = x + ffn(LN(x)), with both branches' last projections zero-initialised,
+    so a fresh layer is the identity: the query map (a frame's features) passes unchanged until the branch learns
+    what to add, and a head trained on single-frame features reads the same features under a multi-frame model.
+    """
+
+    def __init__(self, attention: DeformableAttention, channels: int, ffn_ratio: int, norm: str = "post") -> None:
         super().__init__()
+        if norm not in ("post", "pre"):
+            raise ValueError(f"norm must be 'post' or 'pre', got {norm!r}")
         self.attention = attention
         self.norm1 = nn.LayerNorm(channels)
         self.ffn = FeedForward(channels, ffn_ratio)
         self.norm2 = nn.LayerNorm(channels)
+        self.pre_norm = norm == "pre"
+        if self.pre_norm:
+            for last in (attention.output_proj, self.ffn.net[-1]):
+                nn.init.zeros_(last.weight)
+                nn.init.zeros_(last.bias)
 
     def forward(self, query: Tensor, reference: Tensor, value: Tensor) -> Tensor:
+        if self.pre_norm:
+            x = query + self.attention(self.norm1(query), reference, value)
+            return x + self.ffn(self.norm2(x))
         x = self.norm1(query + self.attention(query, reference, value))
         return self.norm2(x + self.ffn(x))
 
     def forward_map(self, query: Tensor, reference: Tensor, value: Tensor) -> Tensor:
         """forward for every cell of a channel-major query map: [B, C, H, W] -> [B, C, H, W]."""
-        x = layer_norm_on_map(self.norm1, query + self.attention.forward_map(query, reference, value))
         hidden, activation, out = self.ffn.net  # Linear, GELU, Linear
-        return layer_norm_on_map(self.norm2, x + linear_on_map(out, activation(linear_on_map(hidden, x))))
+
+        def ffn(x: Tensor) -> Tensor:
+            return linear_on_map(out, activation(linear_on_map(hidden, x)))
+
+        if self.pre_norm:
+            x = query + self.attention.forward_map(layer_norm_on_map(self.norm1, query), reference, value)
+            return x + ffn(layer_norm_on_map(self.norm2, x))
+        x = layer_norm_on_map(self.norm1, query + self.attention.forward_map(query, reference, value))
+        return layer_norm_on_map(self.norm2, x + ffn(x))

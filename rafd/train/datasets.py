@@ -44,9 +44,11 @@ def open_windows(
     cache: str | Path | None = None,
     estimate_poses: bool = False,
     seed: int = 0,
+    history: int | None = None,
 ) -> Dataset:
     """Windows of cfg.num_frames frames at cfg.input_size from the sequences of `split` (one name, a comma-separated
-    list or a list) under `root`, scans from a prepared `cache` when given."""
+    list or a list) under `root`, scans from a prepared `cache` when given. `history` N keeps only the windows whose
+    newest frame an N-frame model also scores (a model of fewer frames is then compared on equal frames)."""
     from rafd.data import RadarWindowDataset
     from rafd.data.cache import CacheError
     from rafd.data.dataset import MissingPosesError
@@ -65,6 +67,11 @@ def open_windows(
         raise DatasetError(f"cannot open split {split!r} under {root}: {error}") from error
     if len(dataset) == 0:
         raise DatasetError(f"split {split!r} under {root} holds no windows of {cfg.num_frames} frames")
+    if history is not None and history > cfg.num_frames:
+        before = len(dataset)
+        if dataset.keep_newest_with_history(history) == 0:
+            raise DatasetError(f"split {split!r} under {root} holds no frame with {history - 1} predecessors")
+        log.info("scoring the %d of %d frames that a %d-frame model scores", len(dataset), before, history)
     if max_windows is not None and max_windows < len(dataset):
         # Evenly spaced, not the first N: keeps every sequence represented in a capped run.
         indices = np.linspace(0, len(dataset) - 1, max_windows).round().astype(int)

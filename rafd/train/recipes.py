@@ -24,13 +24,16 @@ class Recipe:
 
 
 def shipped_model_config() -> RaFDConfig:
-    """The shipped default model's network: the tiny config at the protocol's 256 px crop, with the speed options
-    (flow branch at stride 8, 16-cell attention windows: neither is the paper's) and the gain-robust input."""
+    """The `default` recipe's network: the tiny config at the protocol's 256 px crop, with the speed options
+    (flow branch at stride 8, 16-cell attention windows: neither is the paper's), the gain-robust input, and pre-norm
+    propagation blocks that start as the identity (so a single-frame model's weights start a multi-frame run).
+    The shipped default model is this network with post-norm propagation (trained before the switch; README)."""
     tiny = RaFDConfig.tiny(input_size=256)
     return tiny.replace(
         input=InputConfig(normalisation="local_contrast", window=47),
         flow=dataclasses.replace(tiny.flow, stride=8),
         enhance=dataclasses.replace(tiny.enhance, window=16),
+        propagation=dataclasses.replace(tiny.propagation, norm="pre"),
     )
 
 
@@ -55,9 +58,10 @@ RECIPES: dict[str, Recipe] = {
         ),
         Recipe(
             "default",
-            "the shipped model: tiny RaFD at 256 px, 4 frames, flow at stride 8, 16-cell attention windows, "
-            "gain-robust input; AdamW 1e-3 with cosine decay, batch 4, 6 epochs, bf16-friendly; flip + rotation, radar "
-            "intensity changes and crops up to 65 m from the radar (full-scan tiles)",
+            "the shipped model's network: tiny RaFD at 256 px, 4 frames, flow at stride 8, 16-cell attention "
+            "windows, gain-robust input, pre-norm propagation (the shipped model: post-norm); AdamW 1e-3 with "
+            "cosine decay, batch 4, 6 epochs, bf16-friendly; flip + rotation, radar intensity changes and crops up to "
+            "65 m from the radar (full-scan tiles)",
             shipped_model_config(),
             TrainConfig(epochs=6, batch_size=4, lr=1e-3, weight_decay=1e-2, optimizer="adamw", lr_schedule="cosine"),
             augment=AugmentConfig(intensity_probability=0.8, shift_probability=0.6, shift_max_m=65.0),

@@ -377,6 +377,35 @@ class Trainer:
         torch.save(state, optimizer_state_path(path))
         history_path(path).write_text(json.dumps(self.history, indent=2))
 
+    def initialise_from(self, path: Path) -> dict[str, list[str]]:
+        """Start from another checkpoint's weights (a two-stage recipe: a single-frame model's encoder and head under a
+        multi-frame run). Every tensor whose name and shape match is copied; the rest (a single-frame model has no flow
+        branch or propagation) keep this run's initialisation. Optimizer, epoch and history start fresh.
+        The two models must read the same input (size, resolution, normalisation) and predict the same targets:
+        otherwise the copied encoder would see other pixels, the copied head other boxes, than they learned."""
+        from rafd.checkpoint import read_checkpoint
+
+        state, source_cfg, _meta = read_checkpoint(Path(path), map_location="cpu")
+        for field in ("input_size", "resolution", "output_stride", "input", "class_names", "targets"):
+            if getattr(source_cfg, field) != getattr(self.model_cfg, field):
+                raise ValueError(f"cannot initialise from {path}: its {field} {getattr(source_cfg, field)!r} differs "
+                                 f"from this run's {getattr(self.model_cfg, field)!r}")
+        target = self.model.state_dict()
+        copied = {k: v for k, v in state.items() if k in target and target[k].shape == v.shape}
+        report = {
+            "copied": sorted(copied),
+            "skipped": sorted(k for k in state if k not in copied),  # absent here or another shape
+            "fresh": sorted(k for k in target if k not in copied),
+        }
+        if not copied:
+            raise ValueError(f"cannot initialise from {path}: no tensor of it fits this model")
+        self.model.load_state_dict(copied, strict=False)
+        self.run_meta["init"] = str(path)
+        log.info("initialised %d of %d tensors from %s (%d of its tensors skipped; %d fresh here, e.g. %s)",
+                 len(copied), len(target), path, len(report["skipped"]), len(report["fresh"]),
+                 ", ".join(sorted({k.split(".")[0] for k in report["fresh"]})) or "none")
+        return report
+
     def resume(self, path: Path) -> None:
         """Continue from a checkpoint written by save(): weights, optimizer, scaler, epoch/step, history."""
         from rafd.checkpoint import load_checkpoint

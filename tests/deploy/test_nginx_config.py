@@ -49,3 +49,13 @@ def test_compose_file_places_exactly_the_replicas_nginx_routes_to():
     servers = re.findall(r"^\s*server (rafd-\d+):8000\b", NGINX_CONF.read_text(), re.MULTILINE)
     assert services and services == servers
     assert "./nginx.conf:/etc/nginx/nginx.conf:ro" in compose
+
+
+def test_replicas_trust_forwarded_addresses_only_because_they_publish_no_port():
+    """Behind nginx every request comes from nginx's address; the replicas trust its X-Forwarded-For so the refusal
+    penalty counts per client. That trust is safe only while no replica is reachable except through nginx."""
+    compose = (NGINX_CONF.parent / "compose.yaml").read_text()
+    replica = compose.split("x-replica: &replica", 1)[1].split("\nservices:", 1)[0]
+    assert 'FORWARDED_ALLOW_IPS: "*"' in replica
+    assert "ports:" not in replica
+    assert "X-Forwarded-For $proxy_add_x_forwarded_for" in NGINX_CONF.read_text()

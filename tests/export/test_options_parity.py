@@ -39,3 +39,28 @@ def test_options_model_matches_onnxruntime(tmp_path) -> None:
     result, _ = step.step(step.new_state(), frames[0], poses[0])
     assert result.flow.shape == (3, 2, cfg.feature_size, cfg.feature_size)
     assert np.isfinite(result.flow).all()
+
+
+def test_pre_norm_propagation_matches_onnxruntime(tmp_path) -> None:
+    """Pre-norm propagation blocks (the shipped recipe's), with their zero-initialised branches made non-zero so
+    the exported graph's attention and FFN paths are exercised, not skipped as an identity."""
+    from export.onnx_export import export_onnx
+    from rafd.checkpoint import load_checkpoint, save_checkpoint
+    from rafd.model import build_model
+
+    base = small_config(4)
+    cfg = base.replace(propagation=dataclasses.replace(base.propagation, norm="pre"))
+    torch.manual_seed(3)
+    model = build_model(cfg).eval()
+    with torch.no_grad():
+        for parameter in model.propagation.parameters():
+            parameter.add_(torch.randn_like(parameter) * 0.1)
+    checkpoint = save_checkpoint(tmp_path / "pre.pt", model, cfg, meta={"purpose": "export tests"})
+    model, loaded, _ = load_checkpoint(checkpoint)
+    assert loaded.propagation.norm == "pre"
+    path = export_onnx(checkpoint, tmp_path / "step.onnx", form="step", verify=False, log=lambda _: None).path
+    frames, poses = random_sequence(cfg, 6, seed=4)
+    report = Report()
+    verify_stream(OnnxRunner(path, threads=1), model, frames, poses, report, "random")
+    assert report.ok, "\n".join(report.lines())
+    assert report.diffs["random"]["boxes"].unmatched == 0

@@ -32,8 +32,23 @@ def test_small_benchmark_end_to_end(tmp_path: Path) -> None:
     assert all(0.0 <= r["mAP@0.5"] <= 100.0 for r in results["rows"])
     assert results["rows"][1]["epe_all"] is None  # single frame: no flow
     assert (out / "results.md").read_text().count("\n") == 4
+    # second stage of the two-stage recipe: starts from `single` in the same out_dir, rows of the first run kept
+    code = main(["run", str(data), str(out), "--variants", "rafd4_from_single", "--epochs", "1",
+                 "--max-steps-per-epoch", "1", "--batch-size", "2", "--device", "cpu"])
+    assert code == 0
+    rows = json.loads((out / "results.json").read_text())["rows"]
+    assert [(r["variant"], r["init"]) for r in rows] == [("rafd2", None), ("single", None), ("rafd4_from_single", "single")]
+    from rafd.checkpoint import read_checkpoint
+
+    _, cfg, meta = read_checkpoint(out / "rafd4_from_single" / "model.pt")
+    assert cfg.num_frames == 4 and cfg.propagation.norm == "pre"
+    assert meta["init"] == str(out / "single" / "model.pt")
 
 
 def test_run_without_manifest_and_unknown_variant_fail(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
     assert main(["run", str(tmp_path), str(tmp_path / "o")]) != 0
     assert "benchmark.json" in capsys.readouterr().err
+    (tmp_path / "benchmark.json").write_text(json.dumps({"input_size": 64, "train_split": "train", "test_split": "test"}))
+    assert main(["run", str(tmp_path), str(tmp_path / "o"), "--variants", "rafd4_from_single"]) != 0
+    err = capsys.readouterr().err
+    assert "train variant single" in err and str(tmp_path / "o" / "single" / "model.pt") in err

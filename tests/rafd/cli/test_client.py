@@ -100,3 +100,28 @@ def test_client_on_a_simulated_sequence_sends_its_ego_poses(service_url, tmp_pat
     np.testing.assert_allclose([[a["pose"][k] for k in ("x", "y", "yaw")] for a in answers], poses, atol=1e-6)
     assert [a["input"]["posted_size"] for a in answers] == [128] * 3
     assert len(list((out / "frames").glob("*.png"))) == 3
+
+
+def test_client_sends_its_api_key_to_a_keyed_service(sequence, tmp_path, capsys, monkeypatch):
+    import sys
+
+    sys.path.insert(0, str(Path(__file__).resolve().parents[2] / "service"))  # the service tests' helpers
+    import httpx
+    from fake_runner import FakeRunner
+    from service_testing import FakeOdometry, serve_in_thread, wait_ready
+
+    from service.app import create_app
+    from service.settings import Settings
+
+    key = "client-test-key-0123456789"
+    settings = Settings(threads=1, api_keys=[f"fleet:{key}"])
+    with serve_in_thread(create_app(settings, runner=FakeRunner(), odometry=FakeOdometry())) as url:
+        with httpx.Client(base_url=url) as http:
+            wait_ready(http)
+        monkeypatch.delenv("RAFD_API_KEY", raising=False)
+        assert main([str(sequence), "--url", url, "--limit", "1"]) != 0  # no key: refused, said plainly
+        assert "HTTP 401" in capsys.readouterr().err
+        assert main([str(sequence), "--url", url, "--limit", "2", "--api-key", key, "--out", str(tmp_path / "a")]) == 0
+        assert len((tmp_path / "a" / "answers.jsonl").read_text().splitlines()) == 2
+        monkeypatch.setenv("RAFD_API_KEY", key)  # the environment's key when --api-key is not given
+        assert main([str(sequence), "--url", url, "--limit", "1", "--stream-id", "again", "--out", str(tmp_path / "b")]) == 0

@@ -69,3 +69,16 @@ def test_calibrate_refuses_a_budget_that_is_not_positive(trained_checkpoint: Pat
                                                          capsys: pytest.CaptureFixture[str]) -> None:
     assert main([str(trained_checkpoint), "--data", str(sim_root), "--split", "train", "--calibrate", "0"]) == 2
     assert "--calibrate" in capsys.readouterr().err
+
+
+def test_like_frames_scores_only_the_frames_a_longer_model_scores(trained_checkpoint: Path, sim_root: Path,
+                                                                  tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    """The 2-frame model scores 4 of each 5-frame drive's frames; --like-frames 4 keeps the 2 a 4-frame model scores."""
+    base = [str(trained_checkpoint), "--data", str(sim_root), "--split", "train", "--device", "cpu", "--no-progress"]
+    assert main(base + ["--json", str(tmp_path / "all.json")]) == 0
+    assert main(base + ["--like-frames", "4", "--json", str(tmp_path / "like4.json")]) == 0
+    every, like4 = (json.loads((tmp_path / name).read_text()) for name in ("all.json", "like4.json"))
+    assert every["overall"]["frames"] == 2 * 4 and like4["overall"]["frames"] == 2 * 2
+    assert like4["like_frames"] == 4
+    assert main(base + ["--like-frames", "6"]) != 0  # 5-frame drives: no frame has 5 predecessors
+    assert "predecessors" in capsys.readouterr().err

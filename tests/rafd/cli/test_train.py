@@ -53,3 +53,27 @@ def test_missing_resume_checkpoint_fails_clearly(sim_root: Path, tmp_path: Path,
     argv = ["--data", str(sim_root), "--split", "train", "--out", str(tmp_path / "m.pt"), "--resume", str(tmp_path / "x.pt")]
     assert main(argv) != 0
     assert "x.pt" in capsys.readouterr().err
+
+
+def test_init_and_resume_together_are_refused(sim_root: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    some = tmp_path / "some.pt"
+    some.write_bytes(b"x")
+    argv = ["--data", str(sim_root), "--split", "train", "--out", str(tmp_path / "m.pt"), "--init", str(some),
+            "--resume", str(some)]
+    assert main(argv) != 0
+    assert "--init" in capsys.readouterr().err
+    argv = ["--data", str(sim_root), "--split", "train", "--out", str(tmp_path / "m.pt"), "--init", str(tmp_path / "no.pt")]
+    assert main(argv) != 0
+    assert "no.pt" in capsys.readouterr().err
+
+
+def test_propagation_norm_flag_reaches_the_model_config(sim_root: Path, tmp_path: Path) -> None:
+    from rafd.checkpoint import load_checkpoint
+
+    out = tmp_path / "post.pt"
+    argv = ["--data", str(sim_root), "--split", "train", "--config", "default", "--frames", "2", "--input-size", "64",
+            "--out", str(out), "--epochs", "1", "--batch-size", "2", "--max-steps-per-epoch", "1", "--device", "cpu",
+            "--no-progress", "--no-augment", "--propagation-norm", "post"]
+    assert main(argv) == 0
+    _, cfg, _ = load_checkpoint(out, map_location="cpu")
+    assert cfg.propagation.norm == "post"

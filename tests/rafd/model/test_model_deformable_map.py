@@ -41,3 +41,31 @@ def test_forward_map_equals_forward_on_every_cell() -> None:
     tokens = layer(query.flatten(2).transpose(1, 2), reference, value)  # [B, Q, C]
     maps = layer.forward_map(query, reference, value)  # [B, C, H, W]
     torch.testing.assert_close(maps.flatten(2).transpose(1, 2), tokens, atol=1e-12, rtol=0)
+
+
+def test_a_fresh_pre_norm_layer_is_the_identity_and_a_trained_one_is_not() -> None:
+    torch.manual_seed(1)
+    channels, size = 8, 6
+    layer = DeformableLayer(DeformableAttention(channels, 4, (size, size)), channels, 2, norm="pre").double().eval()
+    query = torch.randn(2, channels, size, size, dtype=torch.float64)
+    reference = torch.rand(2, size * size, 2, dtype=torch.float64) * 2 - 1
+    value = torch.randn(2, channels, size, size, dtype=torch.float64)
+    torch.testing.assert_close(layer.forward_map(query, reference, value), query, atol=0, rtol=0)
+    tokens = query.flatten(2).transpose(1, 2)  # [B, Q, C]
+    torch.testing.assert_close(layer(tokens, reference, value), tokens, atol=0, rtol=0)
+    with torch.no_grad():
+        for parameter in layer.parameters():
+            parameter.add_(torch.randn_like(parameter) * 0.2)
+    maps = layer.forward_map(query, reference, value)
+    assert (maps - query).abs().max() > 0.1  # the branches now add something ...
+    # ... and the channel-major path still computes the token-major layer, un-normalised residual stream included
+    torch.testing.assert_close(maps.flatten(2).transpose(1, 2), layer(tokens, reference, value), atol=1e-12, rtol=0)
+
+
+def test_post_norm_stays_the_default_and_unknown_norms_are_refused() -> None:
+    import pytest
+
+    layer = DeformableLayer(DeformableAttention(8, 4, (6, 6)), 8, 2)
+    assert not layer.pre_norm and layer.attention.output_proj.weight.abs().sum() > 0
+    with pytest.raises(ValueError, match="norm"):
+        DeformableLayer(DeformableAttention(8, 4, (6, 6)), 8, 2, norm="sandwich")

@@ -78,3 +78,42 @@ def test_resume_without_optimizer_state_is_a_clear_error(tiny_root: Path, tiny_c
     optimizer_state_path(tmp_path / "a.pt").unlink()
     with pytest.raises(FileNotFoundError, match="optim.pt"):
         Trainer(tiny_cfg, _train_cfg(), dataset, None, CPU).resume(tmp_path / "a.pt")
+
+
+def test_init_from_a_single_frame_model_copies_its_encoder_and_head(tiny_root: Path, tmp_path: Path) -> None:
+    """Two-stage recipe: a 2-frame run starts from a trained single-frame model. With pre-norm propagation the
+    fresh multi-frame model then predicts exactly what the single-frame model predicts on the newest frame."""
+    import dataclasses
+
+    base = RaFDConfig.tiny(input_size=64, num_frames=1)
+    single_cfg = base.replace(propagation=dataclasses.replace(base.propagation, norm="pre"))
+    single = Trainer(single_cfg, _train_cfg(), open_windows(tiny_root, "train", single_cfg), tmp_path / "single.pt", CPU)
+    single.fit()
+    multi_cfg = single_cfg.replace(num_frames=2)
+    dataset = open_windows(tiny_root, "train", multi_cfg)
+    multi = Trainer(multi_cfg, _train_cfg(), dataset, tmp_path / "multi.pt", CPU)
+    report = multi.initialise_from(tmp_path / "single.pt")
+    assert report["skipped"] == [] and report["copied"]
+    assert {name.split(".")[0] for name in report["fresh"]} == {"flow", "propagation"}
+    trained = single.model.state_dict()
+    for name in report["copied"]:
+        assert torch.equal(multi.model.state_dict()[name], trained[name]), name
+    assert multi.run_meta["init"] == str(tmp_path / "single.pt")
+    batch = Collator(multi_cfg)([dataset[0], dataset[1]])
+    single.model.eval(), multi.model.eval()
+    with torch.no_grad():
+        both = multi.model(batch.frames, batch.poses)
+        newest = single.model(batch.frames[:, -1:], batch.poses[:, -1:])
+    for key in ("heatmap", "boxes", "scores"):
+        torch.testing.assert_close(both[key], newest[key], atol=1e-5, rtol=0)
+    assert multi.epoch == 0 and multi.history == []  # a new run: schedule and epochs start fresh
+
+
+def test_init_refuses_a_model_that_reads_other_input(tiny_root: Path, tiny_cfg: RaFDConfig, tmp_path: Path) -> None:
+    other = tiny_cfg.replace(input_size=128)
+    Trainer(other, _train_cfg(), open_windows(tiny_root, "train", other), tmp_path / "other.pt", CPU).fit()
+    trainer = Trainer(tiny_cfg, _train_cfg(), open_windows(tiny_root, "train", tiny_cfg), None, CPU)
+    before = _weights(trainer)
+    with pytest.raises(ValueError, match="input_size"):
+        trainer.initialise_from(tmp_path / "other.pt")
+    _assert_same(before, _weights(trainer))  # nothing half-copied
