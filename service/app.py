@@ -20,11 +20,11 @@ from starlette.concurrency import run_in_threadpool
 from rafd import __version__
 from service.auth import OPEN_PATHS, ApiKeyMiddleware, load_api_keys
 from service.detector import DetectService, Executors
-from service.penalty import RefusalPenalty
 from service.errors import ERRORS, error_responses, install_error_handlers
 from service.limits import BodySizeLimitMiddleware
 from service.loading import check_buffer_length, open_runner, warm_up
 from service.metrics import MetricsMiddleware, ServiceMetrics
+from service.penalty import RefusalPenalty
 from service.poses import Odometry
 from service.routers import detect, health, metrics, model, streams
 from service.settings import Settings, get_settings

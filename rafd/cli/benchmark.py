@@ -230,7 +230,8 @@ def run_benchmark(args: argparse.Namespace) -> int:
         metrics_path = args.out_dir / name / "test_metrics.json"
         # every variant scores the same frames: those a 4-frame model scores (a drive's first 3 have no window)
         common = [str(ckpt), "--data", str(args.data_root), "--split", manifest["test_split"], "--device", args.device,
-                  "--no-progress", "--like-frames", str(SCORED_HISTORY), *(["--cache", str(args.data_root / manifest["cache"])] if manifest.get("cache") else [])]
+                  "--no-progress", "--like-frames", str(SCORED_HISTORY),
+                  *(["--cache", str(args.data_root / manifest["cache"])] if manifest.get("cache") else [])]
         if eval_cli.main(common + ["--json", str(metrics_path), "--examples", "0"]) != 0:
             raise RuntimeError(f"evaluating variant {name} failed")
         overall = json.loads(metrics_path.read_text())["overall"]

@@ -165,6 +165,9 @@ def main(argv: Sequence[str] | None = None) -> int:
         print(f"rafd-eval: error: --calibrate needs a positive number of false positives per frame, got {args.calibrate}",
               file=sys.stderr)
         return 2
+    if args.like_frames is not None and args.like_frames < 1:
+        print(f"rafd-eval: error: --like-frames needs a number of frames >= 1, got {args.like_frames}", file=sys.stderr)
+        return 2
     if args.full_scan and (args.plots is not None or args.mcap is not None):
         print("rafd-eval: error: --plots and --mcap draw the model's crop; run them without --full-scan", file=sys.stderr)
         return 2

@@ -82,3 +82,5 @@ def test_like_frames_scores_only_the_frames_a_longer_model_scores(trained_checkp
     assert like4["like_frames"] == 4
     assert main(base + ["--like-frames", "6"]) != 0  # 5-frame drives: no frame has 5 predecessors
     assert "predecessors" in capsys.readouterr().err
+    assert main(base + ["--like-frames", "0"]) != 0
+    assert "--like-frames" in capsys.readouterr().err
