@@ -24,6 +24,7 @@ import shapely
 from rafd.geometry import box_corners
 
 DEFAULT_IOU_THRESHOLDS = (0.3, 0.5, 0.7)
+CENTRE_DISTANCE_M = 2.0  # centre matching: a detection counts when its centre is within this of an unmatched vehicle's
 
 
 # ---------------------------------------------------------------- oriented-box IoU
@@ -132,20 +133,29 @@ def _ranked_overlaps(
     return frames[order], best_gt[order], best_iou[order]
 
 
+def _greedy_true_positives(
+    frames: np.ndarray, best_gt: np.ndarray, best_iou: np.ndarray, num_gt_per_frame: list[int], iou_threshold: float
+) -> np.ndarray:
+    """Greedy matching in ranking order -> true positive [D] bool (a detection's fate depends on its own frame
+    only: on the higher-ranked detections of that frame)."""
+    if not 0.0 <= iou_threshold < 1.0:
+        raise ValueError(f"IoU threshold must lie in [0, 1), got {iou_threshold}")
+    matched = [np.zeros(n, dtype=bool) for n in num_gt_per_frame]
+    true_positive = np.zeros(len(frames), dtype=bool)
+    for d, (frame, gt, iou) in enumerate(zip(frames, best_gt, best_iou)):
+        if iou > iou_threshold and not matched[frame][gt]:
+            matched[frame][gt] = True
+            true_positive[d] = True
+    return true_positive
+
+
 def _pr_from_overlaps(
     frames: np.ndarray, best_gt: np.ndarray, best_iou: np.ndarray, num_gt_per_frame: list[int], iou_threshold: float
 ) -> tuple[np.ndarray, np.ndarray]:
     """Greedy matching in ranking order -> (precision [D], recall [D])."""
-    if not 0.0 <= iou_threshold < 1.0:
-        raise ValueError(f"IoU threshold must lie in [0, 1), got {iou_threshold}")
-    matched = [np.zeros(n, dtype=bool) for n in num_gt_per_frame]
-    true_positive = np.zeros(len(frames))
-    for d, (frame, gt, iou) in enumerate(zip(frames, best_gt, best_iou)):
-        if iou > iou_threshold and not matched[frame][gt]:
-            matched[frame][gt] = True
-            true_positive[d] = 1.0
-    tp = np.cumsum(true_positive)
-    fp = np.cumsum(1.0 - true_positive)
+    true_positive = _greedy_true_positives(frames, best_gt, best_iou, num_gt_per_frame, iou_threshold)
+    tp = np.cumsum(true_positive, dtype=np.float64)
+    fp = np.cumsum(~true_positive, dtype=np.float64)
     num_gt = sum(num_gt_per_frame)
     recall = tp / num_gt if num_gt > 0 else np.zeros_like(tp)
     precision = tp / np.maximum(tp + fp, np.finfo(np.float64).eps)
@@ -186,6 +196,37 @@ def mean_average_precision(
     return result
 
 
+@dataclass(frozen=True)
+class RankedOutcomes:
+    """Every detection of a set of frames in the metrics' ranking order with its fate at each IoU threshold:
+    what a resampling of frames (rafd.compare) needs to recompute AP without recomputing any overlap."""
+
+    scores: np.ndarray  # [D] descending
+    frames: np.ndarray  # [D] index of the detection's frame
+    true_positive: dict[float, np.ndarray]  # IoU threshold -> [D] bool
+    num_gt_per_frame: np.ndarray  # [F]
+
+
+def ranked_outcomes(
+    predictions: Sequence[np.ndarray],
+    ground_truths: Sequence[np.ndarray],
+    iou_thresholds: Sequence[float] = DEFAULT_IOU_THRESHOLDS,
+) -> RankedOutcomes:
+    """Per-frame predictions [N_f, 6] and GT [M_f, 5] -> RankedOutcomes (the ranking and matching of
+    mean_average_precision)."""
+    preds, gts = _prepare(predictions, ground_truths)
+    frames, best_gt, best_iou = _ranked_overlaps(preds, gts)
+    scores = np.concatenate([p[:, 5] for p in preds] + [np.zeros(0)])
+    num_gt_per_frame = [len(g) for g in gts]
+    return RankedOutcomes(
+        scores=np.sort(scores)[::-1],  # the ranking's scores (ties are equal values)
+        frames=frames,
+        true_positive={float(t): _greedy_true_positives(frames, best_gt, best_iou, num_gt_per_frame, float(t))
+                       for t in iou_thresholds},
+        num_gt_per_frame=np.asarray(num_gt_per_frame, dtype=np.int64),
+    )
+
+
 # ---------------------------------------------------------------- centre-distance matching
 @dataclass(frozen=True)
 class CentreMatches:
@@ -195,6 +236,26 @@ class CentreMatches:
     true_positive: np.ndarray  # [D] bool
     num_gt: int
     num_frames: int
+    frames: np.ndarray | None = None  # [D] index of each detection's frame
+    # ranges from the radar (the ego origin), for figures per range band
+    detection_range: np.ndarray | None = None  # [D] of each detection's centre
+    matched_range: np.ndarray | None = None  # [D] of the vehicle a true positive matched (nan: false positive)
+    vehicle_range: np.ndarray | None = None  # [G] of every ground-truth vehicle
+
+    def by_range(self, score_threshold: float, edges_m: Sequence[float]) -> list[dict[str, float]]:
+        """Per range band [edges[i], edges[i+1]) m: vehicles in it, the recall among them and the false positives
+        per frame lying in it, of the detections scoring >= the threshold. A radar engineer's first question:
+        where does the detector lose vehicles and where does it invent them?"""
+        keep = self.scores >= score_threshold
+        found, false = self.matched_range[keep & self.true_positive], self.detection_range[keep & ~self.true_positive]
+        bands = []
+        for low, high in zip(edges_m[:-1], edges_m[1:]):
+            vehicles = int(((self.vehicle_range >= low) & (self.vehicle_range < high)).sum())
+            hits = int(((found >= low) & (found < high)).sum())
+            bands.append({"from_m": float(low), "to_m": float(high), "vehicles": vehicles,
+                          "recall": 100.0 * hits / vehicles if vehicles else float("nan"),
+                          "fp_per_frame": float(((false >= low) & (false < high)).sum() / max(self.num_frames, 1))})
+        return bands
 
     def at_threshold(self, score_threshold: float) -> tuple[float, float]:
         """(recall, false positives per frame) of the detections scoring >= the threshold."""
@@ -232,6 +293,7 @@ def match_centres(predictions: Sequence[np.ndarray], ground_truths: Sequence[np.
     order = np.argsort(-scores, kind="stable")
     matched = [np.zeros(len(g), bool) for g in gts]
     true_positive = np.zeros(len(order), bool)
+    matched_range = np.full(len(order), np.nan)
     for rank, d in enumerate(order):
         gt = gts[frames[d]]
         if not len(gt):
@@ -242,7 +304,12 @@ def match_centres(predictions: Sequence[np.ndarray], ground_truths: Sequence[np.
         if distance[best] <= max_distance:
             matched[frames[d]][best] = True
             true_positive[rank] = True
-    return CentreMatches(scores[order], true_positive, sum(len(g) for g in gts), len(gts))
+            matched_range[rank] = np.hypot(*gt[best, :2])
+    centres = np.concatenate([p[:, :2] for p in preds] + [np.zeros((0, 2))])[order]
+    vehicles = np.concatenate([g[:, :2] for g in gts] + [np.zeros((0, 2))])
+    return CentreMatches(scores[order], true_positive, sum(len(g) for g in gts), len(gts), frames[order],
+                         detection_range=np.hypot(*centres.T), matched_range=matched_range,
+                         vehicle_range=np.hypot(*vehicles.T))
 
 
 # ---------------------------------------------------------------- flow

@@ -1,4 +1,5 @@
-"""rafd-benchmark: the fixed simulated benchmark (data) and its Table 1/2-style comparison (run)."""
+"""rafd-benchmark: the fixed simulated benchmark (data), its Table 1/2-style comparison (run) and a paired
+bootstrap between two of its models (compare)."""
 from __future__ import annotations
 
 import argparse
@@ -37,6 +38,7 @@ BENCHMARK_INPUT_SIZE = 256
 SCORED_HISTORY = 4  # frames: every variant is scored on the frames the 4-frame model scores
 BENCHMARK_RECIPE = "default"
 CACHE = "cache"
+DETECTIONS = "test_detections.npz"  # each variant's test detections, for rafd-benchmark compare
 
 
 @dataclass(frozen=True)
@@ -129,6 +131,14 @@ def build_parser() -> argparse.ArgumentParser:
     run.add_argument("--precision", choices=("fp32", "bf16", "fp16"), default="fp32", help="training autocast")
     run.add_argument("--max-windows", type=int, help="cap training windows (smoke tests)")
     run.add_argument("--max-steps-per-epoch", type=int, help="cap steps per epoch (smoke tests)")
+    compare = commands.add_parser(
+        "compare", help="paired bootstrap over drives: is CANDIDATE better than BASELINE on the same frames?")
+    compare.add_argument("baseline", type=Path, help="detections (.npz from rafd-eval --detections, or a variant's "
+                                                     "folder of a run, which holds test_detections.npz)")
+    compare.add_argument("candidate", type=Path, help="the same for the other model")
+    compare.add_argument("--resamples", type=int, default=2000)
+    compare.add_argument("--seed", type=int, default=0)
+    compare.add_argument("--json", type=Path, help="write the comparison here")
     return parser
 
 
@@ -232,7 +242,8 @@ def run_benchmark(args: argparse.Namespace) -> int:
         common = [str(ckpt), "--data", str(args.data_root), "--split", manifest["test_split"], "--device", args.device,
                   "--no-progress", "--like-frames", str(SCORED_HISTORY),
                   *(["--cache", str(args.data_root / manifest["cache"])] if manifest.get("cache") else [])]
-        if eval_cli.main(common + ["--json", str(metrics_path), "--examples", "0"]) != 0:
+        detections = ["--detections", str(args.out_dir / name / DETECTIONS)]
+        if eval_cli.main(common + ["--json", str(metrics_path), "--examples", "0", *detections]) != 0:
             raise RuntimeError(f"evaluating variant {name} failed")
         overall = json.loads(metrics_path.read_text())["overall"]
         row = {"variant": name, "description": variant.description, "train_seconds": seconds, "epochs": args.epochs,
@@ -256,6 +267,28 @@ def run_benchmark(args: argparse.Namespace) -> int:
     return 0
 
 
+def compare_models(args: argparse.Namespace) -> int:
+    from rafd.compare import format_comparison, load_detections, paired_bootstrap
+
+    def detections_of(path: Path) -> tuple[str, list]:
+        file = path / DETECTIONS if path.is_dir() else path
+        if not file.is_file():
+            raise FileNotFoundError(f"{file} does not exist (rafd-eval --detections writes it; rafd-benchmark run "
+                                    f"writes {DETECTIONS} into each variant's folder)")
+        return (path.name if path.is_dir() else path.stem), load_detections(file)
+
+    (name_a, frames_a), (name_b, frames_b) = detections_of(args.baseline), detections_of(args.candidate)
+    result = paired_bootstrap(frames_a, frames_b, resamples=args.resamples, seed=args.seed)
+    drives = len({f.sequence for f in frames_a})
+    print(format_comparison(result, name_a, name_b, drives, args.resamples))
+    if args.json is not None:
+        args.json.parent.mkdir(parents=True, exist_ok=True)
+        args.json.write_text(json.dumps({"baseline": str(args.baseline), "candidate": str(args.candidate),
+                                         "drives": drives, "frames": len(frames_a), "resamples": args.resamples,
+                                         "seed": args.seed, "metrics": result}, indent=2))
+    return 0
+
+
 def main(argv: Sequence[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(levelname)s %(name)s: %(message)s")
@@ -263,6 +296,8 @@ def main(argv: Sequence[str] | None = None) -> int:
         if args.command == "data":
             print(make_data(args.out_root, args.scale, args.frames))
             return 0
+        if args.command == "compare":
+            return compare_models(args)
         return run_benchmark(args)
     except (FileNotFoundError, ValueError, RuntimeError) as error:
         print(f"rafd-benchmark: error: {error}", file=sys.stderr)

@@ -34,6 +34,9 @@ def build_parser() -> argparse.ArgumentParser:
                              "the checkpoint's meta (rafd-export carries it into the ONNX; the service uses it). "
                              "Use a validation split, never test data")
     parser.add_argument("--json", type=Path, help="write the metrics here")
+    parser.add_argument("--detections", type=Path, metavar="NPZ",
+                        help="write every frame's detections and ground truth here, for a paired comparison of two "
+                             "models on the same frames (rafd-benchmark compare)")
     parser.add_argument("--plots", type=Path, help="folder for the precision-recall plot and example frames")
     parser.add_argument("--examples", type=int, default=4, help="example frames drawn into --plots")
     parser.add_argument("--mcap", type=Path, help="folder for Foxglove/MCAP logs, one <sequence>.mcap per sequence")
@@ -49,11 +52,13 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def _jsonable(value: Any) -> Any:
-    """NaN -> None so the JSON is standard."""
-    if isinstance(value, float) and math.isnan(value):
+    """NaN and infinities -> None so the JSON is standard."""
+    if isinstance(value, float) and not math.isfinite(value):
         return None
     if isinstance(value, dict):
         return {k: _jsonable(v) for k, v in value.items()}
+    if isinstance(value, list):
+        return [_jsonable(v) for v in value]
     return value
 
 
@@ -61,8 +66,7 @@ def calibrate(args: argparse.Namespace, results: list, cfg: Any, model: Any, met
     """--calibrate: the lowest threshold within the false-positive budget -> written into the checkpoint's meta
     (atomically; weights and config untouched). None (and a message) when no threshold meets the budget."""
     from rafd.checkpoint import save_checkpoint
-    from rafd.train.predict import CENTRE_DISTANCE_M
-    from rafd.metrics import match_centres
+    from rafd.metrics import CENTRE_DISTANCE_M, match_centres
 
     centres = match_centres([r.predictions for r in results], [r.ground_truth for r in results], CENTRE_DISTANCE_M)
     recall, threshold = centres.recall_at_fp_rate(args.calibrate)
@@ -92,6 +96,13 @@ def format_table(overall: dict[str, Any], per_sequence: dict[str, dict[str, Any]
             value = row.get(column)
             cells.append(f"{value:>15.4f}" if isinstance(value, float) else f"{str(value):>15}")
         lines.append(f"{name:<28}" + "".join(cells))
+    bands = [b for b in overall.get("by_range_at_threshold", []) if b["vehicles"] or b["fp_per_frame"]]
+    if bands:
+        lines.append(f"\nat the operating threshold {overall['score_threshold']:.4g}, by range from the radar:")
+        lines.append(f"{'range (m)':<28}{'vehicles':>15}{'recall':>15}{'fp_per_frame':>15}")
+        for band in bands:
+            lines.append(f"{band['from_m']:>5.0f} - {band['to_m']:<20.0f}{band['vehicles']:>15}{band['recall']:>15.1f}"
+                         f"{band['fp_per_frame']:>15.3f}")
     return "\n".join(lines)
 
 
@@ -228,6 +239,12 @@ def main(argv: Sequence[str] | None = None) -> int:
         paths = write_evaluation_logs(args.mcap, dataset, results, cfg, str(args.checkpoint))
         report["mcap"] = [str(p) for p in paths]
         print(f"MCAP logs: {args.mcap} ({len(paths)} files)")
+    if args.detections is not None:
+        from rafd.compare import save_detections
+
+        save_detections(args.detections, results)
+        report["detections"] = str(args.detections)
+        print(f"detections: {args.detections}")
     if args.json is not None:
         args.json.parent.mkdir(parents=True, exist_ok=True)
         args.json.write_text(json.dumps(_jsonable(report), indent=2))

@@ -13,7 +13,7 @@ from tqdm import tqdm
 
 from rafd.config import RaFDConfig
 from rafd.detections import decode_detections
-from rafd.metrics import end_point_error, match_centres, mean_average_precision
+from rafd.metrics import CENTRE_DISTANCE_M, end_point_error, match_centres, mean_average_precision
 from rafd.train.collate import Collator
 
 IOU_THRESHOLDS = (0.3, 0.5, 0.7)
@@ -115,7 +115,7 @@ def _pooled(values: Sequence[float], weights: Sequence[int]) -> float:
     return float(sum(v * w for v, w in zip(values, weights) if w > 0) / total)
 
 
-CENTRE_DISTANCE_M = 2.0  # a detection counts when its centre is within this of an unmatched vehicle's
+RANGE_BANDS_M = (0.0, 25.0, 50.0, 75.0, 100.0, float("inf"))  # the Navtech reaches 100 m; full-scan corners 141 m
 
 
 def summarise(results: Sequence[FrameResult], iou_thresholds: Sequence[float] = IOU_THRESHOLDS,
@@ -141,6 +141,7 @@ def summarise(results: Sequence[FrameResult], iou_thresholds: Sequence[float] = 
         summary["score_threshold"] = score_threshold
         summary["recall_at_threshold"] = 100.0 * recall
         summary["fp_per_frame_at_threshold"] = fp_per_frame
+        summary["by_range_at_threshold"] = centres.by_range(score_threshold, RANGE_BANDS_M)
     summary["epe_all"] = _pooled([r.epe_all for r in results], [r.cells_all for r in results])
     summary["epe_foreground"] = _pooled([r.epe_foreground for r in results], [r.cells_foreground for r in results])
     summary["objects"] = int(sum(len(r.ground_truth) for r in results))

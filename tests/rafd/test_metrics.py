@@ -280,3 +280,12 @@ def test_centre_matching_recall_and_false_positives_per_frame() -> None:
     assert recall == pytest.approx(1 / 3) and threshold == pytest.approx(0.6)
     assert match_centres(preds, gts, max_distance=3.0).true_positive.sum() == 2
     assert 0 < matches.average_precision() < 1
+
+    # by range band: the vehicles at 10 m (two) and 20.6 m; the false positives at 10.4 m (the duplicate), 42.4 m,
+    # 10.3 m and 12.7 m
+    bands = matches.by_range(0.0, (0.0, 15.0, 25.0, 50.0))
+    assert [b["vehicles"] for b in bands] == [2, 1, 0]
+    assert [b["recall"] for b in bands[:2]] == [pytest.approx(50.0), 0.0] and np.isnan(bands[2]["recall"])
+    assert [b["fp_per_frame"] for b in bands] == [pytest.approx(3 / 3), 0.0, pytest.approx(1 / 3)]
+    assert [b["fp_per_frame"] for b in matches.by_range(0.65, (0.0, 15.0, 25.0, 50.0))] == [
+        pytest.approx(1 / 3), 0.0, pytest.approx(1 / 3)]

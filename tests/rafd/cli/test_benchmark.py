@@ -32,6 +32,15 @@ def test_small_benchmark_end_to_end(tmp_path: Path) -> None:
     assert all(0.0 <= r["mAP@0.5"] <= 100.0 for r in results["rows"])
     assert results["rows"][1]["epe_all"] is None  # single frame: no flow
     assert (out / "results.md").read_text().count("\n") == 4
+    # paired bootstrap between two variants of the run (both scored on the same frames)
+    assert main(["compare", str(out / "single"), str(out / "rafd2"), "--resamples", "20", "--json",
+                 str(out / "cmp.json")]) == 0
+    comparison = json.loads((out / "cmp.json").read_text())
+    assert comparison["frames"] == results["rows"][0]["frames"]
+    assert set(comparison["metrics"]) >= {"mAP@0.5", "centre_AP"}
+    row = comparison["metrics"]["mAP@0.5"]
+    assert row["difference"] == pytest.approx(results["rows"][0]["mAP@0.5"] - results["rows"][1]["mAP@0.5"])
+    assert row["low"] <= row["high"]
     # second stage of the two-stage recipe: starts from `single` in the same out_dir, rows of the first run kept
     code = main(["run", str(data), str(out), "--variants", "rafd4_from_single", "--epochs", "1",
                  "--max-steps-per-epoch", "1", "--batch-size", "2", "--device", "cpu"])
@@ -43,6 +52,11 @@ def test_small_benchmark_end_to_end(tmp_path: Path) -> None:
     _, cfg, meta = read_checkpoint(out / "rafd4_from_single" / "model.pt")
     assert cfg.num_frames == 4 and cfg.propagation.norm == "pre"
     assert meta["init"] == str(out / "single" / "model.pt")
+
+
+def test_compare_needs_detections(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    assert main(["compare", str(tmp_path), str(tmp_path / "b.npz")]) == 2
+    assert "test_detections.npz does not exist" in capsys.readouterr().err
 
 
 def test_run_without_manifest_and_unknown_variant_fail(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:

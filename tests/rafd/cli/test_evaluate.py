@@ -5,15 +5,17 @@ import json
 from pathlib import Path
 
 import cv2
+import numpy as np
 import pytest
 
 from rafd.cli.evaluate import main
 
 
 def test_writes_metrics_json_and_plots(trained_checkpoint: Path, sim_root: Path, tmp_path: Path) -> None:
-    out_json, plots = tmp_path / "metrics.json", tmp_path / "plots"
+    out_json, plots, detections = tmp_path / "metrics.json", tmp_path / "plots", tmp_path / "dets.npz"
     code = main([str(trained_checkpoint), "--data", str(sim_root), "--split", "train", "--json", str(out_json),
-                 "--plots", str(plots), "--examples", "2", "--device", "cpu", "--no-progress"])
+                 "--plots", str(plots), "--examples", "2", "--device", "cpu", "--no-progress",
+                 "--detections", str(detections)])
     assert code == 0
     report = json.loads(out_json.read_text())
     overall = report["overall"]
@@ -22,6 +24,14 @@ def test_writes_metrics_json_and_plots(trained_checkpoint: Path, sim_root: Path,
     assert overall["epe_all"] is not None and overall["epe_all"] >= 0.0
     assert set(report["per_sequence"]) == {"sim_11_0", "sim_11_1"}
     assert sum(s["frames"] for s in report["per_sequence"].values()) == overall["frames"] > 0
+    # the saved detections give back the same figures (what rafd-benchmark compare starts from)
+    from rafd.compare import _Scored, load_detections
+
+    frames = load_detections(detections)
+    assert len(frames) == overall["frames"] and report["detections"] == str(detections)
+    again = _Scored(frames).metrics(np.ones(len(frames)))
+    for key in ("mAP@0.3", "mAP@0.5", "mAP@0.7", "centre_AP", "recall_at_1fp"):
+        assert again[key] == pytest.approx(overall[key], abs=1e-9)
     pngs = sorted(plots.glob("*.png"))
     assert plots / "precision_recall.png" in pngs
     examples = [p for p in pngs if p.name.startswith("example_")]
