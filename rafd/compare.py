@@ -77,28 +77,27 @@ class _Scored:
         num_gt = float(frame_weights @ self.num_gt)
         out = {}
         for name, (frames, tp) in zip(METRICS, self.iou):
-            out[name] = 100.0 * _weighted_ap(tp, frame_weights[frames], num_gt)
+            out[name] = 100.0 * _average_precision(*_weighted_counts(tp, frame_weights[frames]), num_gt)
         frames, tp = self.centre
-        weights = frame_weights[frames]
-        out["centre_AP"] = 100.0 * _weighted_ap(tp, weights, num_gt)
-        out["recall_at_1fp"] = 100.0 * _weighted_recall_at_fp(tp, weights, num_gt, float(frame_weights.sum()))
+        counts = _weighted_counts(tp, frame_weights[frames])
+        out["centre_AP"] = 100.0 * _average_precision(*counts, num_gt)
+        out["recall_at_1fp"] = 100.0 * _recall_at_fp(*counts, num_gt, float(frame_weights.sum()))
         return out
 
 
-def _weighted_ap(true_positive: np.ndarray, weights: np.ndarray, num_gt: float) -> float:
-    keep = weights > 0  # detections of frames not drawn drop out of the ranking
-    tp = np.cumsum(weights[keep] * true_positive[keep])
-    fp = np.cumsum(weights[keep] * ~true_positive[keep])
+def _weighted_counts(true_positive: np.ndarray, weights: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Cumulative (true, false) positives down the ranking; detections of frames not drawn drop out."""
+    keep = weights > 0
+    return np.cumsum(weights[keep] * true_positive[keep]), np.cumsum(weights[keep] * ~true_positive[keep])
+
+
+def _average_precision(tp: np.ndarray, fp: np.ndarray, num_gt: float) -> float:
     if num_gt <= 0 or not len(tp):
         return 0.0
     return voc_ap(tp / num_gt, tp / np.maximum(tp + fp, np.finfo(np.float64).eps))
 
 
-def _weighted_recall_at_fp(true_positive: np.ndarray, weights: np.ndarray, num_gt: float, num_frames: float,
-                           fp_per_frame: float = 1.0) -> float:
-    keep = weights > 0
-    tp = np.cumsum(weights[keep] * true_positive[keep])
-    fp = np.cumsum(weights[keep] * ~true_positive[keep])
+def _recall_at_fp(tp: np.ndarray, fp: np.ndarray, num_gt: float, num_frames: float, fp_per_frame: float = 1.0) -> float:
     allowed = np.flatnonzero(fp <= fp_per_frame * num_frames)
     return float(tp[allowed[-1]] / num_gt) if len(allowed) and num_gt > 0 else 0.0
 

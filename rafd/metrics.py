@@ -201,7 +201,6 @@ class RankedOutcomes:
     """Every detection of a set of frames in the metrics' ranking order with its fate at each IoU threshold:
     what a resampling of frames (rafd.compare) needs to recompute AP without recomputing any overlap."""
 
-    scores: np.ndarray  # [D] descending
     frames: np.ndarray  # [D] index of the detection's frame
     true_positive: dict[float, np.ndarray]  # IoU threshold -> [D] bool
     num_gt_per_frame: np.ndarray  # [F]
@@ -216,10 +215,8 @@ def ranked_outcomes(
     mean_average_precision)."""
     preds, gts = _prepare(predictions, ground_truths)
     frames, best_gt, best_iou = _ranked_overlaps(preds, gts)
-    scores = np.concatenate([p[:, 5] for p in preds] + [np.zeros(0)])
     num_gt_per_frame = [len(g) for g in gts]
     return RankedOutcomes(
-        scores=np.sort(scores)[::-1],  # the ranking's scores (ties are equal values)
         frames=frames,
         true_positive={float(t): _greedy_true_positives(frames, best_gt, best_iou, num_gt_per_frame, float(t))
                        for t in iou_thresholds},
