@@ -56,6 +56,7 @@ class Variant:
     propagation_norm: str | None = None  # None: the recipe's ("pre"); "post" = Deformable DETR's blocks
     # Two-stage training: start from the weights of this variant's model in the same out_dir (rafd-train --init).
     init: str | None = None
+    freeze: tuple[str, ...] = ()  # parts that do not train (rafd-train --freeze)
 
     def train_flags(self) -> list[str]:
         flags = ["--frames", str(self.frames)]
@@ -73,6 +74,8 @@ class Variant:
             flags.append("--no-flow-supervision")
         if not self.flow_guidance:
             flags.append("--no-flow-guidance")
+        if self.freeze:
+            flags += ["--freeze", *self.freeze]
         return flags
 
 
@@ -87,6 +90,8 @@ VARIANTS = {
         # Second stage of a two-stage recipe: run after `single` in the same out_dir; `single_continued` gives the
         # single-frame model the same extra epochs, so the pair compares equal budgets.
         Variant("rafd4_from_single", "RaFD, 4 frames, initialised from the single-frame model", init="single"),
+        Variant("rafd4_from_single_frozen", "RaFD, 4 frames, from the single-frame model, its encoder frozen",
+                init="single", freeze=("encoder",)),
         Variant("rafd2_from_single", "RaFD, 2 frames, initialised from the single-frame model", frames=2, init="single"),
         Variant("no_guidance_from_single", "4 frames, vanilla deformable attention, initialised from the single-frame "
                 "model", flow_guidance=False, init="single"),

@@ -46,6 +46,10 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--like-frames", type=int, metavar="N",
                         help="score only the frames an N-frame model scores (each sequence's first N-1 frames have "
                              "no full window): compares models of different frame counts on equal frames")
+    parser.add_argument("--past-as-newest", action="store_true",
+                        help="temporal ablation: replace every past frame of a window by the newest one (same pose), "
+                             "so a multi-frame model sees only what a single-frame model sees; compare with the true "
+                             "windows (rafd-benchmark compare on both --detections) to measure what the past adds")
     parser.add_argument("--threads", type=int, help="torch CPU threads")
     parser.add_argument("--no-progress", action="store_true")
     return parser
@@ -179,6 +183,10 @@ def main(argv: Sequence[str] | None = None) -> int:
     if args.like_frames is not None and args.like_frames < 1:
         print(f"rafd-eval: error: --like-frames needs a number of frames >= 1, got {args.like_frames}", file=sys.stderr)
         return 2
+    if args.past_as_newest and (args.full_scan or args.plots is not None or args.mcap is not None):
+        print("rafd-eval: error: --past-as-newest scores the model's crop windows as numbers only; run it without "
+              "--full-scan, --plots and --mcap", file=sys.stderr)
+        return 2
     if args.full_scan and (args.plots is not None or args.mcap is not None):
         print("rafd-eval: error: --plots and --mcap draw the model's crop; run them without --full-scan", file=sys.stderr)
         return 2
@@ -208,7 +216,8 @@ def main(argv: Sequence[str] | None = None) -> int:
                                         progress=not args.no_progress)
         else:
             results = predict(model, dataset, cfg, device, batch_size=args.batch_size, progress=not args.no_progress,
-                              precision=args.precision, keep_flow=args.mcap is not None)
+                              precision=args.precision, keep_flow=args.mcap is not None,
+                              past_as_newest=args.past_as_newest)
     except ValueError as error:
         print(f"rafd-eval: error: {error}", file=sys.stderr)
         return 2
@@ -226,6 +235,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         "like_frames": args.like_frames,
         "input_size": cfg.input_size,
         "full_scan": args.full_scan,
+        "past_as_newest": args.past_as_newest,
         "overall": overall,
         "per_sequence": per_sequence,
         "checkpoint_meta": {k: meta.get(k) for k in ("epoch", "step") if isinstance(meta, dict)},

@@ -104,15 +104,14 @@ def main(argv: list[str] | None = None) -> int:
 REALISM_DRIVES = 12  # simulated drives of --realism (3 frames each unless --frames is smaller)
 
 
-def _scans_of(root: Path, limit: int | None = None) -> list:
-    """uint8 Cartesian scans of every sequence at or under `root` (polar-only folders converted), in order."""
+def _sequences_of(root: Path) -> list[list]:
+    """uint8 Cartesian scans of every sequence at or under `root` (polar-only folders converted), one list per
+    sequence, in time order."""
     from rafd.data.dataset import find_sequences
     from rafd.data.reader import read_sequence
 
-    scans = []
-    for folder in find_sequences(root):
-        scans += [frame.load() for frame in read_sequence(folder, estimate_poses=False).frames]
-    return scans[:limit]
+    return [[frame.load() for frame in read_sequence(folder, estimate_poses=False).frames]
+            for folder in find_sequences(root)]
 
 
 def _realism(args: argparse.Namespace, difficulty: Difficulty) -> int:
@@ -124,25 +123,25 @@ def _realism(args: argparse.Namespace, difficulty: Difficulty) -> int:
     from rafd.sim.api import sequence_seed
 
     try:
-        real = [scan for root in args.realism for scan in _scans_of(root)]
+        real = [scans for root in args.realism for scans in _sequences_of(root)]
         if args.realism_sim is not None:
-            simulated = _scans_of(args.realism_sim)
-        else:  # RADIATE-sized scans, a few frames from each of several drives
-            simulated = []
-            for k in range(args.sequences if args.sequences > 1 else REALISM_DRIVES):
-                seed = sequence_seed(args.seed, k)
-                simulated += run_simulation(seed, min(args.frames, 3), "realism", RADIATE_SCAN_SIZE, difficulty,
-                                            name=f"realism_{k}").images
+            simulated = _sequences_of(args.realism_sim)
+        else:  # RADIATE-sized scans, a few consecutive frames from each of several drives
+            simulated = [run_simulation(sequence_seed(args.seed, k), min(args.frames, 3), "realism", RADIATE_SCAN_SIZE,
+                                        difficulty, name=f"realism_{k}").images
+                         for k in range(args.sequences if args.sequences > 1 else REALISM_DRIVES)]
     except (FileNotFoundError, ValueError) as error:
         return _fail(str(error))
-    sizes = {scan.shape for scan in real + simulated}
+    sizes = {scan.shape for scans in real + simulated for scan in scans}
     if sizes != {(RADIATE_SCAN_SIZE, RADIATE_SCAN_SIZE)}:
         return _fail(f"the realism measures compare {RADIATE_SCAN_SIZE} px RADIATE scans; got shapes {sorted(sizes)}")
     try:
         rows = realism_table(real, simulated, seed=args.seed, classifier_steps=args.realism_steps)
     except ImportError:
         return _fail("the patch classifier needs torch: install the train extra")
-    print(f"{len(real)} real scans, {len(simulated)} simulated scans")
+    except ValueError as error:
+        return _fail(str(error))
+    print(f"{sum(map(len, real))} real scans, {sum(map(len, simulated))} simulated scans")
     print(format_table(rows))
     if args.json is not None:
         args.json.write_text(json.dumps([row.__dict__ for row in rows], indent=2))

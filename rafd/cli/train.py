@@ -17,7 +17,7 @@ from pathlib import Path
 from typing import Sequence
 
 from rafd.augment import AugmentConfig
-from rafd.config import BOX_ENCODINGS, RaFDConfig
+from rafd.config import BOX_ENCODINGS, FREEZABLE, RaFDConfig
 
 log = logging.getLogger("rafd.train")
 
@@ -66,6 +66,10 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--init", type=Path,
                         help="start from this checkpoint's weights where names and shapes match (e.g. a single-frame "
                              "model under a 4-frame run); optimizer, schedule and epochs start fresh")
+    parser.add_argument("--freeze", nargs="+", choices=FREEZABLE, default=[], metavar="PART",
+                        help=f"parts of the network that do not train ({', '.join(FREEZABLE)}): e.g. --init a "
+                             "single-frame model and --freeze encoder, so a 4-frame run keeps its reading of the "
+                             "current frame and learns only what the past adds")
     parser.add_argument("--device", default="auto", help="cpu | cuda | cuda:N | auto")
     parser.add_argument("--val-data", type=Path, help="validation data root (default: none)")
     parser.add_argument("--val-split", action="append", help="validation split(s) (default: test)")
@@ -121,7 +125,8 @@ def train_config(args: argparse.Namespace, base):
         ("max_steps_per_epoch", args.max_steps_per_epoch)) if value is not None}
     return dataclasses.replace(base, grad_clip=args.grad_clip, seed=args.seed, device=args.device,
                                precision=args.precision, val_every=args.val_every, log_every=args.log_every,
-                               dist_timeout_minutes=args.dist_timeout, progress=not args.no_progress, **changes)
+                               dist_timeout_minutes=args.dist_timeout, progress=not args.no_progress,
+                               freeze=tuple(args.freeze), **changes)
 
 
 def default_threads(world_size: int) -> int:

@@ -1,12 +1,15 @@
 """How much simulated scans look like real ones, measured without labels (scan images only).
 
-Four kinds of measure, each a row of `realism_table` (real value, simulated value, distance):
+Five kinds of measure, each a row of `realism_table` (real value, simulated value, distance):
 - grey quantiles per range: p50 / p90 / p99 of the grey levels in thin rings at 3, 5, 10, 20 and 40 m (the noise
   floor's shape over range, and how bright the returns are); distance = mean |difference| of the three;
 - speckle grain: the along-range correlation length (metres at which the autocorrelation of the detrended grey
   level along each ray falls to 0.5), 10-60 m;
 - azimuth striping: the relative spread of the per-azimuth mean grey level after removing its slow trend (how much
   whole beams differ from their neighbours), 10-60 m;
+- scan-to-scan stability: how much the bright returns of one scan are still there in the next, once the previous
+  scan is aligned to the current one by radar odometry (rafd.odometry, the same estimator for both kinds): walls and
+  kerbs persist, spray and multipath flicker;
 - a real-vs-simulated patch classifier: a small CNN trained on 48 x 48 px patches of half the frames of each kind and
   tested on patches of the other half, and the other way round (2-fold); held-out accuracy 50% = indistinguishable,
   100% = trivially told apart.
@@ -29,6 +32,8 @@ RING_HALF_WIDTH = 0.1  # rings span r * (1 -+ this)
 QUANTILES = (50, 90, 99)
 BAND_M = (10.0, 60.0)  # range band of the speckle and striping measures
 POLAR_ANGLES = 1440  # 0.25 degree: the Navtech's 0.9 degree beams span 3.6 samples
+STABILITY_BAND_M = (5.0, 40.0)  # range band of the scan-to-scan measure
+BRIGHT_SHARE = 0.05  # the brightest share of a pair's pixels (by their mean) that the stability correlates
 PATCH = 48  # classifier patch side, pixels (8.3 m)
 PATCH_MAX_RANGE_M = 60.0  # patches are cut where both kinds of scan have content
 
@@ -105,6 +110,35 @@ def azimuth_striping(scans: Sequence[np.ndarray], resolution: float = RADIATE_RE
     return float(np.mean(values))
 
 
+def scan_to_scan_stability(sequences: Sequence[Sequence[np.ndarray]], resolution: float = RADIATE_RESOLUTION) -> float:
+    """Median over consecutive scan pairs of the correlation of their bright returns after ego alignment.
+
+    The previous scan is warped onto the current one by the radar odometry's relative pose, both are smoothed over
+    one pixel (odometry errors of a pixel should not count as flicker), and the grey levels of the brightest
+    BRIGHT_SHARE of the 5-40 m pixels, ranked by the pair's mean, are correlated: 1 = every bright return persists,
+    0 = bright returns are redrawn every scan."""
+    from rafd.odometry import estimate_relative_pose, pose_to_warp
+
+    values = []
+    for scans in sequences:
+        for previous, current in zip(scans[:-1], scans[1:]):
+            size = current.shape[0]
+            warp = pose_to_warp(estimate_relative_pose(previous, current, resolution), size, resolution)
+            moved = cv2.warpAffine(np.asarray(previous, np.float32), warp, (size, size),
+                                   flags=cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP)  # previous on the current grid
+            radius = _radius_m(size, resolution)
+            band = (radius > STABILITY_BAND_M[0]) & (radius < STABILITY_BAND_M[1]) & (moved > 0)
+            before = cv2.GaussianBlur(moved, (0, 0), 1.0)[band]
+            after = cv2.GaussianBlur(np.asarray(current, np.float32), (0, 0), 1.0)[band]
+            mean = (before + after) / 2.0
+            bright = mean >= np.percentile(mean, 100.0 * (1.0 - BRIGHT_SHARE))
+            if before[bright].std() > 0 and after[bright].std() > 0:
+                values.append(float(np.corrcoef(before[bright], after[bright])[0, 1]))
+    if not values:
+        raise ValueError("scan-to-scan stability needs a sequence of at least 2 scans with some structure")
+    return float(np.median(values))
+
+
 def _patches(scans: Sequence[np.ndarray], count: int, rng: np.random.Generator,
              resolution: float = RADIATE_RESOLUTION) -> np.ndarray:
     """`count` random PATCH x PATCH patches per scan whose centres lie within PATCH_MAX_RANGE_M -> uint8 [N, P, P]."""
@@ -169,9 +203,12 @@ def _fold_accuracy(train: tuple, test: tuple, seed: int, steps: int, patches_per
 CLASSIFIER_SEEDS = 2  # independent classifiers (each 2-fold) averaged: one alone varies by several points
 
 
-def realism_table(real: Sequence[np.ndarray], simulated: Sequence[np.ndarray], classifier: bool = True,
-                  seed: int = 0, classifier_steps: int = 400) -> list[Row]:
-    """Every measure of the module docstring for two lists of uint8 [1152, 1152] scans."""
+def realism_table(real_sequences: Sequence[Sequence[np.ndarray]], simulated_sequences: Sequence[Sequence[np.ndarray]],
+                  classifier: bool = True, seed: int = 0, classifier_steps: int = 400) -> list[Row]:
+    """Every measure of the module docstring for two lists of sequences (each a list of uint8 [1152, 1152] scans in
+    time order; the scan-to-scan measure pairs consecutive scans of a sequence, the others pool every scan)."""
+    real = [scan for scans in real_sequences for scan in scans]
+    simulated = [scan for scans in simulated_sequences for scan in scans]
     rows = []
     real_q, sim_q = ring_quantiles(real), ring_quantiles(simulated)
     for r in RING_RANGES_M:
@@ -182,6 +219,9 @@ def realism_table(real: Sequence[np.ndarray], simulated: Sequence[np.ndarray], c
                     "m"))
     stripe_real, stripe_sim = azimuth_striping(real), azimuth_striping(simulated)
     rows.append(Row("azimuth striping", f"{stripe_real:.3f}", f"{stripe_sim:.3f}", abs(stripe_real - stripe_sim)))
+    stable_real, stable_sim = scan_to_scan_stability(real_sequences), scan_to_scan_stability(simulated_sequences)
+    rows.append(Row("scan-to-scan stability of bright returns", f"{stable_real:.2f}", f"{stable_sim:.2f}",
+                    abs(stable_real - stable_sim)))
     if classifier:
         accuracy = float(np.mean([patch_classifier_accuracy(real, simulated, seed=seed + 10 * k, steps=classifier_steps)
                                   for k in range(CLASSIFIER_SEEDS)]))

@@ -2,9 +2,10 @@
 
 What the receiver adds, as measured on real RADIATE scans (rafd.sim.realism, label-free): a noise floor that is high
 within a few metres, lowest around 5-10 m and rises again with range; speckle correlated over ~0.5 m along range;
-whole beams brighter or darker than their neighbours (azimuth striping); radial streaks behind strong returns; and a
-fixed pattern of the sensor's mounting -- a starburst around the radar and a bright streak just behind it, in the
-sensor's own frame, in every scan. Weather adds two-way attenuation and (rain) diffuse backscatter near the radar.
+whole beams brighter or darker than their neighbours (azimuth striping, half of it repeating every rotation);
+bright returns that mostly persist from scan to scan (most point clutter is fixed in the world, rafd.sim.sequence);
+radial streaks behind strong returns; and a fixed pattern of the sensor's mounting -- a starburst around the radar
+and a bright streak just behind it, in the sensor's own frame, in every scan. Weather adds two-way attenuation and (rain) diffuse backscatter near the radar.
 A drive's conditions (gain, floor, striping, speckle grain, weather) are drawn once per sequence (Conditions).
 """
 from __future__ import annotations
@@ -24,6 +25,9 @@ BEAM_CORRELATION = 0.0  # azimuth bins: Gaussian correlation of the per-beam gai
 NOISE_GRAIN = 0.7  # range bins: the receiver noise's own correlation (echo speckle has Conditions.speckle_grain)
 FLOOR_FAR_SCALE = 1.0  # scales Conditions.floor_far (the floor's rise with range)
 NOISE_FLOOR = 0.55  # receiver noise power (grey ~13 where nothing reflects, as on real carriageways)
+CLUTTER_PERSISTENCE_RANGE = (0.7, 1.0)  # real bright returns mostly persist from scan to scan (rafd.sim.realism)
+STRIPING_FIXED = 0.5  # share of the per-beam log-gain variance fixed in the sensor's frame (repeats every rotation)
+ECHO_SPECKLE = 0.5  # share of the echo power that is speckle, redrawn every scan (the rest persists)
 MOUNT_SEED = 20191127  # the sensor's fixed mounting pattern is the same in every drive (one vehicle, one radar)
 
 
@@ -54,6 +58,8 @@ class Conditions:
     attenuation: float  # 1/m: two-way power factor exp(-2 attenuation r)
     rain: float  # rain backscatter power near the radar
     vehicle_gain: float  # road users' returns scale by this (wet or foggy scenes look fainter)
+    clutter_persistence: float = 0.0  # share of the point clutter fixed in the world (the rest is redrawn per scan)
+    beam_seed: int = 0  # draws the per-beam gains that repeat in every scan of the drive (STRIPING_FIXED)
 
     @classmethod
     def sample(cls, rng: np.random.Generator) -> "Conditions":
@@ -68,6 +74,8 @@ class Conditions:
             attenuation=float({"clear": 0.0, "fog": rng.uniform(0.0, 0.004), "rain": rng.uniform(0.002, 0.01)}[weather]),
             rain=float(rng.uniform(0.5, 3.0) if weather == "rain" else 0.0),
             vehicle_gain=float(rng.uniform(0.4, 1.0) if weather != "clear" else rng.uniform(0.7, 1.3)),
+            clutter_persistence=float(rng.uniform(*CLUTTER_PERSISTENCE_RANGE)),
+            beam_seed=int(rng.integers(2**31)),
         )
 
 
@@ -233,7 +241,9 @@ class NavtechSensor:
         for row in rng.integers(2, cfg.azimuths - 2, rng.poisson(1.5 * difficulty.clutter)):
             rays[row - int(rng.integers(0, 2)) : row + int(rng.integers(1, 3))] *= rng.uniform(1.8, 3.5)
         # per-beam gain (striping), correlated over neighbouring beams like the beam pattern itself
-        log_gain = rng.normal(0.0, conditions.striping, (cfg.azimuths, 1))
+        fixed = np.random.default_rng(conditions.beam_seed).normal(0.0, 1.0, (cfg.azimuths, 1))
+        fresh = rng.normal(0.0, 1.0, (cfg.azimuths, 1))
+        log_gain = conditions.striping * (math.sqrt(STRIPING_FIXED) * fixed + math.sqrt(1.0 - STRIPING_FIXED) * fresh)
         if BEAM_CORRELATION > 0:
             kernel = _gaussian(BEAM_CORRELATION, int(math.ceil(3 * BEAM_CORRELATION)))
             wrapped = np.concatenate([log_gain[-len(kernel):], log_gain, log_gain[:len(kernel)]])[:, 0]
@@ -241,7 +251,7 @@ class NavtechSensor:
         beams = np.exp(log_gain)
         noise = (floor + rain) * rays
         speckle_noise = self._speckle(rng, blurred.shape, NOISE_GRAIN)  # receiver noise: nearly white in range
-        speckle_echo = 0.5 * self._speckle(rng, blurred.shape, conditions.speckle_grain) + 0.5
+        speckle_echo = ECHO_SPECKLE * self._speckle(rng, blurred.shape, conditions.speckle_grain) + 1.0 - ECHO_SPECKLE
         power = beams * (noise * speckle_noise + (blurred + streak) * speckle_echo) + self.mount * speckle_echo
         return (conditions.gain * cfg.gain * np.sqrt(power)).astype(np.float32)
 

@@ -67,22 +67,50 @@ def frame_times(rng: np.random.Generator, num_frames: int) -> np.ndarray:
     return start + np.concatenate([[0], np.cumsum(np.round(periods * 1e9).astype(np.int64))])
 
 
+CLUTTER_POINTS = 600  # scattered clutter points per 100 m scan disc at Difficulty.clutter = 1
+CLUTTER_POWER = (math.log(8.0), 0.9)  # log-normal (mu, sigma) of a clutter point's power (noise floor = 1)
+CLUTTER_BURSTS = 8  # small clutter bursts per 100 m scan disc
+BURST_POINTS = (10, 40)  # points per burst (integers in [lo, hi))
+BURST_POWER = (math.log(10.0), 0.7)  # log-normal (mu, sigma) of a burst point's power
+SCINTILLATION = 0.3  # std of the per-scan log power of world-fixed clutter (aspect changes as the ego moves)
+
+
+def world_clutter(rng: np.random.Generator, bounds: tuple[float, float, float, float], difficulty: Difficulty,
+                  persistence: float) -> tuple[np.ndarray, np.ndarray]:
+    """The persistent share of the point clutter (road furniture, litter, small signs), fixed in the world over
+    `bounds`: ([N, 2] world metres, [N] power), at the same density per m^2 as _transient_returns draws per scan."""
+    x_lo, x_hi, y_lo, y_hi = bounds
+    area = (x_hi - x_lo) * (y_hi - y_lo)
+    per_m2 = persistence * difficulty.clutter / (math.pi * 100.0**2)
+    count = rng.poisson(CLUTTER_POINTS * per_m2 * area)
+    xy = [np.stack([rng.uniform(x_lo, x_hi, count), rng.uniform(y_lo, y_hi, count)], -1)]
+    power = [rng.lognormal(*CLUTTER_POWER, count)]
+    for _ in range(rng.poisson(CLUTTER_BURSTS * per_m2 * area)):
+        n = int(rng.integers(*BURST_POINTS))
+        xy.append(np.array([rng.uniform(x_lo, x_hi), rng.uniform(y_lo, y_hi)]) + rng.normal(0.0, 1.0, (n, 2)))
+        power.append(rng.lognormal(*BURST_POWER, n))
+    return np.concatenate(xy), np.concatenate(power)
+
+
 def _transient_returns(
-    rng: np.random.Generator, sensor: NavtechSensor, difficulty: Difficulty, ghosts_from: list[tuple[np.ndarray, np.ndarray, np.ndarray]]
+    rng: np.random.Generator, sensor: NavtechSensor, difficulty: Difficulty, persistence: float,
+    ghosts_from: list[tuple[np.ndarray, np.ndarray, np.ndarray]],
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Returns that do not persist between scans: scattered clutter (spray, birds, multipath speckle),
-    small clutter bursts, and multipath ghosts of vehicles displaced to a longer range."""
+    """Returns that do not persist between scans: the transient 1 - `persistence` share of the scattered clutter
+    (spray, birds, multipath speckle) and of the small clutter bursts, and multipath ghosts of vehicles displaced to
+    a longer range."""
     azimuths = sensor.config.azimuths
-    count = rng.poisson(600 * difficulty.clutter)
+    share = (1.0 - persistence) * difficulty.clutter * (sensor.max_range / 100.0) ** 2
+    count = rng.poisson(CLUTTER_POINTS * share)
     az = [rng.uniform(0, azimuths, count)]
     rg = [sensor.max_range * np.sqrt(rng.random(count))]
-    pw = [rng.lognormal(np.log(8.0), 0.9, count)]
-    for _ in range(rng.poisson(8 * difficulty.clutter)):
-        n = int(rng.integers(10, 40))
+    pw = [rng.lognormal(*CLUTTER_POWER, count)]
+    for _ in range(rng.poisson(CLUTTER_BURSTS * share)):
+        n = int(rng.integers(*BURST_POINTS))
         a0, r0 = rng.uniform(0, azimuths), rng.uniform(5.0, sensor.max_range)
         az.append(a0 + rng.normal(0, 1.0, n))
         rg.append(r0 + rng.normal(0, 1.2, n))
-        pw.append(rng.lognormal(np.log(10.0), 0.7, n))
+        pw.append(rng.lognormal(*BURST_POWER, n))
     for g_az, g_rg, g_pw in ghosts_from:
         if rng.random() < min(1.0, 0.3 * difficulty.ghosts):
             az.append(g_az + rng.uniform(-2.5, 2.5))
@@ -188,6 +216,7 @@ def run_simulation(
     agents = spawn_traffic(rng, city, route, fine, ego.s, ego_offset, view, density)
     looks = [sample_look(rng, agent.class_name, conditions.vehicle_gain) for agent in agents]
     world = city.scatterers
+    clutter_xy, clutter_power = world_clutter(rng, city.bounds, difficulty, conditions.clutter_persistence)
     half_extent = size / 2.0 * resolution
     azimuth_bin = 2.0 * math.pi / sensor.config.azimuths
     truth = np.full((len(agents), num_frames, 5), np.nan)
@@ -221,7 +250,17 @@ def run_simulation(
         for k in np.flatnonzero(seen_count > 0):
             own = echoes.owner == k
             ghosts_from.append((echoes.azimuth[own], echoes.ranges[own], echoes.power[own]))
-        t_az, t_rg, t_pw = _transient_returns(rng, sensor, difficulty, ghosts_from)
+        t_az, t_rg, t_pw = _transient_returns(rng, sensor, difficulty, conditions.clutter_persistence, ghosts_from)
+        # World-fixed clutter: seen where the sweep finds it, scintillating from scan to scan; like the transient
+        # clutter it is added in the polar domain (no facing, occlusion or range loss: calibrated as it is seen).
+        close = np.hypot(*(clutter_xy - poses[t, :2]).T) < view + 5.0
+        clutter_seen, _ = sweep_positions(_to_ego(np.broadcast_to(ego_start, (int(close.sum()), 3)), clutter_xy[close]),
+                                          _to_ego(np.broadcast_to(ego_end, (int(close.sum()), 3)), clutter_xy[close]))
+        c_az, c_rg = sensor.polar_coordinates(clutter_seen)
+        c_pw = clutter_power[close] * rng.lognormal(0.0, SCINTILLATION, len(c_rg))
+        inside = (c_rg > 1.0) & (c_rg < sensor.max_range)
+        t_az, t_rg, t_pw = (np.concatenate([t_az, c_az[inside]]), np.concatenate([t_rg, c_rg[inside]]),
+                            np.concatenate([t_pw, c_pw[inside]]))
         signal = sensor.accumulate(np.concatenate([echoes.azimuth, t_az]), np.concatenate([echoes.ranges, t_rg]),
                                    np.concatenate([echoes.power, t_pw]),
                                    np.concatenate([echoes.diffuse, np.zeros(len(t_az), bool)]))

@@ -54,9 +54,13 @@ def predict(
     progress: bool = True,
     num_workers: int = 0,
     precision: str = "fp32",
+    past_as_newest: bool = False,
 ) -> list[FrameResult]:
     """Every window of `dataset` -> one FrameResult; all K queries kept by default (AP wants the tail).
-    `precision` fp32 | bf16 | fp16 runs the forward under that autocast (rafd.train.precision)."""
+    `precision` fp32 | bf16 | fp16 runs the forward under that autocast (rafd.train.precision).
+    `past_as_newest` is the temporal ablation: every past frame of a window is replaced by the newest one, at the
+    newest pose (a still world with nothing more to see), so a multi-frame model sees exactly what a single-frame
+    model sees; its score against the true windows is what the past frames add."""
     from rafd.train.precision import autocast, check_precision
 
     device = torch.device(device)
@@ -70,8 +74,11 @@ def predict(
     try:
         for batch in tqdm(loader, desc="predict", disable=not progress, dynamic_ncols=True):
             batch = batch.to(device)
+            frames, poses = batch.frames, batch.poses  # [B, T, 1, S, S], [B, T, 3]
+            if past_as_newest:
+                frames, poses = frames[:, -1:].expand_as(frames), poses[:, -1:].expand_as(poses)
             with autocast(device, precision):
-                outputs = model(batch.frames, batch.poses)
+                outputs = model(frames, poses)
             boxes = outputs["boxes"].float().cpu().numpy()  # [B, K, 5]
             scores = outputs["scores"].float().cpu().numpy()  # [B, K]
             flow = outputs.get("flow")

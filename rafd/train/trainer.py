@@ -31,7 +31,7 @@ from torch import nn
 from torch.utils.data import DataLoader, Dataset
 from tqdm import tqdm
 
-from rafd.config import RaFDConfig
+from rafd.config import FREEZABLE, RaFDConfig
 from rafd.train.collate import Batch, Collator
 from rafd.train.distributed import (
     DEFAULT_TIMEOUT_MINUTES,
@@ -74,6 +74,9 @@ class TrainConfig:
     log_every: int = 20  # optimizer steps between host synchronisations (loss log, NaN check)
     dist_timeout_minutes: float = DEFAULT_TIMEOUT_MINUTES  # a collective waiting longer fails instead of hanging
     progress: bool = True  # tqdm bar on rank 0
+    # Parts of the network that do not train (FREEZABLE): weights fixed and BatchNorm statistics kept, e.g. a
+    # single-frame model's encoder under a two-stage 4-frame run, so the second stage learns only what the past adds.
+    freeze: tuple[str, ...] = ()
 
     def __post_init__(self) -> None:
         if self.optimizer not in OPTIMIZERS:
@@ -84,6 +87,9 @@ class TrainConfig:
             raise ValueError("epochs, batch_size and micro_batch_size must be >= 1")
         if self.log_every < 1:
             raise ValueError("log_every must be >= 1")
+        unknown = sorted(set(self.freeze) - set(FREEZABLE))
+        if unknown:
+            raise ValueError(f"freeze: {unknown} are not parts of the network; choose from {FREEZABLE}")
 
 
 @dataclass(frozen=True)
@@ -197,6 +203,11 @@ class Trainer:
         # The model is built under the run's seed: same seed -> same initial weights on every rank.
         seed_everything(train_cfg.seed)
         self.model = build_model(model_cfg).to(ctx.device)
+        for name in train_cfg.freeze:
+            part = getattr(self.model, name)
+            if part is None:
+                raise ValueError(f"freeze: this {model_cfg.num_frames}-frame model has no {name}")
+            part.requires_grad_(False)  # before build_optimizer, which takes only parameters that train
         self.loss = RaFDLoss(self.loss_cfg)
         self.optimizer = build_optimizer(self.model, train_cfg)
         self.ddp_model = wrap_model(self.model, ctx)  # converts BatchNorm in place under DDP on CUDA
@@ -244,6 +255,8 @@ class Trainer:
         """One optimizer step over micro-batches -> the loss terms (LOSS_TERMS order) on the device, unsynchronised."""
         group = [batches] if isinstance(batches, Batch) else list(batches)
         self.ddp_model.train()
+        for name in self.cfg.freeze:
+            getattr(self.model, name).eval()  # frozen parts keep their BatchNorm running statistics
         total_steps = self.cfg.epochs * self.steps_per_epoch()
         for param_group in self.optimizer.param_groups:
             param_group["lr"] = learning_rate(self.cfg, self.step, total_steps)

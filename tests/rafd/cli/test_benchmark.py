@@ -13,6 +13,8 @@ def test_variants_map_to_the_papers_ablations() -> None:
     assert VARIANTS["single"].train_flags() == ["--frames", "1"]
     assert "--no-flow-supervision" in VARIANTS["no_flow_sup"].train_flags()
     assert set(VARIANTS["baseline"].train_flags()) >= {"--no-enhancement", "--no-flow-supervision", "--no-flow-guidance"}
+    frozen = VARIANTS["rafd4_from_single_frozen"]
+    assert frozen.init == "single" and frozen.train_flags()[-2:] == ["--freeze", "encoder"]
     table = markdown_table([{"variant": "rafd4", "description": "d", "mAP@0.3": 50.0, "epe_all": float("nan")}])
     assert "| rafd4 | d | 50.00 |" in table and "| - |" in table
 

@@ -22,7 +22,7 @@ def test_writes_metrics_json_and_plots(trained_checkpoint: Path, sim_root: Path,
     for key in ("mAP@0.3", "mAP@0.5", "mAP@0.7"):
         assert 0.0 <= overall[key] <= 100.0
     assert overall["epe_all"] is not None and overall["epe_all"] >= 0.0
-    assert set(report["per_sequence"]) == {"sim_11_0", "sim_11_1"}
+    assert set(report["per_sequence"]) == {"sim_12_0", "sim_12_1"}
     assert sum(s["frames"] for s in report["per_sequence"].values()) == overall["frames"] > 0
     # the saved detections give back the same figures (what rafd-benchmark compare starts from)
     from rafd.compare import _Scored, load_detections
@@ -94,3 +94,14 @@ def test_like_frames_scores_only_the_frames_a_longer_model_scores(trained_checkp
     assert "predecessors" in capsys.readouterr().err
     assert main(base + ["--like-frames", "0"]) != 0
     assert "--like-frames" in capsys.readouterr().err
+
+
+def test_past_as_newest_is_reported_and_refuses_what_it_cannot_ablate(trained_checkpoint: Path, sim_root: Path,
+                                                                      tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    base = [str(trained_checkpoint), "--data", str(sim_root), "--split", "train", "--device", "cpu", "--no-progress"]
+    assert main(base + ["--past-as-newest", "--json", str(tmp_path / "still.json")]) == 0
+    report = json.loads((tmp_path / "still.json").read_text())
+    assert report["past_as_newest"] is True and report["overall"]["frames"] == 2 * 4
+    for extra in (["--full-scan"], ["--plots", str(tmp_path / "p")]):
+        assert main(base + ["--past-as-newest"] + extra) == 2
+        assert "--past-as-newest" in capsys.readouterr().err

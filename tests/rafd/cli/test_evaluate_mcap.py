@@ -32,9 +32,9 @@ def test_eval_writes_one_log_per_sequence(trained_checkpoint: Path, sim_root: Pa
     logs, report = tmp_path / "logs", tmp_path / "metrics.json"
     assert main([str(trained_checkpoint), "--data", str(sim_root), "--split", "train", "--mcap", str(logs),
                  "--json", str(report), "--device", "cpu", "--no-progress"]) == 0
-    assert sorted(p.name for p in logs.glob("*.mcap")) == ["sim_11_0.mcap", "sim_11_1.mcap"]
-    frames = json.loads(report.read_text())["per_sequence"]["sim_11_0"]["frames"]
-    schemas, counts, messages = read_log(logs / "sim_11_0.mcap")
+    assert sorted(p.name for p in logs.glob("*.mcap")) == ["sim_12_0.mcap", "sim_12_1.mcap"]
+    frames = json.loads(report.read_text())["per_sequence"]["sim_12_0"]["frames"]
+    schemas, counts, messages = read_log(logs / "sim_12_0.mcap")
     assert schemas["/radar/scan"] == "foxglove.CompressedImage" and schemas["/radar/ground_truth"] == "foxglove.SceneUpdate"
     assert schemas["/radar/flow"] == "foxglove.SceneUpdate" and schemas["/tf"] == "foxglove.FrameTransform"
     assert set(counts.values()) == {frames} and len(counts) == 8  # every topic, every window, flow included

@@ -20,8 +20,8 @@ SIZE = 384
 @pytest.fixture(scope="module")
 def simulated(tmp_path_factory: pytest.TempPathFactory):
     """(in-memory truth, folder) of one 30-frame sequence."""
-    sequence = run_simulation(11, 30, "test", SIZE, Difficulty(), name="sim_11_0")
-    return sequence, write_sequence(sequence, tmp_path_factory.mktemp("sim") / "sim_11_0")
+    sequence = run_simulation(12, 30, "test", SIZE, Difficulty(), name="sim_12_0")  # a drive with traffic
+    return sequence, write_sequence(sequence, tmp_path_factory.mktemp("sim") / "sim_12_0")
 
 
 def _files(folder: Path) -> dict[str, bytes]:
@@ -60,7 +60,7 @@ def test_radiate_layout(simulated) -> None:
     assert 1.5e9 < stamps[0] < 1.6e9
     assert np.all((periods > 0.2) & (periods < 0.27)) and periods.std() > 1e-4  # ~4 Hz with jitter
     meta = json.loads((folder / "meta.json").read_text())
-    assert meta["name"] == "sim_11_0" and meta["set"] == "test" and meta["type"] == "simulated"
+    assert meta["name"] == "sim_12_0" and meta["set"] == "test" and meta["type"] == "simulated"
     annotations = json.loads((folder / "annotations" / "annotations.json").read_text())
     assert annotations and all(set(o) == {"id", "class_name", "bboxes"} and len(o["bboxes"]) == 30 for o in annotations)
     for entry in (b for o in annotations for b in o["bboxes"]):

@@ -15,6 +15,7 @@ from rafd.sim.realism import (
     patch_classifier_accuracy,
     realism_table,
     ring_quantiles,
+    scan_to_scan_stability,
     speckle_grain_m,
 )
 from rafd.sim.sequence import run_simulation
@@ -61,12 +62,36 @@ def test_the_patch_classifier_tells_different_textures_apart_and_not_identical_o
     assert abs(patch_classifier_accuracy(same, twins, steps=60, patches_per_scan=60) - 0.5) < 0.1
 
 
+def _street(rng: np.random.Generator, shift_px: int = 0) -> np.ndarray:
+    """A scan of fixed bright blobs (walls, posts) on a speckled floor, the world moved `shift_px` pixels down."""
+    scan = rng.integers(0, 30, (SIZE, SIZE)).astype(np.float32)
+    world = np.random.default_rng(99)  # the same world in every scan
+    for u, v in world.integers(300, 850, (60, 2)):
+        cv2.circle(scan, (int(u), int(v) + shift_px), int(world.integers(3, 9)), float(world.integers(120, 250)), -1)
+    return scan.clip(0, 255).astype(np.uint8)
+
+
+def test_scan_to_scan_stability_tells_persistent_returns_from_flicker() -> None:
+    rng = np.random.default_rng(4)
+    persistent = [_street(rng, 0), _street(rng, 6)]  # the ego drove ~1 m: odometry must align them
+    flicker = []
+    for _ in range(2):  # the same floor, bright blobs drawn anew in every scan
+        scan = rng.integers(0, 30, (SIZE, SIZE)).astype(np.float32)
+        for u, v in rng.integers(300, 850, (60, 2)):
+            cv2.circle(scan, (int(u), int(v)), int(rng.integers(3, 9)), float(rng.integers(120, 250)), -1)
+        flicker.append(scan.clip(0, 255).astype(np.uint8))
+    assert scan_to_scan_stability([persistent]) > 0.8
+    assert scan_to_scan_stability([flicker]) < 0.3
+    with pytest.raises(ValueError, match="at least 2 scans"):
+        scan_to_scan_stability([[persistent[0]]])
+
+
 def test_the_table_has_every_row() -> None:
     rng = np.random.default_rng(3)
-    scans = [rng.integers(0, 80, (SIZE, SIZE)).astype(np.uint8) for _ in range(2)]
-    rows = realism_table(scans, scans, classifier=False)
-    assert len(rows) == 7 and all(row.distance == pytest.approx(0.0) for row in rows)
-    assert format_table(rows).count("\n") == 8
+    scans = [_street(rng), _street(rng, 3)]
+    rows = realism_table([scans], [scans], classifier=False)
+    assert len(rows) == 8 and all(row.distance == pytest.approx(0.0) for row in rows)
+    assert format_table(rows).count("\n") == 9
 
 
 @pytest.fixture(scope="module")

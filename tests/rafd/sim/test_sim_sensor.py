@@ -6,7 +6,7 @@ import numpy as np
 from rafd.geometry import metres_to_pixels
 from rafd.sim.scene import Scatterers
 from rafd.sim.sensor import Difficulty, NavtechSensor
-from rafd.sim.sequence import _transient_returns
+from rafd.sim.sequence import _transient_returns, world_clutter
 
 
 def _points(xy, amplitude, occluder=False) -> Scatterers:
@@ -54,11 +54,27 @@ def test_clutter_and_ghosts_change_every_frame() -> None:
     sensor = NavtechSensor(512)
     rng = np.random.default_rng(5)
     vehicle = (np.full(20, 100.0), np.linspace(20.0, 22.0, 20), np.full(20, 50.0))
-    first = _transient_returns(rng, sensor, Difficulty(ghosts=4.0), [vehicle])
-    second = _transient_returns(rng, sensor, Difficulty(ghosts=4.0), [vehicle])
+    first = _transient_returns(rng, sensor, Difficulty(ghosts=4.0), 0.0, [vehicle])
+    second = _transient_returns(rng, sensor, Difficulty(ghosts=4.0), 0.0, [vehicle])
     assert len(first[0]) > 100 and len(second[0]) > 100
     assert not np.array_equal(first[1][:50], second[1][:50])
     ghost_first = first[1][np.abs(first[0] - 100.0) < 3.0]
     assert np.any(ghost_first > 22.5)  # a ghost behind the vehicle (longer multipath)
-    none = _transient_returns(np.random.default_rng(5), sensor, Difficulty(clutter=0.0, ghosts=0.0), [vehicle])
+    none = _transient_returns(np.random.default_rng(5), sensor, Difficulty(clutter=0.0, ghosts=0.0), 0.0, [vehicle])
     assert len(none[0]) == 0
+    persistent = _transient_returns(np.random.default_rng(5), sensor, Difficulty(ghosts=0.0), 1.0, [vehicle])
+    assert len(persistent[0]) == 0  # all the clutter is fixed in the world (world_clutter)
+
+
+def test_world_clutter_has_the_transient_density_and_its_persistent_share() -> None:
+    """Per m^2 as many clutter points as _transient_returns draws per scan (600 per 100 m disc), times the share."""
+    bounds = (-100.0, 100.0, -100.0, 100.0)
+    rng = np.random.default_rng(6)
+    xy, power = world_clutter(rng, bounds, Difficulty(), 1.0)
+    expected = 600 * 200.0**2 / (np.pi * 100.0**2)  # points, besides the bursts' 10-40 each
+    assert expected < len(xy) < expected + 3 * 8 * 40 * 200.0**2 / (np.pi * 100.0**2)
+    assert np.all(np.abs(xy) < 110.0) and np.all(power > 0)
+    half, _ = world_clutter(np.random.default_rng(6), bounds, Difficulty(), 0.5)
+    assert 0.35 * len(xy) < len(half) < 0.65 * len(xy)
+    assert len(world_clutter(rng, bounds, Difficulty(), 0.0)[0]) == 0
+    assert len(world_clutter(rng, bounds, Difficulty(clutter=0.0), 1.0)[0]) == 0

@@ -13,7 +13,7 @@ def tiny_root(tmp_path_factory: pytest.TempPathFactory) -> Path:
     from rafd.sim import simulate_dataset
 
     root = tmp_path_factory.mktemp("sim")
-    simulate_dataset(root, sequences=2, frames=5, seed=7, split="train", size=128)
+    simulate_dataset(root, sequences=2, frames=5, seed=12, split="train", size=128)  # both drives hold vehicles
     return root
 
 

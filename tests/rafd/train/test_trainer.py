@@ -117,3 +117,26 @@ def test_init_refuses_a_model_that_reads_other_input(tiny_root: Path, tiny_cfg: 
     with pytest.raises(ValueError, match="input_size"):
         trainer.initialise_from(tmp_path / "other.pt")
     _assert_same(before, _weights(trainer))  # nothing half-copied
+
+
+def test_a_frozen_encoder_keeps_its_weights_and_batchnorm_statistics(tiny_root: Path, tiny_cfg: RaFDConfig) -> None:
+    dataset = open_windows(tiny_root, "train", tiny_cfg)
+    trainer = Trainer(tiny_cfg, _train_cfg(lr=2e-3, freeze=("encoder",)), dataset, None, CPU)
+    before = _weights(trainer)
+    assert any("running_mean" in key for key in before if key.startswith("encoder."))  # BatchNorm to keep
+    trainer.fit()
+    after = _weights(trainer)
+    encoder = [key for key in before if key.startswith("encoder.")]
+    assert encoder and all(torch.equal(before[key], after[key]) for key in encoder)
+    changed = {key.split(".")[0] for key in before if not torch.equal(before[key], after[key])}
+    assert {"flow", "propagation", "head"} <= changed  # the rest trains
+    trained = {id(p) for group in trainer.optimizer.param_groups for p in group["params"]}
+    assert not any(id(p) in trained for p in trainer.model.encoder.parameters())
+
+
+def test_freeze_refuses_unknown_or_missing_parts(tiny_root: Path) -> None:
+    with pytest.raises(ValueError, match="not parts of the network"):
+        _train_cfg(freeze=("backbone",))
+    single = RaFDConfig.tiny(input_size=64, num_frames=1)
+    with pytest.raises(ValueError, match="no flow"):
+        Trainer(single, _train_cfg(freeze=("flow",)), open_windows(tiny_root, "train", single), None, CPU)
