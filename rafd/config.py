@@ -10,7 +10,7 @@ from rafd.geometry import RADIATE_RESOLUTION
 
 ALLOWED_FRAMES = (1, 2, 4)
 BOX_ENCODINGS = ("symmetric", "as_labelled")
-FREEZABLE = ("encoder", "flow", "propagation", "head")  # RaFD's top-level parts (rafd.model.detector), for rafd-train --freeze
+FREEZABLE = ("encoder", "flow", "propagation", "head")  # RaFD's top-level parts, for rafd-train --freeze
 
 
 @dataclass(frozen=True)

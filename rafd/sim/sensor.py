@@ -5,7 +5,8 @@ within a few metres, lowest around 5-10 m and rises again with range; speckle co
 whole beams brighter or darker than their neighbours (azimuth striping, half of it repeating every rotation);
 bright returns that mostly persist from scan to scan (most point clutter is fixed in the world, rafd.sim.sequence);
 radial streaks behind strong returns; and a fixed pattern of the sensor's mounting -- a starburst around the radar
-and a bright streak just behind it, in the sensor's own frame, in every scan. Weather adds two-way attenuation and (rain) diffuse backscatter near the radar.
+and a bright streak just behind it, in the sensor's own frame, in every scan. Weather adds two-way attenuation and
+(rain) diffuse backscatter near the radar.
 A drive's conditions (gain, floor, striping, speckle grain, weather) are drawn once per sequence (Conditions).
 """
 from __future__ import annotations

@@ -96,8 +96,8 @@ def test_like_frames_scores_only_the_frames_a_longer_model_scores(trained_checkp
     assert "--like-frames" in capsys.readouterr().err
 
 
-def test_past_as_newest_is_reported_and_refuses_what_it_cannot_ablate(trained_checkpoint: Path, sim_root: Path,
-                                                                      tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+def test_past_as_newest_is_reported_and_refuses_what_it_cannot_ablate(
+        trained_checkpoint: Path, sim_root: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
     base = [str(trained_checkpoint), "--data", str(sim_root), "--split", "train", "--device", "cpu", "--no-progress"]
     assert main(base + ["--past-as-newest", "--json", str(tmp_path / "still.json")]) == 0
     report = json.loads((tmp_path / "still.json").read_text())
