@@ -17,7 +17,8 @@ from typing import Any, Sequence
 
 import numpy as np
 
-from rafd.metrics import CENTRE_DISTANCE_M, DEFAULT_IOU_THRESHOLDS, match_centres, ranked_outcomes, voc_ap
+from rafd.metrics import (CENTRE_DISTANCE_M, DEFAULT_IOU_THRESHOLDS, ap_from_counts, last_within_fp_budget,
+                          match_centres, ranked_counts, ranked_outcomes)
 
 METRICS = tuple(f"mAP@{t:g}" for t in DEFAULT_IOU_THRESHOLDS) + ("centre_AP", "recall_at_1fp")
 
@@ -77,29 +78,13 @@ class _Scored:
         num_gt = float(frame_weights @ self.num_gt)
         out = {}
         for name, (frames, tp) in zip(METRICS, self.iou):
-            out[name] = 100.0 * _average_precision(*_weighted_counts(tp, frame_weights[frames]), num_gt)
+            out[name] = 100.0 * ap_from_counts(*ranked_counts(tp, frame_weights[frames]), num_gt)
         frames, tp = self.centre
-        counts = _weighted_counts(tp, frame_weights[frames])
-        out["centre_AP"] = 100.0 * _average_precision(*counts, num_gt)
-        out["recall_at_1fp"] = 100.0 * _recall_at_fp(*counts, num_gt, float(frame_weights.sum()))
+        tp_counts, fp_counts = ranked_counts(tp, frame_weights[frames])
+        out["centre_AP"] = 100.0 * ap_from_counts(tp_counts, fp_counts, num_gt)
+        last = last_within_fp_budget(fp_counts, float(frame_weights.sum()))  # 1 false positive per frame
+        out["recall_at_1fp"] = 100.0 * float(tp_counts[last] / num_gt) if last is not None and num_gt > 0 else 0.0
         return out
-
-
-def _weighted_counts(true_positive: np.ndarray, weights: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Cumulative (true, false) positives down the ranking; detections of frames not drawn drop out."""
-    keep = weights > 0
-    return np.cumsum(weights[keep] * true_positive[keep]), np.cumsum(weights[keep] * ~true_positive[keep])
-
-
-def _average_precision(tp: np.ndarray, fp: np.ndarray, num_gt: float) -> float:
-    if num_gt <= 0 or not len(tp):
-        return 0.0
-    return voc_ap(tp / num_gt, tp / np.maximum(tp + fp, np.finfo(np.float64).eps))
-
-
-def _recall_at_fp(tp: np.ndarray, fp: np.ndarray, num_gt: float, num_frames: float, fp_per_frame: float = 1.0) -> float:
-    allowed = np.flatnonzero(fp <= fp_per_frame * num_frames)
-    return float(tp[allowed[-1]] / num_gt) if len(allowed) and num_gt > 0 else 0.0
 
 
 def paired_bootstrap(baseline: Sequence[FrameDetections], candidate: Sequence[FrameDetections],

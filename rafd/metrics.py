@@ -103,6 +103,29 @@ def voc_ap(recall: np.ndarray, precision: np.ndarray, use_07_metric: bool = True
     return float(np.sum((mrec[steps + 1] - mrec[steps]) * mpre[steps + 1]))
 
 
+def ranked_counts(true_positive: np.ndarray, weights: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """Cumulative (true, false) positives down a ranking [D] bool; with `weights` [D] each detection counts that many
+    times and those of weight 0 drop out (rafd.compare's resampled frames)."""
+    true_positive = np.asarray(true_positive, dtype=bool)
+    if weights is None:
+        return np.cumsum(true_positive, dtype=np.float64), np.cumsum(~true_positive, dtype=np.float64)
+    keep = weights > 0
+    return np.cumsum(weights[keep] * true_positive[keep]), np.cumsum(weights[keep] * ~true_positive[keep])
+
+
+def ap_from_counts(tp: np.ndarray, fp: np.ndarray, num_gt: float, use_07_metric: bool = True) -> float:
+    """AP from ranked_counts; 0 without ground truth or detections."""
+    if num_gt <= 0 or not len(tp):
+        return 0.0
+    return voc_ap(tp / num_gt, tp / np.maximum(tp + fp, np.finfo(np.float64).eps), use_07_metric)
+
+
+def last_within_fp_budget(fp: np.ndarray, max_false_positives: float) -> int | None:
+    """Deepest rank whose cumulative false positives (ranked_counts) stay within the budget; None when none does."""
+    allowed = np.flatnonzero(fp <= max_false_positives)
+    return int(allowed[-1]) if len(allowed) else None
+
+
 def _prepare(
     predictions: Sequence[np.ndarray], ground_truths: Sequence[np.ndarray]
 ) -> tuple[list[np.ndarray], list[np.ndarray]]:
@@ -153,9 +176,7 @@ def _pr_from_overlaps(
     frames: np.ndarray, best_gt: np.ndarray, best_iou: np.ndarray, num_gt_per_frame: list[int], iou_threshold: float
 ) -> tuple[np.ndarray, np.ndarray]:
     """Greedy matching in ranking order -> (precision [D], recall [D])."""
-    true_positive = _greedy_true_positives(frames, best_gt, best_iou, num_gt_per_frame, iou_threshold)
-    tp = np.cumsum(true_positive, dtype=np.float64)
-    fp = np.cumsum(~true_positive, dtype=np.float64)
+    tp, fp = ranked_counts(_greedy_true_positives(frames, best_gt, best_iou, num_gt_per_frame, iou_threshold))
     num_gt = sum(num_gt_per_frame)
     recall = tp / num_gt if num_gt > 0 else np.zeros_like(tp)
     precision = tp / np.maximum(tp + fp, np.finfo(np.float64).eps)
@@ -184,16 +205,12 @@ def mean_average_precision(
 ) -> dict[float, float]:
     """Per-frame predictions [N_f, 6] (x, y, w, l, yaw, score) and GT [M_f, 5] -> {IoU threshold: AP}.
 
-    One class, so mAP at a threshold is that threshold's AP. IoUs are computed once and reused.
+    One class, so mAP at a threshold is that threshold's AP. IoUs are computed once and reused (ranked_outcomes).
     """
-    preds, gts = _prepare(predictions, ground_truths)
-    frames, best_gt, best_iou = _ranked_overlaps(preds, gts)
-    num_gt_per_frame = [len(g) for g in gts]
-    result: dict[float, float] = {}
-    for threshold in iou_thresholds:
-        precision, recall = _pr_from_overlaps(frames, best_gt, best_iou, num_gt_per_frame, float(threshold))
-        result[float(threshold)] = voc_ap(recall, precision, use_07_metric) if sum(num_gt_per_frame) else 0.0
-    return result
+    outcomes = ranked_outcomes(predictions, ground_truths, iou_thresholds)
+    num_gt = int(outcomes.num_gt_per_frame.sum())
+    return {threshold: ap_from_counts(*ranked_counts(tp), num_gt, use_07_metric)
+            for threshold, tp in outcomes.true_positive.items()}
 
 
 @dataclass(frozen=True)
@@ -211,8 +228,8 @@ def ranked_outcomes(
     ground_truths: Sequence[np.ndarray],
     iou_thresholds: Sequence[float] = DEFAULT_IOU_THRESHOLDS,
 ) -> RankedOutcomes:
-    """Per-frame predictions [N_f, 6] and GT [M_f, 5] -> RankedOutcomes (the ranking and matching of
-    mean_average_precision)."""
+    """Per-frame predictions [N_f, 6] and GT [M_f, 5] -> RankedOutcomes: the ranking and greedy matching that
+    mean_average_precision scores (and rafd.compare re-weights)."""
     preds, gts = _prepare(predictions, ground_truths)
     frames, best_gt, best_iou = _ranked_overlaps(preds, gts)
     num_gt_per_frame = [len(g) for g in gts]
@@ -263,19 +280,14 @@ class CentreMatches:
     def recall_at_fp_rate(self, fp_per_frame: float = 1.0) -> tuple[float, float]:
         """(highest recall reached with at most `fp_per_frame` false positives per frame, the score threshold that
         reaches it; inf when even the best detection is a false positive beyond the budget)."""
-        false_positives = np.cumsum(~self.true_positive)
-        allowed = np.flatnonzero(false_positives <= fp_per_frame * self.num_frames)
-        if not len(allowed) or not self.num_gt:
+        tp, fp = ranked_counts(self.true_positive)
+        last = last_within_fp_budget(fp, fp_per_frame * self.num_frames)
+        if last is None or not self.num_gt:
             return 0.0, float("inf")
-        last = allowed[-1]
-        return float(self.true_positive[: last + 1].sum() / self.num_gt), float(self.scores[last])
+        return float(tp[last] / self.num_gt), float(self.scores[last])
 
     def average_precision(self, use_07_metric: bool = True) -> float:
-        if not self.num_gt:
-            return 0.0
-        tp = np.cumsum(self.true_positive)
-        precision = tp / np.arange(1, len(tp) + 1)
-        return voc_ap(tp / self.num_gt, precision, use_07_metric) if len(tp) else 0.0
+        return ap_from_counts(*ranked_counts(self.true_positive), self.num_gt, use_07_metric)
 
 
 def match_centres(predictions: Sequence[np.ndarray], ground_truths: Sequence[np.ndarray],

@@ -119,15 +119,17 @@ def scan_to_scan_stability(sequences: Sequence[Sequence[np.ndarray]], resolution
     0 = bright returns are redrawn every scan."""
     from rafd.odometry import estimate_relative_pose, pose_to_warp
 
-    values = []
+    values, in_band = [], {}  # in_band: scan size -> the 5-40 m ring's pixels
     for scans in sequences:
         for previous, current in zip(scans[:-1], scans[1:]):
             size = current.shape[0]
+            if size not in in_band:
+                radius = _radius_m(size, resolution)
+                in_band[size] = (radius > STABILITY_BAND_M[0]) & (radius < STABILITY_BAND_M[1])
             warp = pose_to_warp(estimate_relative_pose(previous, current, resolution), size, resolution)
             moved = cv2.warpAffine(np.asarray(previous, np.float32), warp, (size, size),
                                    flags=cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP)  # previous on the current grid
-            radius = _radius_m(size, resolution)
-            band = (radius > STABILITY_BAND_M[0]) & (radius < STABILITY_BAND_M[1]) & (moved > 0)
+            band = in_band[size] & (moved > 0)
             before = cv2.GaussianBlur(moved, (0, 0), 1.0)[band]
             after = cv2.GaussianBlur(np.asarray(current, np.float32), (0, 0), 1.0)[band]
             mean = (before + after) / 2.0

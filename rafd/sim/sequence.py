@@ -254,8 +254,9 @@ def run_simulation(
         # World-fixed clutter: seen where the sweep finds it, scintillating from scan to scan; like the transient
         # clutter it is added in the polar domain (no facing, occlusion or range loss: calibrated as it is seen).
         close = np.hypot(*(clutter_xy - poses[t, :2]).T) < view + 5.0
-        clutter_seen, _ = sweep_positions(_to_ego(np.broadcast_to(ego_start, (int(close.sum()), 3)), clutter_xy[close]),
-                                          _to_ego(np.broadcast_to(ego_end, (int(close.sum()), 3)), clutter_xy[close]))
+        nearby = clutter_xy[close]
+        clutter_seen, _ = sweep_positions(_to_ego(np.broadcast_to(ego_start, (len(nearby), 3)), nearby),
+                                          _to_ego(np.broadcast_to(ego_end, (len(nearby), 3)), nearby))
         c_az, c_rg = sensor.polar_coordinates(clutter_seen)
         c_pw = clutter_power[close] * rng.lognormal(0.0, SCINTILLATION, len(c_rg))
         inside = (c_rg > 1.0) & (c_rg < sensor.max_range)
