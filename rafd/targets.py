@@ -185,10 +185,13 @@ def build_targets(boxes: list[np.ndarray], ids: list[np.ndarray], poses: np.ndar
         log.warning("build_targets: %d of %d newest-frame boxes have their centre outside the %dx%d grid; no target",
                     int((~inside).sum()), len(newest), size, size)
     kept = np.flatnonzero(inside)
-    if len(kept) > k_max:
-        log.warning("build_targets: %d objects in the newest frame, K = %d; dropping %d", len(kept), k_max, len(kept) - k_max)
-        kept = kept[:k_max]
     heatmap = np.zeros((size, size), np.float64)
+    for k in kept:  # every object is a heatmap peak, also those beyond the K box slots (never a negative)
+        draw_gaussian(heatmap, int(rows[k]), int(cols[k]), heatmap_radius(newest[k], cfg))
+    if len(kept) > k_max:
+        log.warning("build_targets: %d objects in the newest frame, K = %d; %d get no box target (still heatmap "
+                    "peaks)", len(kept), k_max, len(kept) - k_max)
+        kept = kept[:k_max]
     centre_index = np.zeros(k_max, np.int64)
     box_mask = np.zeros(k_max, np.float32)
     offset = np.zeros((k_max, 2), np.float32)
@@ -197,7 +200,6 @@ def build_targets(boxes: list[np.ndarray], ids: list[np.ndarray], poses: np.ndar
     box_targets = np.zeros((k_max, 5), np.float32)
     for slot, k in enumerate(kept):
         box, row, col = newest[k], int(rows[k]), int(cols[k])
-        draw_gaussian(heatmap, row, col, heatmap_radius(box, cfg))
         centre_index[slot] = row * size + col
         box_mask[slot] = 1.0
         offset[slot] = (box[0] / cfg.cell_size + size / 2.0 - (col + 0.5), (row + 0.5) - (size / 2.0 - box[1] / cfg.cell_size))

@@ -92,6 +92,10 @@ VARIANTS = {
         Variant("rafd4_from_single", "RaFD, 4 frames, initialised from the single-frame model", init="single"),
         Variant("rafd4_from_single_frozen", "RaFD, 4 frames, from the single-frame model, its encoder frozen",
                 init="single", freeze=("encoder",)),
+        # Only the fresh parts train: the propagation starts as the identity, so the model starts as the single-frame
+        # model and can only add what its past frames show to the features the single-frame head reads.
+        Variant("rafd4_from_single_fresh_only", "RaFD, 4 frames, from the single-frame model, only its flow branch "
+                "and propagation trained", init="single", freeze=("encoder", "head")),
         Variant("rafd2_from_single", "RaFD, 2 frames, initialised from the single-frame model", frames=2, init="single"),
         Variant("no_guidance_from_single", "4 frames, vanilla deformable attention, initialised from the single-frame "
                 "model", flow_guidance=False, init="single"),

@@ -21,13 +21,17 @@ from rafd.sim.road import drive_ego, make_route
 from rafd.sim.scene import Scatterers
 from rafd.sim.sensor import Conditions, Difficulty, NavtechSensor
 from rafd.sim.traffic import spawn_traffic
-from rafd.sim.vehicles import annotation_box, diffuse_returns, sample_look
+from rafd.sim.vehicles import STRENGTH_RANGE, annotation_box, diffuse_returns, sample_look
 
 logger = logging.getLogger(__name__)
 
 SCAN_PERIOD = 0.2375  # seconds; RADIATE's Navtech delivers ~4.2 scans per second
 FINE_STEPS = 4  # samples of the world per scan period (motion within a sweep is interpolated between them)
 MIN_LIT_FRACTION = 0.2  # share of a road user's beams in which its nearest return is unshadowed, to be annotated
+# ... or, shadowed, a return still as strong as the faintest unshadowed one the simulator draws (STRENGTH_RANGE's
+# low end): the sensor renders what is behind an occluder at `shadow` of its power, and annotators box what they see
+# (a parked car behind its neighbour in a car park row, a van behind a hedge).
+MIN_SHADOWED_STRENGTH = STRENGTH_RANGE[0]
 # RADIATE's annotators: a box's rotation is only defined modulo 180 degrees, and within one track the labels flip
 # yaw by 180 degrees and exchange width and length (turning by 90 degrees) from frame to frame. Each simulated
 # annotation does each independently with these probabilities (0.5 = no preferred labelling at all).
@@ -180,6 +184,15 @@ def visible_beams(echoes, owners: int, azimuths: int) -> tuple[np.ndarray, np.nd
             np.bincount(owner, minlength=owners))
 
 
+def annotator_sees(lit: np.ndarray, seen: np.ndarray, strength: np.ndarray, shadow: float) -> np.ndarray:
+    """Per road user: is it annotated? lit / seen: beams in which its nearest return is unshadowed / that it occupies
+    (visible_beams); strength: its Look.strength. Either enough of it is unshadowed, or its return as rendered (each
+    shadowed beam at `shadow` of the power) is still as strong as the faintest unshadowed road user's."""
+    beams = np.maximum(seen, 1)
+    rendered = strength * (lit + shadow * (beams - lit)) / beams
+    return (seen > 0) & ((lit >= MIN_LIT_FRACTION * beams) | (rendered >= MIN_SHADOWED_STRENGTH))
+
+
 def run_simulation(
     seed: int, num_frames: int, split: str, size: int, difficulty: Difficulty, name: str,
     resolution: float = RADIATE_RESOLUTION, ambiguous: bool = True,
@@ -215,6 +228,7 @@ def run_simulation(
     ego = drive_ego(rng, route, fine, ego_offset)
     agents = spawn_traffic(rng, city, route, fine, ego.s, ego_offset, view, density)
     looks = [sample_look(rng, agent.class_name, conditions.vehicle_gain) for agent in agents]
+    strengths = np.array([look.strength for look in looks])
     world = city.scatterers
     clutter_xy, clutter_power = world_clutter(rng, city.bounds, difficulty, conditions.clutter_persistence)
     half_extent = size / 2.0 * resolution
@@ -268,14 +282,13 @@ def run_simulation(
         received = sensor.receive(signal, rng, difficulty, conditions)
         images.append(sensor.to_cartesian(received))
         polar_scans.append(to_radiate_polar(received.T, sensor.polar_conventions))
-        # Annotated: centre inside the image and the scan disc, and enough of its return outside radar shadows.
+        # Annotated: centre inside the image and the scan disc, and seen by the annotator (annotator_sees).
         in_view = (
             np.isfinite(ego_boxes[:, 0])
             & (np.abs(ego_boxes[:, 0]) < half_extent)
             & (np.abs(ego_boxes[:, 1]) < half_extent)
             & (np.hypot(ego_boxes[:, 0], ego_boxes[:, 1]) < sensor.max_range)
-            & (lit >= MIN_LIT_FRACTION * np.maximum(seen_count, 1))
-            & (seen_count > 0)
+            & annotator_sees(lit, seen_count, strengths, sensor.config.shadow)
         )
         for k in np.flatnonzero(in_view):
             truth[k, t] = annotation_box(ego_boxes[k], agents[k].class_name, looks[k], label_rng,

@@ -386,6 +386,7 @@ class Trainer:
             "step": self.step,
             "seed": self.cfg.seed,
             "world_size": self.ctx.world_size,
+            "freeze": list(self.cfg.freeze),  # the optimizer holds only the parts that train
         }
         torch.save(state, optimizer_state_path(path))
         history_path(path).write_text(json.dumps(self.history, indent=2))
@@ -430,10 +431,16 @@ class Trainer:
         model, cfg, _meta = load_checkpoint(path, map_location="cpu")
         if cfg != self.model_cfg:
             raise ValueError(f"cannot resume {path}: its model config differs from this run's")
-        self.model.load_state_dict(model.state_dict())
         state = torch.load(state_path, map_location=self.ctx.device, weights_only=True)
         if int(state["seed"]) != self.cfg.seed:
             log.warning("resuming %s trained with seed %s under seed %s", path, state["seed"], self.cfg.seed)
+        saved_freeze = sorted(state.get("freeze", []))
+        if saved_freeze != sorted(self.cfg.freeze):
+            # the optimizer state holds one entry per parameter that trained: another split cannot be restored
+            raise ValueError(f"cannot resume {path}: it was trained freezing {' '.join(saved_freeze) or 'nothing'}, "
+                             f"this run freezes {' '.join(sorted(self.cfg.freeze)) or 'nothing'}; resume with the same "
+                             "--freeze")
+        self.model.load_state_dict(model.state_dict())
         if int(state.get("world_size", self.ctx.world_size)) != self.ctx.world_size:
             log.warning("resuming %s trained on %s processes on %d: the data order differs from an uninterrupted run",
                         path, state["world_size"], self.ctx.world_size)

@@ -15,6 +15,8 @@ def test_variants_map_to_the_papers_ablations() -> None:
     assert set(VARIANTS["baseline"].train_flags()) >= {"--no-enhancement", "--no-flow-supervision", "--no-flow-guidance"}
     frozen = VARIANTS["rafd4_from_single_frozen"]
     assert frozen.init == "single" and frozen.train_flags()[-2:] == ["--freeze", "encoder"]
+    fresh_only = VARIANTS["rafd4_from_single_fresh_only"]
+    assert fresh_only.init == "single" and fresh_only.train_flags()[-3:] == ["--freeze", "encoder", "head"]
     table = markdown_table([{"variant": "rafd4", "description": "d", "mAP@0.3": 50.0, "epe_all": float("nan")}])
     assert "| rafd4 | d | 50.00 |" in table and "| - |" in table
 

@@ -134,6 +134,20 @@ def test_a_frozen_encoder_keeps_its_weights_and_batchnorm_statistics(tiny_root: 
     assert not any(id(p) in trained for p in trainer.model.encoder.parameters())
 
 
+def test_resuming_with_other_frozen_parts_is_a_clear_error(tiny_root: Path, tiny_cfg: RaFDConfig,
+                                                             tmp_path: Path) -> None:
+    dataset = open_windows(tiny_root, "train", tiny_cfg)
+    Trainer(tiny_cfg, _train_cfg(freeze=("encoder",)), dataset, tmp_path / "frozen.pt", CPU).fit()
+    other = Trainer(tiny_cfg, _train_cfg(epochs=2), dataset, None, CPU)
+    before = _weights(other)
+    with pytest.raises(ValueError, match="trained freezing encoder, this run freezes nothing"):
+        other.resume(tmp_path / "frozen.pt")
+    _assert_same(before, _weights(other))  # refused before any weight was copied
+    same = Trainer(tiny_cfg, _train_cfg(epochs=2, freeze=("encoder",)), dataset, None, CPU)
+    same.resume(tmp_path / "frozen.pt")
+    assert same.epoch == 1
+
+
 def test_freeze_refuses_unknown_or_missing_parts(tiny_root: Path) -> None:
     with pytest.raises(ValueError, match="not parts of the network"):
         _train_cfg(freeze=("backbone",))
