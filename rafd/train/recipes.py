@@ -27,7 +27,7 @@ def shipped_model_config() -> RaFDConfig:
     """The `default` recipe's network: the tiny config at the protocol's 256 px crop, with the speed options
     (flow branch at stride 8, 16-cell attention windows: neither is the paper's), the gain-robust input, and pre-norm
     propagation blocks that start as the identity (so a single-frame model's weights start a multi-frame run).
-    The shipped default model is this network with post-norm propagation (trained before the switch; README)."""
+    The shipped default model is this network (README: "The shipped default model")."""
     tiny = RaFDConfig.tiny(input_size=256)
     return tiny.replace(
         input=InputConfig(normalisation="local_contrast", window=47),
@@ -59,7 +59,7 @@ RECIPES: dict[str, Recipe] = {
         Recipe(
             "default",
             "the shipped model's network: tiny RaFD at 256 px, 4 frames, flow at stride 8, 16-cell attention "
-            "windows, gain-robust input, pre-norm propagation (the shipped model: post-norm); AdamW 1e-3 with "
+            "windows, gain-robust input, pre-norm propagation; AdamW 1e-3 with "
             "cosine decay, batch 4, 6 epochs, bf16-friendly; flip + rotation, radar intensity changes and crops up to "
             "65 m from the radar (full-scan tiles)",
             shipped_model_config(),
