@@ -140,6 +140,9 @@ def build_parser() -> argparse.ArgumentParser:
     run.add_argument("--precision", choices=("fp32", "bf16", "fp16"), default="fp32", help="training autocast")
     run.add_argument("--max-windows", type=int, help="cap training windows (smoke tests)")
     run.add_argument("--max-steps-per-epoch", type=int, help="cap steps per epoch (smoke tests)")
+    run.add_argument("--resume", action="store_true",
+                     help="continue each variant already in OUT_DIR from its last finished epoch (rafd-train --resume) "
+                          "instead of training it again; a finished variant is only evaluated")
     compare = commands.add_parser(
         "compare", help="paired bootstrap over drives: is CANDIDATE better than BASELINE on the same frames?")
     compare.add_argument("baseline", type=Path, help="detections (.npz from rafd-eval --detections, or a variant's "
@@ -210,6 +213,7 @@ def markdown_table(rows: list[dict]) -> str:
 def run_benchmark(args: argparse.Namespace) -> int:
     from rafd.cli import evaluate as eval_cli
     from rafd.cli import train as train_cli
+    from rafd.train.trainer import history_path, optimizer_state_path
 
     manifest = read_manifest(args.data_root)
     names = [n.strip() for n in args.variants.split(",") if n.strip()]
@@ -222,7 +226,13 @@ def run_benchmark(args: argparse.Namespace) -> int:
         variant = VARIANTS[name]
         ckpt = args.out_dir / name / "model.pt"
         init_flags: list[str] = []
-        if variant.init is not None:
+        # --resume: a variant stopped mid-run goes on from its last finished epoch (rafd-train refuses another
+        # config or --freeze); one that finished is only evaluated
+        resumed = args.resume and ckpt.is_file() and optimizer_state_path(ckpt).is_file()
+        if resumed:
+            init_flags = ["--resume", str(ckpt)]
+            log.info("variant %s: resuming %s", name, ckpt)
+        elif variant.init is not None:
             init_ckpt = args.out_dir / variant.init / "model.pt"
             if not init_ckpt.is_file():
                 raise FileNotFoundError(f"variant {name} starts from {init_ckpt}: train variant {variant.init} into "
@@ -246,6 +256,8 @@ def run_benchmark(args: argparse.Namespace) -> int:
         if train_cli.main(train_argv) != 0:
             raise RuntimeError(f"training variant {name} failed")
         seconds = time.perf_counter() - start
+        if resumed:  # the whole run's training time, earlier invocations included
+            seconds = sum(epoch["seconds"] for epoch in json.loads(history_path(ckpt).read_text()))
         metrics_path = args.out_dir / name / "test_metrics.json"
         # every variant scores the same frames: those a 4-frame model scores (a drive's first 3 have no window)
         common = [str(ckpt), "--data", str(args.data_root), "--split", manifest["test_split"], "--device", args.device,
@@ -256,7 +268,7 @@ def run_benchmark(args: argparse.Namespace) -> int:
             raise RuntimeError(f"evaluating variant {name} failed")
         overall = json.loads(metrics_path.read_text())["overall"]
         row = {"variant": name, "description": variant.description, "train_seconds": seconds, "epochs": args.epochs,
-               "init": variant.init, **overall}
+               "init": variant.init, "resumed": bool(resumed), **overall}
         if args.full_scan:
             full_path = args.out_dir / name / "test_full_scan.json"
             if eval_cli.main(common + ["--full-scan", "--json", str(full_path)]) != 0:

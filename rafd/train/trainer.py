@@ -428,7 +428,7 @@ class Trainer:
         state_path = optimizer_state_path(path)
         if not state_path.is_file():
             raise FileNotFoundError(f"cannot resume: {state_path} (optimizer state written beside {path}) is missing")
-        model, cfg, _meta = load_checkpoint(path, map_location="cpu")
+        model, cfg, meta = load_checkpoint(path, map_location="cpu")
         if cfg != self.model_cfg:
             raise ValueError(f"cannot resume {path}: its model config differs from this run's")
         state = torch.load(state_path, map_location=self.ctx.device, weights_only=True)
@@ -451,6 +451,9 @@ class Trainer:
         self.step = int(state["step"])
         hist = history_path(path)
         self.history = json.loads(hist.read_text()) if hist.is_file() else []
+        # the run's provenance goes on (a two-stage run's start); an operating threshold does not: the weights move
+        if (meta or {}).get("init") is not None:
+            self.run_meta.setdefault("init", meta["init"])
         log.info("resumed %s at epoch %d, step %d", path, self.epoch, self.step)
 
 

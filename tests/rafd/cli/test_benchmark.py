@@ -56,6 +56,23 @@ def test_small_benchmark_end_to_end(tmp_path: Path) -> None:
     _, cfg, meta = read_checkpoint(out / "rafd4_from_single" / "model.pt")
     assert cfg.num_frames == 4 and cfg.propagation.norm == "pre"
     assert meta["init"] == str(out / "single" / "model.pt")
+    # a run stopped after epoch 1 of 2 goes on from there with --resume: one more epoch, not two, provenance kept
+    history = out / "rafd4_from_single" / "model.pt.history.json"
+    first = json.loads(history.read_text())
+    code = main(["run", str(data), str(out), "--variants", "rafd4_from_single", "--epochs", "2", "--resume",
+                 "--max-steps-per-epoch", "1", "--batch-size", "2", "--device", "cpu"])
+    assert code == 0
+    epochs = json.loads(history.read_text())
+    assert [e["epoch"] for e in epochs] == [1, 2] and epochs[0] == first[0]  # epoch 1 was not trained again
+    row = json.loads((out / "results.json").read_text())["rows"][-1]
+    assert row["variant"] == "rafd4_from_single" and row["resumed"]
+    assert row["train_seconds"] == pytest.approx(sum(e["seconds"] for e in epochs))
+    _, _, meta = read_checkpoint(out / "rafd4_from_single" / "model.pt")
+    assert meta["epoch"] == 2 and meta["init"] == str(out / "single" / "model.pt")
+    # a finished run is only evaluated again
+    assert main(["run", str(data), str(out), "--variants", "rafd4_from_single", "--epochs", "2", "--resume",
+                 "--max-steps-per-epoch", "1", "--batch-size", "2", "--device", "cpu"]) == 0
+    assert json.loads(history.read_text()) == epochs
 
 
 def test_compare_needs_detections(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
