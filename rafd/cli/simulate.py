@@ -11,7 +11,7 @@ from pathlib import Path
 from rafd.geometry import RADIATE_SCAN_SIZE
 from rafd.sim.api import simulate_dataset
 from rafd.sim.preview import render_preview
-from rafd.sim.sensor import Difficulty
+from rafd.sim.sensor import WEATHERS, Difficulty
 
 
 def _parser() -> argparse.ArgumentParser:
@@ -28,6 +28,9 @@ def _parser() -> argparse.ArgumentParser:
     parser.add_argument("--clutter", type=float, default=1.0, help="clutter strength (1 = matched to real scans)")
     parser.add_argument("--ghosts", type=float, default=1.0, help="multipath ghost strength (1 = default)")
     parser.add_argument("--noise", type=float, default=1.0, help="noise floor power (1 = matched to real scans)")
+    parser.add_argument("--weather", choices=WEATHERS,
+                        help="every drive in this weather (default: drawn per drive, 45%% clear, 30%% fog, 25%% rain); "
+                             "with --realism, compare with real scans taken in that weather")
     parser.add_argument("--exact-labels", action="store_true",
                         help="label every box with width across and yaw along its travel (default: RADIATE's "
                              "annotators' 180-degree and width/length ambiguity)")
@@ -92,7 +95,8 @@ def main(argv: list[str] | None = None) -> int:
     start = time.perf_counter()
     try:
         paths = simulate_dataset(args.out_dir, args.sequences, args.frames, args.seed, args.split, args.size, difficulty,
-                                 ambiguous=not args.exact_labels, poses=not args.no_poses, polar=args.polar)
+                                 ambiguous=not args.exact_labels, poses=not args.no_poses, polar=args.polar,
+                                 weather=args.weather)
     except OSError as error:
         return _fail(str(error))
     for path in paths:
@@ -128,7 +132,7 @@ def _realism(args: argparse.Namespace, difficulty: Difficulty) -> int:
             simulated = _sequences_of(args.realism_sim)
         else:  # RADIATE-sized scans, a few consecutive frames from each of several drives
             simulated = [run_simulation(sequence_seed(args.seed, k), min(args.frames, 3), "realism", RADIATE_SCAN_SIZE,
-                                        difficulty, name=f"realism_{k}").images
+                                        difficulty, name=f"realism_{k}", weather=args.weather).images
                          for k in range(args.sequences if args.sequences > 1 else REALISM_DRIVES)]
     except (FileNotFoundError, ValueError) as error:
         return _fail(str(error))

@@ -26,13 +26,15 @@ def simulate_sequence(
     ambiguous: bool = True,
     poses: bool = True,
     polar: bool = False,
+    weather: str | None = None,
 ) -> Path:
     """Simulate and write one sequence into the folder `out_dir` (its name becomes meta.json "name");
     `ambiguous` labels as RADIATE's annotators do (rafd.sim.sequence.ambiguous_labels); poses=False writes no
     ego_poses.csv (like a real RADIATE sequence before `rafd-odometry`); polar=True also writes the polar scans
-    (Navtech_Polar/)."""
+    (Navtech_Polar/); `weather` forces the drive's weather (None: drawn per drive)."""
     out_dir = Path(out_dir)
-    sequence = run_simulation(seed, num_frames, split, size, difficulty, name=out_dir.name, ambiguous=ambiguous)
+    sequence = run_simulation(seed, num_frames, split, size, difficulty, name=out_dir.name, ambiguous=ambiguous,
+                              weather=weather)
     return write_sequence(sequence, out_dir, poses=poses, polar=polar)
 
 
@@ -47,6 +49,7 @@ def simulate_dataset(
     ambiguous: bool = True,
     poses: bool = True,
     polar: bool = False,
+    weather: str | None = None,
 ) -> list[Path]:
     """Write `sequences` folders root/sim_<seed>_<k>, each simulated from sequence_seed(seed, k)."""
     if sequences < 1:
@@ -54,6 +57,6 @@ def simulate_dataset(
     root = Path(root)
     return [
         simulate_sequence(root / f"sim_{seed}_{k}", sequence_seed(seed, k), frames, split, size, difficulty, ambiguous,
-                          poses, polar)
+                          poses, polar, weather)
         for k in range(sequences)
     ]

@@ -29,6 +29,7 @@ NOISE_FLOOR = 0.55  # receiver noise power (grey ~13 where nothing reflects, as 
 CLUTTER_PERSISTENCE_RANGE = (0.7, 1.0)  # real bright returns mostly persist from scan to scan (rafd.sim.realism)
 STRIPING_FIXED = 0.5  # share of the per-beam log-gain variance fixed in the sensor's frame (repeats every rotation)
 ECHO_SPECKLE = 0.5  # share of the echo power that is speckle, redrawn every scan (the rest persists)
+WEATHERS = ("clear", "fog", "rain")
 MOUNT_SEED = 20191127  # the sensor's fixed mounting pattern is the same in every drive (one vehicle, one radar)
 
 
@@ -63,8 +64,12 @@ class Conditions:
     beam_seed: int = 0  # draws the per-beam gains that repeat in every scan of the drive (STRIPING_FIXED)
 
     @classmethod
-    def sample(cls, rng: np.random.Generator) -> "Conditions":
-        weather = str(rng.choice(["clear", "fog", "rain"], p=[0.45, 0.3, 0.25]))
+    def sample(cls, rng: np.random.Generator, weather: str | None = None) -> "Conditions":
+        """Draw one drive's conditions; `weather` forces its weather instead of drawing it (e.g. to compare with
+        real scans taken in that weather)."""
+        if weather is not None and weather not in WEATHERS:
+            raise ValueError(f"weather must be one of {', '.join(WEATHERS)}, got {weather!r}")
+        weather = weather or str(rng.choice(WEATHERS, p=[0.45, 0.3, 0.25]))
         return cls(
             weather=weather,
             gain=float(rng.lognormal(0.0, 0.12)),
@@ -72,7 +77,10 @@ class Conditions:
             floor_far=float(rng.uniform(0.3, 1.2)),
             striping=float(rng.uniform(0.15, 0.4)),
             speckle_grain=float(rng.uniform(2.0, 3.6)),
-            attenuation=float({"clear": 0.0, "fog": rng.uniform(0.0, 0.004), "rain": rng.uniform(0.002, 0.01)}[weather]),
+            # one-way power attenuation at 77 GHz (ITU-R P.840 / P.838): dense fog up to ~1.2 dB/km, rain of
+            # ~2-40 mm/h about 2-15 dB/km
+            attenuation=float({"clear": 0.0, "fog": rng.uniform(0.0, 0.0003),
+                               "rain": rng.uniform(0.0005, 0.0035)}[weather]),
             rain=float(rng.uniform(0.5, 3.0) if weather == "rain" else 0.0),
             vehicle_gain=float(rng.uniform(0.4, 1.0) if weather != "clear" else rng.uniform(0.7, 1.3)),
             clutter_persistence=float(rng.uniform(*CLUTTER_PERSISTENCE_RANGE)),
@@ -94,7 +102,8 @@ class NavtechConfig:
     shadow: float = 0.25  # power left behind an occluder (diffraction, multipath)
     shadow_margin: float = 0.7  # metres behind the nearest occluder before the shadow starts
     gain: float = 17.0  # grey level per unit amplitude (noise floor power = 1)
-    attenuation_range: float = 90.0  # metres: signal power falls as 1 / (1 + r / this)
+    attenuation_range: float = 1000.0  # metres: signal power falls as 1 / (1 + r / this). Real structure 40 m away
+    # is about as bright as at 10 m (rafd.sim.realism's rings; presumably range compensation): 90 m made ours too dark
     mount_rays: int = 45  # starburst rays of the mounting pattern
     mount_reach: float = 1.8  # metres over which the starburst rays fade
     mount_streak_azimuth: float = 203.0  # bin of the streak behind the radar (bin 200 = straight back)

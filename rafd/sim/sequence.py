@@ -195,10 +195,11 @@ def annotator_sees(lit: np.ndarray, seen: np.ndarray, strength: np.ndarray, shad
 
 def run_simulation(
     seed: int, num_frames: int, split: str, size: int, difficulty: Difficulty, name: str,
-    resolution: float = RADIATE_RESOLUTION, ambiguous: bool = True,
+    resolution: float = RADIATE_RESOLUTION, ambiguous: bool = True, weather: str | None = None,
 ) -> SimulatedSequence:
     """Simulate `num_frames` scans of size x size pixels deterministically from `seed`. `ambiguous` labels boxes as
-    RADIATE's annotators do (ambiguous_labels); False keeps width across and yaw along each road user's travel."""
+    RADIATE's annotators do (ambiguous_labels); False keeps width across and yaw along each road user's travel.
+    `weather` ("clear" | "fog" | "rain") forces the drive's weather; None draws it (Conditions.sample)."""
     if num_frames < 1:
         raise ValueError(f"num_frames must be >= 1, got {num_frames}")
     if size < 16 or size % 2:
@@ -206,7 +207,7 @@ def run_simulation(
     rng = np.random.default_rng(seed)
     label_rng = np.random.default_rng([seed, 1])  # its own generator: the scans do not depend on the labelling
     sensor = NavtechSensor(size, resolution)
-    conditions = Conditions.sample(rng)
+    conditions = Conditions.sample(rng, weather)
     stamps = frame_times(rng, num_frames)
     times = (stamps - stamps[0]) / 1e9
     fine = np.arange(-SCAN_PERIOD, times[-1] + 1.5 * SCAN_PERIOD, SCAN_PERIOD / FINE_STEPS)

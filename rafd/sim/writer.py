@@ -73,6 +73,7 @@ def write_sequence(sequence: SimulatedSequence, out_dir: Path, poses: bool = Tru
         "seed": int(sequence.seed),
         "resolution": sequence.resolution,
         "image_size": int(sequence.images[0].shape[0]),
+        "weather": None if sequence.conditions is None else sequence.conditions.weather,  # like RADIATE's fog_*, rain_*
     }
     (out_dir / "meta.json").write_text(json.dumps(meta))
     if poses:

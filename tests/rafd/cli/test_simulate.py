@@ -17,6 +17,15 @@ def test_writes_sequences(tmp_path: Path, capsys: pytest.CaptureFixture) -> None
     assert "sim_5_1" in capsys.readouterr().out
 
 
+def test_forced_weather_is_written(tmp_path: Path) -> None:
+    import json
+
+    assert main([str(tmp_path / "out"), "--sequences", "3", "--frames", "1", "--size", "64", "--weather", "fog"]) == 0
+    for k in range(3):
+        meta = json.loads((tmp_path / "out" / f"sim_0_{k}" / "meta.json").read_text())
+        assert meta["weather"] == "fog", meta
+
+
 @pytest.mark.parametrize(
     "args, message",
     [
@@ -24,10 +33,15 @@ def test_writes_sequences(tmp_path: Path, capsys: pytest.CaptureFixture) -> None
         (["--frames", "0"], "--frames"),
         (["--sequences", "0"], "--sequences"),
         (["--clutter", "-1"], "clutter"),
+        (["--weather", "snow"], "--weather"),
     ],
 )
 def test_bad_arguments(tmp_path: Path, capsys: pytest.CaptureFixture, args: list[str], message: str) -> None:
-    assert main([str(tmp_path / "out"), *args]) == 2
+    try:
+        code = main([str(tmp_path / "out"), *args])
+    except SystemExit as exit_:  # argparse's own checks (choices)
+        code = exit_.code
+    assert code == 2
     assert message in capsys.readouterr().err
 
 

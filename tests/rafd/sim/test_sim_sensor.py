@@ -2,6 +2,7 @@
 from __future__ import annotations
 
 import numpy as np
+import pytest
 
 from rafd.geometry import metres_to_pixels
 from rafd.sim.scene import Scatterers
@@ -78,3 +79,26 @@ def test_world_clutter_has_the_transient_density_and_its_persistent_share() -> N
     assert 0.35 * len(xy) < len(half) < 0.65 * len(xy)
     assert len(world_clutter(rng, bounds, Difficulty(), 0.0)[0]) == 0
     assert len(world_clutter(rng, bounds, Difficulty(clutter=0.0), 1.0)[0]) == 0
+
+
+def test_forced_weather_and_unknown_weather() -> None:
+    from rafd.sim.sensor import WEATHERS, Conditions
+
+    drawn = {Conditions.sample(np.random.default_rng(seed)).weather for seed in range(40)}
+    assert drawn == set(WEATHERS)  # drawn per drive when not forced
+    for weather in WEATHERS:
+        conditions = [Conditions.sample(np.random.default_rng(seed), weather) for seed in range(10)]
+        assert {c.weather for c in conditions} == {weather}
+        assert all((c.rain > 0) == (weather == "rain") for c in conditions)
+        assert all(c.attenuation == 0.0 for c in conditions) or weather != "clear"
+    with pytest.raises(ValueError, match="weather must be one of"):
+        Conditions.sample(np.random.default_rng(0), "snow")
+
+
+def test_far_structure_is_not_dimmed_by_range() -> None:
+    """Real structure 40 m away is about as bright as at 10 m (rafd.sim.realism's rings): the same point at 40 m
+    keeps at least 95% of its power at 10 m."""
+    sensor = NavtechSensor(1152)
+    echoes = sensor.illuminate(_points([[0.0, 10.0], [0.0, 40.0]], 100.0))
+    near, far = echoes.power[np.argsort(echoes.ranges)]
+    assert far >= 0.95 * near
