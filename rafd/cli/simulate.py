@@ -126,6 +126,8 @@ def _realism(args: argparse.Namespace, difficulty: Difficulty) -> int:
     from rafd.sim.sequence import run_simulation
     from rafd.sim.api import sequence_seed
 
+    if args.realism_sim is not None and args.weather is not None:
+        return _fail("--weather chooses the weather of the scans simulated here; --realism-sim reads scans already made")
     try:
         real = [scans for root in args.realism for scans in _sequences_of(root)]
         if args.realism_sim is not None:

@@ -85,6 +85,8 @@ def test_realism_table_from_the_command_line(tmp_path: Path, radiate_sample: Pat
     rows = json.loads(out.read_text())
     assert len(rows) == 9 and all(row["distance"] >= 0 for row in rows)
     assert any(row["name"].startswith("scan-to-scan") for row in rows)
+    assert main(["--realism", str(radiate_sample), "--realism-sim", str(tmp_path / "sim"), "--weather", "fog"]) == 2
+    assert "--weather" in capsys.readouterr().err
     simulate_dataset(tmp_path / "small", sequences=1, frames=2, seed=4, size=256)
     assert main(["--realism", str(radiate_sample), "--realism-sim", str(tmp_path / "small")]) == 2
     assert "1152 px" in capsys.readouterr().err
