@@ -11,7 +11,7 @@ from pathlib import Path
 from rafd.geometry import RADIATE_SCAN_SIZE
 from rafd.sim.api import simulate_dataset
 from rafd.sim.preview import render_preview
-from rafd.sim.sensor import WEATHERS, Difficulty
+from rafd.sim.sensor import WEATHER_PROBABILITIES, WEATHERS, Difficulty
 
 
 def _parser() -> argparse.ArgumentParser:
@@ -29,8 +29,9 @@ def _parser() -> argparse.ArgumentParser:
     parser.add_argument("--ghosts", type=float, default=1.0, help="multipath ghost strength (1 = default)")
     parser.add_argument("--noise", type=float, default=1.0, help="noise floor power (1 = matched to real scans)")
     parser.add_argument("--weather", choices=WEATHERS,
-                        help="every drive in this weather (default: drawn per drive, 45%% clear, 30%% fog, 25%% rain); "
-                             "with --realism, compare with real scans taken in that weather")
+                        help="every drive in this weather (default: drawn per drive, "
+                             + ", ".join(f"{100 * p:.0f}%% {w}" for w, p in zip(WEATHERS, WEATHER_PROBABILITIES))
+                             + "); with --realism, compare with real scans taken in that weather")
     parser.add_argument("--exact-labels", action="store_true",
                         help="label every box with width across and yaw along its travel (default: RADIATE's "
                              "annotators' 180-degree and width/length ambiguity)")

@@ -30,6 +30,7 @@ CLUTTER_PERSISTENCE_RANGE = (0.7, 1.0)  # real bright returns mostly persist fro
 STRIPING_FIXED = 0.5  # share of the per-beam log-gain variance fixed in the sensor's frame (repeats every rotation)
 ECHO_SPECKLE = 0.5  # share of the echo power that is speckle, redrawn every scan (the rest persists)
 WEATHERS = ("clear", "fog", "rain")
+WEATHER_PROBABILITIES = (0.45, 0.3, 0.25)  # a drive's weather, when not forced
 MOUNT_SEED = 20191127  # the sensor's fixed mounting pattern is the same in every drive (one vehicle, one radar)
 
 
@@ -69,7 +70,7 @@ class Conditions:
         real scans taken in that weather)."""
         if weather is not None and weather not in WEATHERS:
             raise ValueError(f"weather must be one of {', '.join(WEATHERS)}, got {weather!r}")
-        weather = weather or str(rng.choice(WEATHERS, p=[0.45, 0.3, 0.25]))
+        weather = weather or str(rng.choice(WEATHERS, p=WEATHER_PROBABILITIES))
         return cls(
             weather=weather,
             gain=float(rng.lognormal(0.0, 0.12)),
