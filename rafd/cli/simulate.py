@@ -29,7 +29,7 @@ def _parser() -> argparse.ArgumentParser:
     parser.add_argument("--ghosts", type=float, default=1.0, help="multipath ghost strength (1 = default)")
     parser.add_argument("--noise", type=float, default=1.0, help="noise floor power (1 = matched to real scans)")
     parser.add_argument("--weather", choices=WEATHERS,
-                        help="every drive in this weather (default: drawn per drive, "
+                        help="the same drives, every one in this weather (default: drawn per drive, "
                              + ", ".join(f"{100 * p:.0f}%% {w}" for w, p in zip(WEATHERS, WEATHER_PROBABILITIES))
                              + "); with --realism, compare with real scans taken in that weather")
     parser.add_argument("--exact-labels", action="store_true",

@@ -67,22 +67,29 @@ class Conditions:
     @classmethod
     def sample(cls, rng: np.random.Generator, weather: str | None = None) -> "Conditions":
         """Draw one drive's conditions; `weather` forces its weather instead of drawing it (e.g. to compare with
-        real scans taken in that weather)."""
+        real scans taken in that weather). Forcing takes from `rng` exactly what drawing would, so the drive's every
+        other draw (its gain, floor, town, traffic) stays as it was: the same drive, in another weather."""
         if weather is not None and weather not in WEATHERS:
             raise ValueError(f"weather must be one of {', '.join(WEATHERS)}, got {weather!r}")
-        weather = weather or str(rng.choice(WEATHERS, p=WEATHER_PROBABILITIES))
+        drawn = str(rng.choice(WEATHERS, p=WEATHER_PROBABILITIES))
+        weather = weather or drawn
+        # the draws in their historical order (a drive simulated before stays the same drive)
+        gain = float(rng.lognormal(0.0, 0.12))
+        floor_near, floor_far = float(rng.uniform(2.0, 6.0)), float(rng.uniform(0.3, 1.2))
+        striping, speckle_grain = float(rng.uniform(0.15, 0.4)), float(rng.uniform(2.0, 3.6))
+        # one-way power attenuation at 77 GHz (ITU-R P.840 / P.838): dense fog up to ~1.2 dB/km, rain of ~2-40 mm/h
+        # about 2-15 dB/km
+        attenuation = float({"clear": 0.0, "fog": rng.uniform(0.0, 0.0003), "rain": rng.uniform(0.0005, 0.0035)}[weather])
+        # The rain backscatter's strength comes from the stream only where the drive drew rain; a drive forced into
+        # rain takes it from a side stream (Generator.spawn leaves the main stream where it is).
+        rain = float(rng.uniform(0.5, 3.0)) if drawn == "rain" else 0.0
+        if weather != "rain":
+            rain = 0.0
+        elif drawn != "rain":
+            rain = float(rng.spawn(1)[0].uniform(0.5, 3.0))
         return cls(
-            weather=weather,
-            gain=float(rng.lognormal(0.0, 0.12)),
-            floor_near=float(rng.uniform(2.0, 6.0)),
-            floor_far=float(rng.uniform(0.3, 1.2)),
-            striping=float(rng.uniform(0.15, 0.4)),
-            speckle_grain=float(rng.uniform(2.0, 3.6)),
-            # one-way power attenuation at 77 GHz (ITU-R P.840 / P.838): dense fog up to ~1.2 dB/km, rain of
-            # ~2-40 mm/h about 2-15 dB/km
-            attenuation=float({"clear": 0.0, "fog": rng.uniform(0.0, 0.0003),
-                               "rain": rng.uniform(0.0005, 0.0035)}[weather]),
-            rain=float(rng.uniform(0.5, 3.0) if weather == "rain" else 0.0),
+            weather=weather, gain=gain, floor_near=floor_near, floor_far=floor_far, striping=striping,
+            speckle_grain=speckle_grain, attenuation=attenuation, rain=rain,
             vehicle_gain=float(rng.uniform(0.4, 1.0) if weather != "clear" else rng.uniform(0.7, 1.3)),
             clutter_persistence=float(rng.uniform(*CLUTTER_PERSISTENCE_RANGE)),
             beam_seed=int(rng.integers(2**31)),

@@ -95,10 +95,33 @@ def test_forced_weather_and_unknown_weather() -> None:
         Conditions.sample(np.random.default_rng(0), "snow")
 
 
-def test_far_structure_is_not_dimmed_by_range() -> None:
-    """Real structure 40 m away is about as bright as at 10 m (rafd.sim.realism's rings): the same point at 40 m
-    keeps at least 95% of its power at 10 m."""
-    sensor = NavtechSensor(1152)
-    echoes = sensor.illuminate(_points([[0.0, 10.0], [0.0, 40.0]], 100.0))
-    near, far = echoes.power[np.argsort(echoes.ranges)]
-    assert far >= 0.95 * near
+def test_forcing_the_weather_keeps_the_drive() -> None:
+    """A forced weather changes only the weather's own draws: every other condition, and the generator's state for
+    the rest of the drive (town, traffic, scans), are those of the drive as drawn; forcing the weather it drew
+    changes nothing."""
+    from rafd.sim.sensor import WEATHERS, Conditions
+
+    kept = ("gain", "floor_near", "floor_far", "striping", "speckle_grain", "clutter_persistence", "beam_seed")
+    for seed in range(30):
+        drawn_rng = np.random.default_rng(seed)
+        drawn = Conditions.sample(drawn_rng)
+        after_drawn = drawn_rng.random(4)
+        for weather in WEATHERS:
+            forced_rng = np.random.default_rng(seed)
+            forced = Conditions.sample(forced_rng, weather)
+            np.testing.assert_array_equal(forced_rng.random(4), after_drawn)
+            assert all(getattr(forced, name) == getattr(drawn, name) for name in kept)
+            assert (forced == drawn) == (weather == drawn.weather)
+            assert (forced.rain > 0) == (weather == "rain")
+
+
+def test_forced_weather_simulates_the_same_drive() -> None:
+    """`rafd-simulate --weather W` renders the drives it would draw, in W (not other drives)."""
+    from rafd.sim.sequence import run_simulation
+
+    drawn = run_simulation(11, 2, "test", 64, Difficulty(), "a")
+    for weather in {"clear", "fog", "rain"} - {drawn.conditions.weather}:
+        forced = run_simulation(11, 2, "test", 64, Difficulty(), "b", weather=weather)
+        np.testing.assert_array_equal(forced.poses, drawn.poses)
+        np.testing.assert_array_equal(forced.timestamps_ns, drawn.timestamps_ns)
+        assert forced.conditions.weather == weather and forced.conditions.gain == drawn.conditions.gain
