@@ -79,7 +79,8 @@ class Conditions:
         striping, speckle_grain = float(rng.uniform(0.15, 0.4)), float(rng.uniform(2.0, 3.6))
         # one-way power attenuation at 77 GHz (ITU-R P.840 / P.838): dense fog up to ~1.2 dB/km, rain of ~2-40 mm/h
         # about 2-15 dB/km
-        attenuation = float({"clear": 0.0, "fog": rng.uniform(0.0, 0.0003), "rain": rng.uniform(0.0005, 0.0035)}[weather])
+        attenuation = float({"clear": 0.0, "fog": rng.uniform(0.0, 0.0003),
+                             "rain": rng.uniform(0.0005, 0.0035)}[weather])
         # The rain backscatter's strength comes from the stream only where the drive drew rain; a drive forced into
         # rain takes it from a side stream (Generator.spawn leaves the main stream where it is).
         rain = float(rng.uniform(0.5, 3.0)) if drawn == "rain" else 0.0
