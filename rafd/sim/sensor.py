@@ -81,13 +81,13 @@ class Conditions:
         # about 2-15 dB/km
         attenuation = float({"clear": 0.0, "fog": rng.uniform(0.0, 0.0003),
                              "rain": rng.uniform(0.0005, 0.0035)}[weather])
-        # The rain backscatter's strength comes from the stream only where the drive drew rain; a drive forced into
+        # The rain backscatter's strength is taken from the stream only where the drive drew rain; a drive forced into
         # rain takes it from a side stream (Generator.spawn leaves the main stream where it is).
-        rain = float(rng.uniform(0.5, 3.0)) if drawn == "rain" else 0.0
+        drawn_rain = float(rng.uniform(0.5, 3.0)) if drawn == "rain" else None
         if weather != "rain":
             rain = 0.0
-        elif drawn != "rain":
-            rain = float(rng.spawn(1)[0].uniform(0.5, 3.0))
+        else:
+            rain = drawn_rain if drawn_rain is not None else float(rng.spawn(1)[0].uniform(0.5, 3.0))
         return cls(
             weather=weather, gain=gain, floor_near=floor_near, floor_far=floor_far, striping=striping,
             speckle_grain=speckle_grain, attenuation=attenuation, rain=rain,
