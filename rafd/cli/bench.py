@@ -81,7 +81,7 @@ def time_interleaved(calls: dict[str, Callable[[int], Any]], repeats: int) -> di
     """Seconds per call of each call(i), one timed call of each per round: load from other jobs hits all alike.
 
     Each timed call follows one untimed call of the same path: a run leaves its runtime's pool threads busy after
-    it returns (onnxruntime's spin on the cores for several milliseconds), which would slow whichever path came
+    it returns (onnxruntime's threads spin on the cores for several milliseconds), which would slow whichever path came
     next (measured here: OpenVINO bf16 right after onnxruntime 34 ms, after its own untimed call 24 ms)."""
     samples: dict[str, list[float]] = {name: [] for name in calls}
     for i in range(repeats):
