@@ -29,8 +29,8 @@ NOISE_FLOOR = 0.55  # receiver noise power (grey ~13 where nothing reflects, as 
 CLUTTER_PERSISTENCE_RANGE = (0.7, 1.0)  # real bright returns mostly persist from scan to scan (rafd.sim.realism)
 STRIPING_FIXED = 0.5  # share of the per-beam log-gain variance fixed in the sensor's frame (repeats every rotation)
 ECHO_SPECKLE = 0.3  # share of the echo power that is speckle, redrawn every scan (the rest, dominant scatterers,
-# persists): 0.3 puts the scan-to-scan stability of bright returns at the real sample's (rafd.sim.realism; 0.5 gave
-# 0.42 against the real 0.57 over three draws)
+# persists): 0.3 puts the scan-to-scan stability of bright returns at the real sample's (rafd.sim.realism, three draws
+# per weather: 0.52-0.58, real 0.57; 0.5 gave 0.41-0.44)
 WEATHERS = ("clear", "fog", "rain")
 WEATHER_PROBABILITIES = (0.45, 0.3, 0.25)  # a drive's weather, when not forced
 MOUNT_SEED = 20191127  # the sensor's fixed mounting pattern is the same in every drive (one vehicle, one radar)

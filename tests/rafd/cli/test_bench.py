@@ -3,6 +3,7 @@ runtime and precision side by side, the matmul peaks, the concurrency comparison
 from __future__ import annotations
 
 import json
+import time
 from pathlib import Path
 
 import pytest
@@ -44,8 +45,6 @@ def test_bench_refuses_bad_arguments(capsys: pytest.CaptureFixture[str], argv, m
 def test_interleaved_timing_is_not_charged_for_the_path_before():
     """A run can leave work behind it (onnxruntime's pool threads spin on the cores after a run returns): the path
     timed next must not pay for it. Here every call pays 20 ms when another path ran just before it, 0 otherwise."""
-    import time
-
     last = {"name": None}
 
     def path(name: str):
