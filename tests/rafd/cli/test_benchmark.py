@@ -17,6 +17,9 @@ def test_variants_map_to_the_papers_ablations() -> None:
     assert frozen.init == "single" and frozen.train_flags()[-2:] == ["--freeze", "encoder"]
     fresh_only = VARIANTS["rafd4_from_single_fresh_only"]
     assert fresh_only.init == "single" and fresh_only.train_flags()[-3:] == ["--freeze", "encoder", "head"]
+    flow4 = VARIANTS["rafd4_from_single_fresh_only_flow4"]  # the shipped recipe, only the flow stride differs
+    assert flow4.init == "single" and flow4.train_flags() == ["--frames", "4", "--flow-stride", "4", "--freeze",
+                                                              "encoder", "head"]
     table = markdown_table([{"variant": "rafd4", "description": "d", "mAP@0.3": 50.0, "epe_all": float("nan")}])
     assert "| rafd4 | d | 50.00 |" in table and "| - |" in table
 
