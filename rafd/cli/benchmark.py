@@ -7,7 +7,7 @@ import json
 import logging
 import sys
 import time
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, replace
 from pathlib import Path
 from typing import Sequence
 
@@ -79,6 +79,11 @@ class Variant:
         return flags
 
 
+# Only the fresh parts train: the propagation starts as the identity, so the model starts as the single-frame model
+# and can only add what its past frames show to the features the single-frame head reads (the shipped recipe).
+FRESH_ONLY = Variant("rafd4_from_single_fresh_only", "RaFD, 4 frames, from the single-frame model, only its flow branch "
+                     "and propagation trained", init="single", freeze=("encoder", "head"))
+
 # Table 1 (frames) and leave-one-out ablations; "baseline"/"enh_only" + no_guidance + rafd4 give the
 # paper's cumulative Table 2 (baseline -> + enhancement -> + flow estimation -> + flow guidance).
 VARIANTS = {
@@ -92,14 +97,10 @@ VARIANTS = {
         Variant("rafd4_from_single", "RaFD, 4 frames, initialised from the single-frame model", init="single"),
         Variant("rafd4_from_single_frozen", "RaFD, 4 frames, from the single-frame model, its encoder frozen",
                 init="single", freeze=("encoder",)),
-        # Only the fresh parts train: the propagation starts as the identity, so the model starts as the single-frame
-        # model and can only add what its past frames show to the features the single-frame head reads.
-        Variant("rafd4_from_single_fresh_only", "RaFD, 4 frames, from the single-frame model, only its flow branch "
-                "and propagation trained", init="single", freeze=("encoder", "head")),
+        FRESH_ONLY,
         # The shipped recipe with the paper's flow branch (stride 4 instead of 8): the accuracy the speed option costs.
-        Variant("rafd4_from_single_fresh_only_flow4", "RaFD, 4 frames, from the single-frame model, only its flow "
-                "branch and propagation trained, flow at stride 4 (the paper's)", init="single",
-                freeze=("encoder", "head"), flow_stride=4),
+        replace(FRESH_ONLY, name="rafd4_from_single_fresh_only_flow4",
+                description=FRESH_ONLY.description + ", flow at stride 4 (the paper's)", flow_stride=4),
         Variant("rafd2_from_single", "RaFD, 2 frames, initialised from the single-frame model", frames=2, init="single"),
         Variant("no_guidance_from_single", "4 frames, vanilla deformable attention, initialised from the single-frame "
                 "model", flow_guidance=False, init="single"),
