@@ -129,6 +129,7 @@ class DetectService:
             if ticket is None:
                 ticket = self.store.take_ticket(fields.stream_id, caller)
             self.store.place(ticket, fields.timestamp)
+            read_at = time.perf_counter()
             check_posted_image(image, size, resolution)  # chunk headers only: hostile files never take a slot
             decoded = await self.executors.decode.run(decode_frame, image, size, resolution)
             frame = decoded.model_input()  # [S, S] float32 in [0, 1]
@@ -164,7 +165,8 @@ class DetectService:
         answer = self._answer(fields, decoded, result, pose, source, previous_timestamp, options)
         done = time.perf_counter()
         answer["timing"] = {
-            "decode_ms": _ms(decoded_at - start),
+            "read_ms": _ms(read_at - start),
+            "decode_ms": _ms(decoded_at - read_at),
             "wait_ms": _ms(locked_at - decoded_at),
             "odometry_ms": _ms(odometry_done - locked_at),
             "model_ms": _ms(model_done - odometry_done),
@@ -213,19 +215,20 @@ class DetectService:
 
     def _boxes(self, result: Any, posted_size: int) -> list[dict[str, Any]]:
         detections = decode_detections(result.boxes, result.scores, self.score_threshold)
-        polygons = box_polygons_pixels(detections.boxes, posted_size, self.config.resolution)  # [N, 4, 2]
+        if not len(detections):
+            return []
+        # Whole arrays turned into lists once: per-box numpy calls cost ~0.3 ms per answer on the caches a model
+        # step has just swept. 0.1 mm and 1e-5 rad: far below the radar's 17 cm pixels.
+        polygons = np.round(box_polygons_pixels(detections.boxes, posted_size, self.config.resolution), 2)  # [N, 4, 2]
         names = self.config.class_names
-        out = []
-        for box, score, label, polygon in zip(detections.boxes, detections.scores, detections.labels, polygons):
-            out.append({
-                # 0.1 mm and 1e-5 rad: far below the radar's 17 cm pixels, keeps the JSON short
-                "x": round(float(box[0]), 4), "y": round(float(box[1]), 4),
-                "width": round(float(box[2]), 4), "length": round(float(box[3]), 4),
-                "yaw": round(float(box[4]), 5), "score": round(float(score), 5), "class_id": int(label),
-                "class": names[label] if label < len(names) else str(label),
-                "polygon": np.round(polygon, 2).tolist(),
-            })
-        return out
+        return [
+            {"x": round(x, 4), "y": round(y, 4), "width": round(width, 4), "length": round(length, 4),
+             "yaw": round(yaw, 5), "score": round(score, 5), "class_id": label,
+             "class": names[label] if label < len(names) else str(label),
+             "polygon": polygon}
+            for (x, y, width, length, yaw), score, label, polygon
+            in zip(detections.boxes.tolist(), detections.scores.tolist(), detections.labels.tolist(), polygons.tolist())
+        ]
 
     def _flow(self, result: Any, decoded: DecodedFrame, previous_timestamp: float | None, timestamp: float,
               options: DetectOptions) -> dict[str, Any] | None:
@@ -240,7 +243,9 @@ class DetectService:
             values: Any = base64.b64encode(flow.astype("<f2").tobytes()).decode("ascii")
             encoding = "base64-float16"
         else:
-            values = np.round(flow.astype(np.float64), 3).tolist()  # millimetres: well below a cell
+            # millimetres: well below a cell. Left an array: the route's orjson writes it as nested lists
+            # (OPT_SERIALIZE_NUMPY), the same text as .tolist() at a third of the cost for 2 x 64 x 64 values.
+            values = np.round(flow.astype(np.float64), 3)
             encoding = "list"
         return {
             "pair": [previous_timestamp, timestamp],

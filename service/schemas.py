@@ -89,7 +89,8 @@ class InputOut(BaseModel):
 
 
 class TimingOut(BaseModel):
-    decode_ms: float
+    read_ms: float = Field(description="from arrival until the body is read, parsed and placed in its stream")
+    decode_ms: float = Field(description="the image: decode queue, base64 and PNG decoding, crop")
     odometry_ms: float
     wait_ms: float = Field(description="time queued behind earlier frames of the same stream")
     model_ms: float

@@ -57,7 +57,8 @@ class DetectCall:
 
     async def answer(self, request: Request, stream_hint: str | None) -> Response:
         answer = await self.service.detect(request, stream_hint, self.caller, self.options)
-        return Response(orjson.dumps(answer), media_type="application/json")
+        # The answer's flow values may be a numpy array (service.detector._flow).
+        return Response(orjson.dumps(answer, option=orjson.OPT_SERIALIZE_NUMPY), media_type="application/json")
 
 
 async def detect_call(

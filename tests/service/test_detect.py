@@ -51,7 +51,9 @@ def test_json_stream_warms_up_then_uses_full_window(client):
         assert answer["input"] == {"posted_size": 128, "model_size": 128, "crop_offset_px": 0,
                                    "posted_format": "cartesian"}
         assert answer["model"]["version"] == "fake-1"
-        assert set(answer["timing"]) == {"decode_ms", "wait_ms", "odometry_ms", "model_ms", "post_ms", "total_ms"}
+        stages = ("read_ms", "decode_ms", "wait_ms", "odometry_ms", "model_ms", "post_ms")
+        assert set(answer["timing"]) == {*stages, "total_ms"}
+        assert sum(answer["timing"][k] for k in stages) == pytest.approx(answer["timing"]["total_ms"], abs=0.004)
         assert_boxes_match(answer["boxes"], expected[t], 128)
         if t == 0:
             assert answer["flow"] is None  # no real pair on a stream's first frame
