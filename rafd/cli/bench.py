@@ -32,6 +32,7 @@ from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Callable, Sequence
+from urllib.parse import urlsplit
 
 import cv2
 import numpy as np
@@ -338,14 +339,14 @@ def load_streams(url: str, bodies: list[str], poses: np.ndarray, streams: int, f
 
     Each thread keeps one plain `http.client` connection alive and encodes its body before the clock starts: the
     latency is the service's, not a client library's (httpx adds about 1 ms per request here)."""
-    host, port = url.removeprefix("http://").rsplit(":", 1)
+    address = urlsplit(url)
     latencies: list[float] = []
     answers: list[dict[str, Any]] = []
     errors: list[str] = []
     lock = threading.Lock()
 
     def client(index: int) -> None:
-        connection = http.client.HTTPConnection(host, int(port), timeout=120.0)
+        connection = http.client.HTTPConnection(address.hostname, address.port, timeout=120.0)
         try:
             for k in range(frames):
                 j = k % len(bodies)

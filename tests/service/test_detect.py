@@ -261,3 +261,15 @@ def test_a_bad_operating_threshold_in_the_model_is_an_error_at_start_up(value):
     runner.metadata["operating_threshold"] = value
     with pytest.raises(ValueError, match="operating_threshold"):
         score_threshold_of(Settings(threads=1), runner)
+
+
+def test_flow_list_is_written_as_the_same_text_as_nested_lists():
+    """The route lets orjson write the rounded flow array itself (service.detector._flow): it must give the very
+    text of the nested lists the answer promised, -0.0, whole numbers and large values included."""
+    import orjson
+
+    rng = np.random.default_rng(0)
+    flow = np.concatenate([rng.normal(0, 2, 2 * 64 * 64 - 6), [-0.0001, 0.0004999, 3.0, -250.1234, 1e-9, 0.0005]])
+    values = np.round(flow.reshape(2, 64, 64).astype(np.float32).astype(np.float64), 3)
+    assert orjson.dumps({"values": values}, option=orjson.OPT_SERIALIZE_NUMPY) == orjson.dumps(
+        {"values": values.tolist()})
