@@ -89,17 +89,28 @@ def calibrate(args: argparse.Namespace, results: list, cfg: Any, model: Any, met
     return threshold
 
 
-def format_table(overall: dict[str, Any], per_sequence: dict[str, dict[str, Any]]) -> str:
-    """Plain-text table: one row per sequence plus the overall row."""
-    columns = ("mAP@0.3", "mAP@0.5", "mAP@0.7", "centre_AP", "recall_at_1fp", "recall_at_threshold",
-               "fp_per_frame_at_threshold", "epe_all", "frames")
-    lines = [f"{'sequence':<28}" + "".join(f"{c[:14]:>15}" for c in columns)]
-    for name, row in [*per_sequence.items(), ("OVERALL", overall)]:
+TABLE_COLUMNS = ("mAP@0.3", "mAP@0.5", "mAP@0.7", "centre_AP", "recall_at_1fp", "recall_at_threshold",
+                 "fp_per_frame_at_threshold", "epe_all", "frames")
+
+
+def _rows(title: str, rows: list[tuple[str, dict[str, Any]]]) -> list[str]:
+    lines = [f"{title:<28}" + "".join(f"{c[:14]:>15}" for c in TABLE_COLUMNS)]
+    for name, row in rows:
         cells = []
-        for column in columns:
+        for column in TABLE_COLUMNS:
             value = row.get(column)
             cells.append(f"{value:>15.4f}" if isinstance(value, float) else f"{str(value):>15}")
         lines.append(f"{name:<28}" + "".join(cells))
+    return lines
+
+
+def format_table(overall: dict[str, Any], per_sequence: dict[str, dict[str, Any]],
+                 per_condition: dict[str, dict[str, Any]] | None = None) -> str:
+    """Plain-text table: one row per sequence plus the overall row; then, where the sequences' meta.json name
+    their recording condition, one row per condition; then the figures by range."""
+    lines = _rows("sequence", [*per_sequence.items(), ("OVERALL", overall)])
+    if per_condition:
+        lines += ["", *_rows("condition", list(per_condition.items()))]
     bands = [b for b in overall.get("by_range_at_threshold", []) if b["vehicles"] or b["fp_per_frame"]]
     if bands:
         lines.append(f"\nat the operating threshold {overall['score_threshold']:.4g}, by range from the radar:")
@@ -165,7 +176,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     from rafd.checkpoint import load_checkpoint
     from rafd.train.datasets import DatasetError, open_windows
     from rafd.train.distributed import resolve_device
-    from rafd.train.predict import predict, summarise, summarise_by_sequence
+    from rafd.train.predict import predict, summarise, summarise_by_condition, summarise_by_sequence
 
     if args.mcap is not None:
         try:
@@ -227,6 +238,8 @@ def main(argv: Sequence[str] | None = None) -> int:
             return 1
     overall = summarise(results, score_threshold=threshold)
     per_sequence = summarise_by_sequence(results, score_threshold=threshold)
+    conditions = {sequence.name: sequence.condition for sequence in dataset.sequences}
+    per_condition = summarise_by_condition(results, conditions, score_threshold=threshold)
     report = {
         "checkpoint": str(args.checkpoint),
         "data": str(args.data),
@@ -238,9 +251,10 @@ def main(argv: Sequence[str] | None = None) -> int:
         "past_as_newest": args.past_as_newest,
         "overall": overall,
         "per_sequence": per_sequence,
+        "per_condition": per_condition,
         "checkpoint_meta": {k: meta.get(k) for k in ("epoch", "step") if isinstance(meta, dict)},
     }
-    print(format_table(overall, per_sequence))
+    print(format_table(overall, per_sequence, per_condition))
     if args.plots is not None:
         paths = write_plots(args.plots, model, cfg, dataset, results, args.examples, device)
         report["plots"] = [str(p) for p in paths]

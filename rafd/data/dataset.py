@@ -112,6 +112,7 @@ class _SequenceMeta:
     ids: list[np.ndarray]  # N x [M] int64
     classes: list[list[str]]  # N x M RADIATE class names
     cache: Path | None = None  # CACHE/<sequence> with crops.npy, when prepared
+    condition: str | None = None  # meta.json's weather / RADIATE type (rafd.data.reader.meta_condition)
 
 
 def _protocol(boxes: np.ndarray, ids: np.ndarray, classes: list[str], crop: int, resolution: float):
@@ -220,6 +221,7 @@ class RadarWindowDataset(_Base):
             ids=[np.array([o.id for o in f.objects], np.int64) for f in sequence.frames],
             classes=[[o.class_name for o in f.objects] for f in sequence.frames],
             cache=cache,
+            condition=sequence.condition,
         )
 
     def __len__(self) -> int:

@@ -112,6 +112,8 @@ class RadarSequence:
     image_size: int = 0  # pixels per side of every scan
     resolution: float = RADIATE_RESOLUTION  # metres per pixel
     annotated: bool = True  # False when the folder has no annotations/annotations.json
+    # Recording condition from meta.json: the simulator's "weather", else RADIATE's "type" (e.g. "fog").
+    condition: str | None = None
 
     def __len__(self) -> int:
         return len(self.frames)
@@ -225,6 +227,16 @@ def read_meta(path: Path) -> dict:
     if "set" in meta and not isinstance(meta["set"], str):
         raise ValueError(f"{path}: 'set' must be a string, got {meta['set']!r}")
     return meta
+
+
+def meta_condition(meta: dict) -> str | None:
+    """meta.json -> the recording condition: the simulator's "weather" (clear, fog, rain), else RADIATE's "type"
+    (e.g. "fog" for fog_6_0); None when neither names one."""
+    for key in ("weather", "type"):
+        value = meta.get(key)
+        if isinstance(value, str) and value and value != "simulated":
+            return value
+    return None
 
 
 def _read_json(path: Path):
@@ -469,4 +481,5 @@ def read_sequence(path: str | Path, estimate_poses: bool = True) -> RadarSequenc
         image_size=image_size,
         resolution=resolution,
         annotated=annotated,
+        condition=meta_condition(meta),
     )

@@ -28,6 +28,11 @@ class WindowSubset(Dataset):
     def __len__(self) -> int:
         return len(self.indices)
 
+    @property
+    def sequences(self) -> list:
+        """The underlying dataset's sequences (names, conditions), which a subset of its windows still draws on."""
+        return self.dataset.sequences
+
     def __getitem__(self, key: int | tuple[int, int]) -> Any:
         if isinstance(key, tuple):
             epoch, index = key

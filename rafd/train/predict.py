@@ -3,7 +3,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
-from typing import Any, Sequence
+from typing import Any, Mapping, Sequence
 
 import numpy as np
 import torch
@@ -153,6 +153,18 @@ def summarise(results: Sequence[FrameResult], iou_thresholds: Sequence[float] = 
     summary["epe_foreground"] = _pooled([r.epe_foreground for r in results], [r.cells_foreground for r in results])
     summary["objects"] = int(sum(len(r.ground_truth) for r in results))
     return summary
+
+
+def summarise_by_condition(results: Sequence[FrameResult], conditions: Mapping[str, str | None],
+                           score_threshold: float | None = None) -> dict[str, dict[str, Any]]:
+    """Summaries pooled over the sequences of each recording condition ({sequence name: condition}, e.g. the
+    simulator's weather or RADIATE's fog / night / snow), keyed by condition (sorted); sequences without one are
+    pooled as "unknown". {} when no sequence names a condition."""
+    if not any(conditions.get(r.sequence) for r in results):
+        return {}
+    named = {r.sequence: conditions.get(r.sequence) or "unknown" for r in results}
+    return {condition: summarise([r for r in results if named[r.sequence] == condition], score_threshold=score_threshold)
+            for condition in sorted(set(named.values()))}
 
 
 def summarise_by_sequence(results: Sequence[FrameResult], score_threshold: float | None = None) -> dict[str, dict[str, Any]]:

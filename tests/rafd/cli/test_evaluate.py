@@ -24,6 +24,8 @@ def test_writes_metrics_json_and_plots(trained_checkpoint: Path, sim_root: Path,
     assert overall["epe_all"] is not None and overall["epe_all"] >= 0.0
     assert set(report["per_sequence"]) == {"sim_12_0", "sim_12_1"}
     assert sum(s["frames"] for s in report["per_sequence"].values()) == overall["frames"] > 0
+    # the simulated drives' meta.json name their weather: the figures are pooled per condition too
+    assert report["per_condition"] and sum(c["frames"] for c in report["per_condition"].values()) == overall["frames"]
     # the saved detections give back the same figures (what rafd-benchmark compare starts from)
     from rafd.compare import _Scored, load_detections
 

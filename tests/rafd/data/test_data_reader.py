@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 
 from rafd.data import read_sequence
-from rafd.data.reader import list_frames, load_image, parse_radiate_time
+from rafd.data.reader import list_frames, load_image, meta_condition, parse_radiate_time
 from rafd.geometry import box_corners, metres_to_pixels
 
 RES = 0.173611
@@ -41,6 +41,7 @@ def test_tiny_foggy_frames_timestamps_and_split(foggy, radiate_sample: Path) -> 
     assert [(f.number, f.timestamp) for f in foggy.frames] == expected
     assert [f.number for f in foggy.frames] == list(range(1, 19))
     assert foggy.split == "test" and foggy.name == "fog_6_0" and foggy.image_size == 1152
+    assert foggy.condition == "fog"  # RADIATE's meta.json "type"
     assert all(f.image_path == radiate_sample / "Navtech_Cartesian" / f"{f.number:06d}.png" for f in foggy.frames)
     assert foggy.frames[0].load().shape == (1152, 1152) and foggy.load_image(17).dtype == np.uint8
 
@@ -262,3 +263,13 @@ def test_annotations_longer_than_the_frames_and_missing_meta(sim_copy: Path, cap
         sequence = read_sequence(sim_copy)
     assert sequence.split is None and sequence.name == "sim_31_0" and "meta.json" in caplog.text
     assert [f.number for f in sequence.frames if any(o.id == 777 for o in f.objects)] == [3]
+
+
+@pytest.mark.parametrize(("meta", "condition"), [
+    ({"type": "simulated", "weather": "rain"}, "rain"),  # the simulator: its weather, not its type
+    ({"type": "night"}, "night"),  # RADIATE: the recording condition is the type
+    ({"type": "simulated", "weather": None}, None),  # a simulated drive without weather names none
+    ({}, None),
+])
+def test_the_recording_condition_comes_from_meta_json(meta: dict, condition: str | None) -> None:
+    assert meta_condition(meta) == condition

@@ -6,7 +6,7 @@ import math
 import numpy as np
 import pytest
 
-from rafd.train.predict import FrameResult, summarise, summarise_by_sequence
+from rafd.train.predict import FrameResult, summarise, summarise_by_condition, summarise_by_sequence
 
 
 def _result(sequence: str, gt: np.ndarray, pred: np.ndarray, epe: float, cells: int) -> FrameResult:
@@ -37,6 +37,19 @@ def test_missed_and_wrong_boxes_lower_map_and_sequences_are_split() -> None:
     assert per_sequence["good"]["mAP@0.5"] == pytest.approx(100.0)
     assert per_sequence["bad"]["mAP@0.5"] == pytest.approx(0.0)
     assert 0.0 < summarise(results)["mAP@0.5"] < 100.0
+
+
+def test_conditions_pool_their_sequences_and_unnamed_ones_are_unknown() -> None:
+    gt = np.array([[2.0, 5.0, 1.8, 4.5, 0.3]])
+    hit, miss = np.concatenate([gt, [[0.9]]], 1), np.array([[12.0, -5.0, 1.8, 4.5, 0.3, 0.9]])
+    results = [_result("fog_a", gt, hit, 0.5, 4), _result("fog_b", gt, miss, 0.5, 4),
+               _result("clear_a", gt, hit, 0.5, 4), _result("other", gt, miss, 0.5, 4)]
+    per_condition = summarise_by_condition(results, {"fog_a": "fog", "fog_b": "fog", "clear_a": "clear"}, 0.5)
+    assert list(per_condition) == ["clear", "fog", "unknown"]
+    assert per_condition["fog"]["frames"] == 2 and per_condition["fog"]["recall_at_threshold"] == pytest.approx(50.0)
+    assert per_condition["clear"]["recall_at_threshold"] == pytest.approx(100.0)
+    assert per_condition["unknown"]["fp_per_frame_at_threshold"] == pytest.approx(1.0)
+    assert summarise_by_condition(results, {"fog_a": None}) == {}  # no sequence names a condition: no table
 
 
 def test_past_as_newest_feeds_the_newest_frame_and_pose_in_every_slot(tiny_root, tiny_cfg) -> None:
