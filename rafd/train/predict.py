@@ -155,20 +155,24 @@ def summarise(results: Sequence[FrameResult], iou_thresholds: Sequence[float] = 
     return summary
 
 
+def _summarise_groups(results: Sequence[FrameResult], group_of: Mapping[str, str],
+                      score_threshold: float | None) -> dict[str, dict[str, Any]]:
+    """Summaries pooled over the frames of each group ({sequence name: group}), keyed by group (sorted)."""
+    return {group: summarise([r for r in results if group_of[r.sequence] == group], score_threshold=score_threshold)
+            for group in sorted(set(group_of.values()))}
+
+
 def summarise_by_condition(results: Sequence[FrameResult], conditions: Mapping[str, str | None],
                            score_threshold: float | None = None) -> dict[str, dict[str, Any]]:
-    """Summaries pooled over the sequences of each recording condition ({sequence name: condition}, e.g. the
-    simulator's weather or RADIATE's fog / night / snow), keyed by condition (sorted); sequences without one are
+    """Summaries pooled over the sequences of each recording condition ({sequence name: condition}: the
+    simulator's weather, RADIATE's type such as fog), keyed by condition (sorted); sequences without one are
     pooled as "unknown". {} when no sequence names a condition."""
     if not any(conditions.get(r.sequence) for r in results):
         return {}
-    named = {r.sequence: conditions.get(r.sequence) or "unknown" for r in results}
-    return {condition: summarise([r for r in results if named[r.sequence] == condition], score_threshold=score_threshold)
-            for condition in sorted(set(named.values()))}
+    return _summarise_groups(results, {r.sequence: conditions.get(r.sequence) or "unknown" for r in results},
+                             score_threshold)
 
 
 def summarise_by_sequence(results: Sequence[FrameResult], score_threshold: float | None = None) -> dict[str, dict[str, Any]]:
     """Per-sequence summaries, keyed by sequence name (sorted)."""
-    names = sorted({r.sequence for r in results})
-    return {name: summarise([r for r in results if r.sequence == name], score_threshold=score_threshold)
-            for name in names}
+    return _summarise_groups(results, {r.sequence: r.sequence for r in results}, score_threshold)
