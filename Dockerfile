@@ -4,8 +4,8 @@
 #   docker run --rm --network host -e RAFD_PORT=8001 rafd-serve  # another port: server and health check follow
 #   docker run ... -e RAFD_MAX_STREAMS=512 -e RAFD_MODEL_PATH=/models/m.onnx -v $PWD/m.onnx:/models/m.onnx:ro rafd-serve
 # One uvicorn process per container: a stream's 4-frame buffer lives in that process, so scale out with replicas
-# behind a router that pins each stream id to one replica (service/deploy/: nginx `hash ... consistent`).
-# Size (README "Docker"): a multi-stage build, so the final image holds the virtual environment only: no pip cache,
+# behind a router that pins each stream id to one replica (deploy/: nginx `hash ... consistent`).
+# Size (docs/deployment.md "Docker"): a multi-stage build, so the final image holds the virtual environment only: no pip cache,
 # no build tree, no pip/setuptools, no torch checkpoint.
 
 FROM python:3.11-slim AS build

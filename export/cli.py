@@ -1,4 +1,5 @@
 """rafd-export checkpoint.pt model.onnx [--opset N] [--form step|window] [--no-verify]"""
+
 from __future__ import annotations
 
 import argparse
@@ -18,26 +19,38 @@ def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(
         prog="rafd-export",
         description="Export a RaFD checkpoint to ONNX (static shapes, metadata for the service) and verify it "
-                    "with onnxruntime against PyTorch (random inputs, plus real frames when RAFD_RADIATE_SAMPLE "
-                    "names a RADIATE sequence).")
+        "with onnxruntime against PyTorch (random inputs, plus real frames when RAFD_RADIATE_SAMPLE "
+        "names a RADIATE sequence).",
+    )
     parser.add_argument("checkpoint", help="checkpoint written by rafd-train (rafd.checkpoint.save_checkpoint)")
     parser.add_argument("output", help="ONNX file to write (replaced atomically, only after verification)")
-    parser.add_argument("--opset", type=_opset, default=MIN_OPSET,
-                        help=f"ONNX opset, >= {MIN_OPSET} (default %(default)s)")
-    parser.add_argument("--form", choices=("step", "window"), default="step",
-                        help="step: streaming step graph with feature/flow caches (the service's form); "
-                             "window: model.forward on a full window (default %(default)s)")
+    parser.add_argument(
+        "--opset", type=_opset, default=MIN_OPSET, help=f"ONNX opset, >= {MIN_OPSET} (default %(default)s)"
+    )
+    parser.add_argument(
+        "--form",
+        choices=("step", "window"),
+        default="step",
+        help="step: streaming step graph with feature/flow caches (the service's form); "
+        "window: model.forward on a full window (default %(default)s)",
+    )
     parser.add_argument("--no-verify", action="store_true", help="skip the onnxruntime vs PyTorch parity check")
     gate = parser.add_argument_group(
-        "accuracy gate", "reduced precision (OpenVINO bf16, where the CPU has it) against onnxruntime fp32 on held-out "
+        "accuracy gate",
+        "reduced precision (OpenVINO bf16, where the CPU has it) against onnxruntime fp32 on held-out "
         "simulated sequences and, with RAFD_RADIATE_SAMPLE, the real sample's frames; the verdict is recorded in the "
-        "ONNX metadata (the service picks bf16 automatically only after a pass)")
+        "ONNX metadata (the service picks bf16 automatically only after a pass)",
+    )
     gate.add_argument("--gate", action="store_true", help="run the accuracy gate (step form)")
     gate.add_argument("--gate-sequences", type=_positive, default=12, help="simulated sequences (default %(default)s)")
     gate.add_argument("--gate-frames", type=_positive, default=60, help="frames per sequence (default %(default)s)")
-    gate.add_argument("--gate-seed", type=int, default=None,
-                      help="simulation seed; must be one the model was never trained or tested on "
-                           "(default: export.gate.DEFAULT_SEED)")
+    gate.add_argument(
+        "--gate-seed",
+        type=int,
+        default=None,
+        help="simulation seed; must be one the model was never trained or tested on "
+        "(default: export.gate.DEFAULT_SEED)",
+    )
     return parser
 
 
@@ -64,8 +77,15 @@ def main(argv: list[str] | None = None) -> int:
         seed = DEFAULT_SEED if args.gate_seed is None else args.gate_seed
         gate = GateOptions(sequences=args.gate_sequences, frames=args.gate_frames, seed=seed)
     try:
-        result = export_onnx(args.checkpoint, args.output, opset=args.opset, form=args.form,
-                             verify=not args.no_verify, log=log, gate=gate)
+        result = export_onnx(
+            args.checkpoint,
+            args.output,
+            opset=args.opset,
+            form=args.form,
+            verify=not args.no_verify,
+            log=log,
+            gate=gate,
+        )
     except CheckpointError as error:
         print(f"rafd-export: error: bad checkpoint: {error}", file=sys.stderr)
         return 1
@@ -73,9 +93,13 @@ def main(argv: list[str] | None = None) -> int:
         print(f"rafd-export: error: {error}", file=sys.stderr)
         return 1
     verified = "verified" if result.report is not None else "not verified (--no-verify)"
-    gated = "".join(f", {precision} gate {'PASS' if report.ok else 'FAIL'}" for precision, report in result.gates.items())
-    print(f"wrote {result.path} ({result.size_bytes / 1e6:.2f} MB, {result.form} form, opset {result.opset}, "
-          f"{result.exporter} exporter, {verified}{gated})")
+    gated = "".join(
+        f", {precision} gate {'PASS' if report.ok else 'FAIL'}" for precision, report in result.gates.items()
+    )
+    print(
+        f"wrote {result.path} ({result.size_bytes / 1e6:.2f} MB, {result.form} form, opset {result.opset}, "
+        f"{result.exporter} exporter, {verified}{gated})"
+    )
     return 0
 
 

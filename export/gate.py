@@ -16,6 +16,7 @@ small for a 2% or p99 figure: one changed detection of its ~50 is 2%; its own fi
 changed / reference detections, p99 centre shift and p99 |score difference| of matched pairs; on the labelled
 (simulated) frames: |mAP difference| at each IoU and |flow EPE difference|.
 """
+
 from __future__ import annotations
 
 import json
@@ -30,15 +31,15 @@ import numpy as np
 
 from rafd.config import RaFDConfig
 from rafd.detections import decode_detections
+from rafd.protocol import DEFAULT_SCORE_THRESHOLD, IOU_THRESHOLDS, warming_up
 from rafd.runtime import StepResult, StreamRunner
 
-IOU_THRESHOLDS = (0.3, 0.5, 0.7)
-DEFAULT_SEED = 7100  # not a seed of rafd-benchmark's data (1000 train, 2000 test); override if a model saw it
+DEFAULT_SEED = 7100  # not a seed of rafd-bench-accuracy's data (1000 train, 2000 test); override if a model saw it
 
 
 @dataclass(frozen=True)
 class GateThresholds:
-    score_threshold: float = 0.3  # detections compared are those at or above it
+    score_threshold: float = DEFAULT_SCORE_THRESHOLD  # detections compared are those at or above it
     changed_fraction: float = 0.02  # of the reference's detections
     centre_p99_m: float = 0.05
     score_p99: float = 0.02
@@ -107,11 +108,27 @@ class GateReport:
         """(source, check, value, limit, ok) for every gated figure."""
         t, all_frames = self.thresholds, self.pooled
         out = [
-            ("all", "changed detections (fraction)", all_frames.changed_fraction, t.changed_fraction,
-             all_frames.changed_fraction <= t.changed_fraction),
-            ("all", "matched centre shift p99 (m)", all_frames.centre_p99, t.centre_p99_m,
-             all_frames.centre_p99 <= t.centre_p99_m),
-            ("all", "matched score difference p99", all_frames.score_p99, t.score_p99, all_frames.score_p99 <= t.score_p99),
+            (
+                "all",
+                "changed detections (fraction)",
+                all_frames.changed_fraction,
+                t.changed_fraction,
+                all_frames.changed_fraction <= t.changed_fraction,
+            ),
+            (
+                "all",
+                "matched centre shift p99 (m)",
+                all_frames.centre_p99,
+                t.centre_p99_m,
+                all_frames.centre_p99 <= t.centre_p99_m,
+            ),
+            (
+                "all",
+                "matched score difference p99",
+                all_frames.score_p99,
+                t.score_p99,
+                all_frames.score_p99 <= t.score_p99,
+            ),
         ]
         for name, s in self.sources.items():
             if s.reference_map is not None and s.candidate_map is not None:
@@ -132,11 +149,16 @@ class GateReport:
         out: dict[str, dict[str, float]] = {}
         sources = dict(self.sources, all=self.pooled) if len(self.sources) > 1 else self.sources
         for name, s in sources.items():
-            row = {"frames": s.frames, "reference_detections": s.reference_detections,
-                   "candidate_detections": s.candidate_detections, "changed_fraction": round(s.changed_fraction, 4),
-                   "centre_p99_m": round(s.centre_p99, 4), "score_p99": round(s.score_p99, 4),
-                   "flow_mean_difference_m": round(s.flow_difference(), 4),
-                   "flow_p99_difference_m": round(s.flow_difference(99), 4)}
+            row = {
+                "frames": s.frames,
+                "reference_detections": s.reference_detections,
+                "candidate_detections": s.candidate_detections,
+                "changed_fraction": round(s.changed_fraction, 4),
+                "centre_p99_m": round(s.centre_p99, 4),
+                "score_p99": round(s.score_p99, 4),
+                "flow_mean_difference_m": round(s.flow_difference(), 4),
+                "flow_p99_difference_m": round(s.flow_difference(99), 4),
+            }
             if s.reference_map is not None and s.candidate_map is not None:
                 for iou in IOU_THRESHOLDS:
                     row[f"reference_mAP@{iou:g}"] = round(s.reference_map[iou], 2)
@@ -157,8 +179,9 @@ class GateReport:
 
 
 # ----------------------------------------------------------------------------- comparing two results
-def compare_frame(figures: SourceFigures, reference: StepResult, candidate: StepResult, cfg: RaFDConfig,
-                  score_threshold: float) -> None:
+def compare_frame(
+    figures: SourceFigures, reference: StepResult, candidate: StepResult, cfg: RaFDConfig, score_threshold: float
+) -> None:
     """Add one frame's detection and flow comparison to `figures`."""
     figures.frames += 1
     ref = decode_detections(reference.boxes, reference.scores, score_threshold)
@@ -196,9 +219,9 @@ def simulated_sequences(cfg: RaFDConfig, sequences: int, frames: int, seed: int)
     """Simulate held-out sequences (rafd.sim, scans of max(256, S) px) and yield each one's frames in order,
     labelled under the benchmark protocol from frame T on (earlier frames only warm the stream up)."""
     from rafd.data.dataset import RadarWindowDataset
+    from rafd.data.targets import build_targets
     from rafd.preprocess import to_model_input
     from rafd.sim.api import simulate_dataset
-    from rafd.targets import build_targets
 
     with tempfile.TemporaryDirectory(prefix="rafd-gate-") as tmp:
         simulate_dataset(tmp, sequences, frames, seed, split="test", size=max(256, cfg.input_size))
@@ -212,13 +235,20 @@ def simulated_sequences(cfg: RaFDConfig, sequences: int, frames: int, seed: int)
                 if current:
                     yield current
                 # a new stream: the window's older frames first (unlabelled warm-up)
-                current = [LabelledFrame(to_model_input(f), p) for f, p in zip(window["frames"][:-1], window["poses"][:-1])]
+                current = [
+                    LabelledFrame(to_model_input(f), p) for f, p in zip(window["frames"][:-1], window["poses"][:-1])
+                ]
             previous_key = key
             targets = build_targets(window["boxes"], window["ids"], window["poses"], cfg)
-            current.append(LabelledFrame(
-                to_model_input(window["frames"][-1]), window["poses"][-1], np.asarray(window["boxes"][-1]).reshape(-1, 5),
-                targets["flow"][-1] if len(targets["flow"]) else None,
-                targets["flow_valid"][-1, 0] if len(targets["flow_valid"]) else None))
+            current.append(
+                LabelledFrame(
+                    to_model_input(window["frames"][-1]),
+                    window["poses"][-1],
+                    np.asarray(window["boxes"][-1]).reshape(-1, 5),
+                    targets["flow"][-1] if len(targets["flow"]) else None,
+                    targets["flow_valid"][-1, 0] if len(targets["flow_valid"]) else None,
+                )
+            )
         if current:
             yield current
 
@@ -232,38 +262,58 @@ def radiate_frames(folder: str | Path, cfg: RaFDConfig, length: int = 1000) -> l
 
 
 # ----------------------------------------------------------------------------- the gate
-def run_sequence(reference: StreamRunner, candidate: StreamRunner, frames: list[LabelledFrame],
-                 figures: SourceFigures, thresholds: GateThresholds, labelled: dict[str, list]) -> None:
+def run_sequence(
+    reference: StreamRunner,
+    candidate: StreamRunner,
+    frames: list[LabelledFrame],
+    figures: SourceFigures,
+    thresholds: GateThresholds,
+    labelled: dict[str, list],
+) -> None:
     """Stream one sequence through both runners; compare every full window; collect labelled outputs."""
-    T = reference.config.num_frames
+    from rafd.eval.metrics import end_point_error_terms
+
     states = [reference.new_state(), candidate.new_state()]
-    for n, item in enumerate(frames):
+    for item in frames:
         ref, states[0] = reference.step(states[0], item.frame, item.pose)
         cand, states[1] = candidate.step(states[1], item.frame, item.pose)
-        if n < T - 1:
-            continue  # warm-up: the window is padded
+        if warming_up(ref.frames_used, reference.config.num_frames):
+            continue  # the window is padded
         compare_frame(figures, ref, cand, reference.config, thresholds.score_threshold)
         if item.boxes is not None:
             labelled["gt"].append(item.boxes)
             for name, result in (("reference", ref), ("candidate", cand)):
                 labelled[name].append(decode_detections(result.boxes, result.scores, 0.0).as_array())
                 if item.gt_flow is not None and result.flow is not None:
-                    error = np.linalg.norm(result.flow[-1] - item.gt_flow, axis=0)[item.flow_valid > 0]
-                    labelled[f"{name}_epe"].append((float(error.sum()), int(error.size)))
+                    labelled[f"{name}_epe"].append(
+                        end_point_error_terms(result.flow[-1], item.gt_flow, item.flow_valid[None])
+                    )
 
 
-def run_gate(reference: StreamRunner, candidate: StreamRunner, sources: dict[str, Iterator[list[LabelledFrame]]],
-             thresholds: GateThresholds = GateThresholds(), log: Callable[[str], None] = lambda _: None) -> GateReport:
+def run_gate(
+    reference: StreamRunner,
+    candidate: StreamRunner,
+    sources: dict[str, Iterator[list[LabelledFrame]]],
+    thresholds: GateThresholds = GateThresholds(),
+    log: Callable[[str], None] = lambda _: None,
+) -> GateReport:
     """sources: name -> sequences of frames (labelled or not). Returns the report (check .ok)."""
-    from rafd.metrics import mean_average_precision
+    from rafd.eval.metrics import mean_average_precision
 
     if reference.config != candidate.config:
         raise ValueError("the reference and the candidate run different models")
-    report = GateReport(f"{reference.runtime}/{reference.precision}", f"{candidate.runtime}/{candidate.precision}",
-                        thresholds, {})
+    report = GateReport(
+        f"{reference.runtime}/{reference.precision}", f"{candidate.runtime}/{candidate.precision}", thresholds, {}
+    )
     for name, sequences in sources.items():
         figures = SourceFigures()
-        labelled: dict[str, list] = {"gt": [], "reference": [], "candidate": [], "reference_epe": [], "candidate_epe": []}
+        labelled: dict[str, list] = {
+            "gt": [],
+            "reference": [],
+            "candidate": [],
+            "reference_epe": [],
+            "candidate_epe": [],
+        }
         for frames in sequences:
             run_sequence(reference, candidate, frames, figures, thresholds, labelled)
         if labelled["gt"]:
@@ -278,9 +328,17 @@ def run_gate(reference: StreamRunner, candidate: StreamRunner, sources: dict[str
     return report
 
 
-def gate_model(onnx_path: str | Path, candidate: tuple[str, str] = ("openvino", "bf16"), sequences: int = 12,
-               frames: int = 60, seed: int = DEFAULT_SEED, radiate: str | Path | None = None, threads: int | None = None,
-               thresholds: GateThresholds = GateThresholds(), log: Callable[[str], None] = lambda _: None) -> GateReport:
+def gate_model(
+    onnx_path: str | Path,
+    candidate: tuple[str, str] = ("openvino", "bf16"),
+    sequences: int = 12,
+    frames: int = 60,
+    seed: int = DEFAULT_SEED,
+    radiate: str | Path | None = None,
+    threads: int | None = None,
+    thresholds: GateThresholds = GateThresholds(),
+    log: Callable[[str], None] = lambda _: None,
+) -> GateReport:
     """The gate of one exported step graph: onnxruntime fp32 vs `candidate` (runtime, precision)."""
     from rafd.runtime import OnnxRunner, open_runner
 
@@ -289,7 +347,8 @@ def gate_model(onnx_path: str | Path, candidate: tuple[str, str] = ("openvino", 
     if reference.form != "step":
         raise ValueError(f"the gate streams the step form; {onnx_path} is a {reference.form!r} graph")
     sources: dict[str, Iterator[list[LabelledFrame]]] = {
-        "simulated": simulated_sequences(reference.config, sequences, frames, seed)}
+        "simulated": simulated_sequences(reference.config, sequences, frames, seed)
+    }
     if radiate is not None:
         sources["radiate"] = iter([radiate_frames(radiate, reference.config)])
     return run_gate(reference, other, sources, thresholds, log)
@@ -308,23 +367,35 @@ class GateOptions:
     thresholds: GateThresholds = GateThresholds()
 
 
-def run_export_gates(onnx_path: str | Path, options: GateOptions, log: Callable[[str], None] = print
-                     ) -> dict[str, GateReport]:
+def run_export_gates(
+    onnx_path: str | Path, options: GateOptions, log: Callable[[str], None] = print
+) -> dict[str, GateReport]:
     """The gate of every reduced precision this machine runs (OpenVINO bf16 where the CPU has it); the real
     sample's frames join when RAFD_RADIATE_SAMPLE names a RADIATE sequence."""
     from rafd.runtime import supported_choices
 
     reduced = [(runtime, precision) for runtime, precision in supported_choices() if precision != "fp32"]
     if not reduced:
-        log("accuracy gate: this CPU runs no reduced precision (bf16 needs openvino and avx512_bf16 or AMX); "
-            "nothing to gate")
+        log(
+            "accuracy gate: this CPU runs no reduced precision (bf16 needs openvino and avx512_bf16 or AMX); "
+            "nothing to gate"
+        )
         return {}
     sample = os.environ.get("RAFD_RADIATE_SAMPLE")
     radiate = sample if sample and Path(sample, "Navtech_Cartesian").is_dir() else None
     reports = {}
     for candidate in reduced:
-        report = gate_model(onnx_path, candidate, options.sequences, options.frames, options.seed, radiate,
-                            options.threads, options.thresholds, log)
+        report = gate_model(
+            onnx_path,
+            candidate,
+            options.sequences,
+            options.frames,
+            options.seed,
+            radiate,
+            options.threads,
+            options.thresholds,
+            log,
+        )
         for line in report.lines():
             log(line)
         reports[candidate[1]] = report
@@ -336,6 +407,7 @@ def gate_metadata(reports: dict[str, GateReport]) -> dict[str, str]:
     out = {}
     for precision, report in reports.items():
         out[f"gate_{precision}"] = "pass" if report.ok else "fail"
-        out[f"gate_{precision}_figures"] = json.dumps({"candidate": report.candidate, "reference": report.reference,
-                                                       "figures": report.figures()}, sort_keys=True)
+        out[f"gate_{precision}_figures"] = json.dumps(
+            {"candidate": report.candidate, "reference": report.reference, "figures": report.figures()}, sort_keys=True
+        )
     return out

@@ -1,4 +1,5 @@
 """Checkpoint -> ONNX (step or window form) with metadata, onnx.checker and onnxruntime parity verification."""
+
 from __future__ import annotations
 
 import hashlib
@@ -15,14 +16,14 @@ import onnx
 import torch
 
 import rafd
+from export import MIN_OPSET
 from export.gate import GateOptions, GateReport, gate_metadata, run_export_gates
 from export.step import build_graph, example_inputs, feature_channels
 from export.verify import Report, verify_export
 from rafd.checkpoint import load_checkpoint
 from rafd.config import RaFDConfig
+from rafd.protocol import OPERATING_THRESHOLD_KEY, check_score_threshold
 from rafd.runtime import FORMS, graph_inputs, graph_outputs
-
-from export import MIN_OPSET
 
 
 class ExportError(RuntimeError):
@@ -65,11 +66,26 @@ def file_sha256(path: Path) -> str:
     return digest.hexdigest()
 
 
-def build_metadata(cfg: RaFDConfig, checkpoint_sha256: str, form: str, channels: int, opset: int,
-                   exporter: str, operating_threshold: float | None = None) -> dict[str, str]:
+def build_metadata(
+    cfg: RaFDConfig,
+    checkpoint_sha256: str,
+    form: str,
+    channels: int,
+    opset: int,
+    exporter: str,
+    operating_threshold: float | None = None,
+) -> dict[str, str]:
     """rafd.runtime.METADATA_KEYS (+ opset, exporter, and the checkpoint's operating threshold when it has one, chosen
     by `rafd-eval --calibrate`): everything the service needs besides the graph."""
-    optional = {} if operating_threshold is None else {"operating_threshold": repr(float(operating_threshold))}
+    optional = (
+        {}
+        if operating_threshold is None
+        else {
+            OPERATING_THRESHOLD_KEY: repr(
+                check_score_threshold(operating_threshold, "the checkpoint's operating threshold")
+            )
+        }
+    )
     return optional | {
         "config": cfg.to_json(),
         "input_size": str(cfg.input_size),
@@ -85,11 +101,21 @@ def build_metadata(cfg: RaFDConfig, checkpoint_sha256: str, form: str, channels:
     }
 
 
-def _torch_export(graph: torch.nn.Module, inputs: tuple, path: Path, cfg: RaFDConfig, form: str, opset: int,
-                  log: Callable[[str], None]) -> str:
+def _torch_export(
+    graph: torch.nn.Module,
+    inputs: tuple,
+    path: Path,
+    cfg: RaFDConfig,
+    form: str,
+    opset: int,
+    log: Callable[[str], None],
+) -> str:
     """torch.onnx.export with static shapes: the TorchScript exporter first (robust with grid_sample), then dynamo."""
-    names = dict(input_names=list(graph_inputs(form, cfg.num_frames)),
-                 output_names=list(graph_outputs(form, cfg.num_frames)), opset_version=opset)
+    names = dict(
+        input_names=list(graph_inputs(form, cfg.num_frames)),
+        output_names=list(graph_outputs(form, cfg.num_frames)),
+        opset_version=opset,
+    )
     try:
         with warnings.catch_warnings():
             warnings.simplefilter("ignore")  # the TorchScript exporter's deprecation / tracer warnings
@@ -108,15 +134,23 @@ def _torch_export(graph: torch.nn.Module, inputs: tuple, path: Path, cfg: RaFDCo
 def _restore_unused_inputs(proto: onnx.ModelProto, names: tuple[str, ...], example: tuple[torch.Tensor, ...]) -> None:
     """The exporters drop inputs the graph does not use (poses for T = 1); the contract keeps them."""
     present = {value.name: onnx.ValueInfoProto.FromString(value.SerializeToString()) for value in proto.graph.input}
-    inputs = [present.get(name) or onnx.helper.make_tensor_value_info(name, onnx.TensorProto.FLOAT, list(tensor.shape))
-              for name, tensor in zip(names, example)]
+    inputs = [
+        present.get(name) or onnx.helper.make_tensor_value_info(name, onnx.TensorProto.FLOAT, list(tensor.shape))
+        for name, tensor in zip(names, example)
+    ]
     del proto.graph.input[:]
     proto.graph.input.extend(inputs)
 
 
-def export_onnx(checkpoint: str | os.PathLike[str], output: str | os.PathLike[str], opset: int = MIN_OPSET,
-                form: str = "step", verify: bool = True, log: Callable[[str], None] = print,
-                gate: GateOptions | None = None) -> ExportResult:
+def export_onnx(
+    checkpoint: str | os.PathLike[str],
+    output: str | os.PathLike[str],
+    opset: int = MIN_OPSET,
+    form: str = "step",
+    verify: bool = True,
+    log: Callable[[str], None] = print,
+    gate: GateOptions | None = None,
+) -> ExportResult:
     """Export a checkpoint; the output appears (atomically) only when checker and verification passed.
 
     gate: also run the accuracy gate of every reduced precision this CPU runs (step form only) and record
@@ -136,7 +170,7 @@ def export_onnx(checkpoint: str | os.PathLike[str], output: str | os.PathLike[st
     model, cfg, meta = load_checkpoint(checkpoint)
     model = model.eval()
     sha = file_sha256(checkpoint)
-    operating_threshold = meta.get("operating_threshold") if isinstance(meta, dict) else None
+    operating_threshold = meta.get(OPERATING_THRESHOLD_KEY) if isinstance(meta, dict) else None
 
     start = time.perf_counter()
     channels = feature_channels(model, cfg)
@@ -162,8 +196,10 @@ def export_onnx(checkpoint: str | os.PathLike[str], output: str | os.PathLike[st
         del proto
         export_seconds = time.perf_counter() - start
         size = tmp.stat().st_size
-        log(f"exported {form} graph with the {exporter} exporter, opset {opset}: {size / 1e6:.2f} MB "
-            f"in {export_seconds:.1f} s")
+        log(
+            f"exported {form} graph with the {exporter} exporter, opset {opset}: {size / 1e6:.2f} MB "
+            f"in {export_seconds:.1f} s"
+        )
 
         report, verify_seconds = None, 0.0
         if verify:
@@ -184,5 +220,15 @@ def export_onnx(checkpoint: str | os.PathLike[str], output: str | os.PathLike[st
         os.replace(tmp, output)
     finally:
         tmp.unlink(missing_ok=True)
-    return ExportResult(path=output, form=form, opset=opset, exporter=exporter, export_seconds=export_seconds,
-                        verify_seconds=verify_seconds, size_bytes=size, metadata=metadata, report=report, gates=gates)
+    return ExportResult(
+        path=output,
+        form=form,
+        opset=opset,
+        exporter=exporter,
+        export_seconds=export_seconds,
+        verify_seconds=verify_seconds,
+        size_bytes=size,
+        metadata=metadata,
+        report=report,
+        gates=gates,
+    )

@@ -4,6 +4,7 @@ Both are thin wrappers over the model's own streaming decomposition (encode_fram
 step graph computes exactly what model.forward computes for the window whose caches it is given.
 Input and output names and shapes are the contract of rafd.runtime (see its docstring).
 """
+
 from __future__ import annotations
 
 import torch
@@ -12,6 +13,7 @@ from torch import Tensor, nn
 from rafd.config import RaFDConfig
 from rafd.model import relative_pose_torch
 from rafd.runtime import FORMS
+
 
 class StepGraph(nn.Module):
     """One new frame + the previous window's caches -> detections of the new window, its flows, the new features.

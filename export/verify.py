@@ -9,6 +9,7 @@ the other way).
 The step form is verified by streaming a sequence through rafd.runtime.OnnxRunner and comparing every frame, the
 warm-up frames included, with model.forward on the warm-up-padded window (rafd.runtime.window_from_history).
 """
+
 from __future__ import annotations
 
 import os
@@ -50,7 +51,7 @@ class Diff:
     def ok(self) -> bool:
         return self.worst <= 1.0 and self.unmatched == 0
 
-    def update(self, other: "Diff") -> None:
+    def update(self, other: Diff) -> None:
         self.max_abs = max(self.max_abs, other.max_abs)
         self.max_rel = max(self.max_rel, other.max_rel)
         self.worst = max(self.worst, other.worst)
@@ -80,8 +81,10 @@ class Report:
                 extra = f", top-K boundary swaps {d.boundary_swaps}" if d.boundary_swaps else ""
                 extra += f", UNMATCHED {d.unmatched}" if d.unmatched else ""
                 verdict = f"{'ok' if d.ok else 'FAIL'}, {d.worst:.1%} of tolerance{extra}"
-                out.append(f"  {source:8s} {name:8s} max abs {d.max_abs:.3e}  max rel {d.max_rel:.3e}  "
-                           f"(rtol {rtol:g}, atol {atol:g}: {verdict}) over {self.cases[source]} windows")
+                out.append(
+                    f"  {source:8s} {name:8s} max abs {d.max_abs:.3e}  max rel {d.max_rel:.3e}  "
+                    f"(rtol {rtol:g}, atol {atol:g}: {verdict}) over {self.cases[source]} windows"
+                )
         return out
 
 
@@ -93,12 +96,16 @@ def compare_dense(ort: np.ndarray, ref: np.ndarray, rtol: float, atol: float) ->
         return Diff()
     err = np.abs(ort - ref)
     err[np.isnan(err)] = np.inf
-    return Diff(max_abs=float(err.max()), max_rel=float((err / np.maximum(np.abs(ref), atol)).max()),
-                worst=float((err / (atol + rtol * np.abs(ref))).max()))
+    return Diff(
+        max_abs=float(err.max()),
+        max_rel=float((err / np.maximum(np.abs(ref), atol)).max()),
+        worst=float((err / (atol + rtol * np.abs(ref))).max()),
+    )
 
 
-def compare_detections(ort_boxes: np.ndarray, ort_scores: np.ndarray, ref_boxes: np.ndarray,
-                       ref_scores: np.ndarray) -> tuple[Diff, Diff]:
+def compare_detections(
+    ort_boxes: np.ndarray, ort_scores: np.ndarray, ref_boxes: np.ndarray, ref_scores: np.ndarray
+) -> tuple[Diff, Diff]:
     """Match ORT detections to PyTorch ones as sets -> (boxes diff, scores diff)."""
     ort_boxes, ref_boxes = np.asarray(ort_boxes, np.float64), np.asarray(ref_boxes, np.float64)
     ort_scores, ref_scores = np.asarray(ort_scores, np.float64), np.asarray(ref_scores, np.float64)
@@ -130,8 +137,9 @@ def compare_detections(ort_boxes: np.ndarray, ort_scores: np.ndarray, ref_boxes:
     return box_diff, score_diff
 
 
-def compare_outputs(report: Report, source: str, ort: dict[str, np.ndarray | None],
-                    ref: dict[str, np.ndarray | None]) -> None:
+def compare_outputs(
+    report: Report, source: str, ort: dict[str, np.ndarray | None], ref: dict[str, np.ndarray | None]
+) -> None:
     """ort/ref: heatmap [Hf,Wf], boxes [K,5], scores [K], flow [T-1,2,Hf,Wf] or None (batch dimension dropped)."""
     report.cases[source] = report.cases.get(source, 0) + 1
     for name in ("heatmap", "flow"):
@@ -147,15 +155,22 @@ def compare_outputs(report: Report, source: str, ort: dict[str, np.ndarray | Non
 @torch.no_grad()
 def torch_window(model: nn.Module, frames: np.ndarray, poses: np.ndarray) -> dict[str, np.ndarray | None]:
     """model.forward on one window: frames [T,S,S] in [0,1], poses [T,3] -> outputs without the batch dimension."""
-    out = model(torch.from_numpy(np.asarray(frames, np.float32))[None, :, None],
-                torch.from_numpy(np.asarray(poses, np.float32))[None])
+    out = model(
+        torch.from_numpy(np.asarray(frames, np.float32))[None, :, None],
+        torch.from_numpy(np.asarray(poses, np.float32))[None],
+    )
     flow = out.get("flow")
-    return {"heatmap": out["heatmap"][0, 0].numpy(), "boxes": out["boxes"][0].numpy(),
-            "scores": out["scores"][0].numpy(), "flow": None if flow is None else flow[0].numpy()}
+    return {
+        "heatmap": out["heatmap"][0, 0].numpy(),
+        "boxes": out["boxes"][0].numpy(),
+        "scores": out["scores"][0].numpy(),
+        "flow": None if flow is None else flow[0].numpy(),
+    }
 
 
-def verify_stream(runner: OnnxRunner, model: nn.Module, frames: np.ndarray, poses: np.ndarray, report: Report,
-                  source: str) -> None:
+def verify_stream(
+    runner: OnnxRunner, model: nn.Module, frames: np.ndarray, poses: np.ndarray, report: Report, source: str
+) -> None:
     """Stream frames [N,S,S] / poses [N,3] through the runner; compare every frame with the padded window."""
     T = runner.config.num_frames
     state = runner.new_state()
@@ -168,21 +183,27 @@ def verify_stream(runner: OnnxRunner, model: nn.Module, frames: np.ndarray, pose
         compare_outputs(report, source, ort, torch_window(model, *window))
 
 
-def verify_windows(runner: OnnxRunner, model: nn.Module, frames: np.ndarray, poses: np.ndarray, report: Report,
-                   source: str) -> None:
+def verify_windows(
+    runner: OnnxRunner, model: nn.Module, frames: np.ndarray, poses: np.ndarray, report: Report, source: str
+) -> None:
     """Window form: feed every full window of frames [N,S,S] / poses [N,3] to the ONNX graph directly."""
     T = runner.config.num_frames
     for end in range(T, len(frames) + 1):
         window_frames = np.ascontiguousarray(frames[end - T : end], np.float32)
         window_poses = np.asarray(poses[end - T : end], np.float32)
         out = runner.run({"frames": window_frames[None, :, None], "poses": window_poses[None]})
-        ort = {"heatmap": out["heatmap"][0, 0], "boxes": out["boxes"][0], "scores": out["scores"][0],
-               "flow": out["flow"][0] if "flow" in out else None}
+        ort = {
+            "heatmap": out["heatmap"][0, 0],
+            "boxes": out["boxes"][0],
+            "scores": out["scores"][0],
+            "flow": out["flow"][0] if "flow" in out else None,
+        }
         compare_outputs(report, source, ort, torch_window(model, window_frames, window_poses))
 
 
-def random_sequence(cfg: RaFDConfig, length: int, seed: int = 0, step_m: float = 1.5,
-                    step_rad: float = 0.1) -> tuple[np.ndarray, np.ndarray]:
+def random_sequence(
+    cfg: RaFDConfig, length: int, seed: int = 0, step_m: float = 1.5, step_rad: float = 0.1
+) -> tuple[np.ndarray, np.ndarray]:
     """Random frames [N,S,S] in [0,1] (sparse bright blobs on noise) and a random ego trajectory [N,3]."""
     rng = np.random.default_rng(seed)
     S = cfg.input_size
@@ -197,7 +218,7 @@ def random_sequence(cfg: RaFDConfig, length: int, seed: int = 0, step_m: float =
 
 def radiate_sequence(folder: str | os.PathLike[str], cfg: RaFDConfig, length: int) -> tuple[np.ndarray, np.ndarray]:
     """The first `length` Navtech_Cartesian frames of a RADIATE sequence as model inputs (rafd.preprocess), with
-    poses from rafd.odometry when it is available (zeros otherwise)."""
+    poses from rafd.data.odometry when it is available (zeros otherwise)."""
     import cv2
 
     from rafd.preprocess import model_crop, to_model_input
@@ -213,14 +234,20 @@ def radiate_sequence(folder: str | os.PathLike[str], cfg: RaFDConfig, length: in
         images.append(model_crop(image, cfg.input_size))
     frames = to_model_input(np.stack(images))
     try:
-        from rafd.odometry import estimate_sequence_poses
+        from rafd.data.odometry import estimate_sequence_poses
     except ImportError:
         return frames, np.zeros((len(frames), 3))
     return frames, np.asarray(estimate_sequence_poses(np.stack(images), cfg.resolution), np.float64)
 
 
-def verify_export(onnx_path: str | os.PathLike[str], model: nn.Module, cfg: RaFDConfig, form: str,
-                  log: Callable[[str], None] = print, length: int | None = None) -> Report:
+def verify_export(
+    onnx_path: str | os.PathLike[str],
+    model: nn.Module,
+    cfg: RaFDConfig,
+    form: str,
+    log: Callable[[str], None] = print,
+    length: int | None = None,
+) -> Report:
     """Random inputs and, when RAFD_RADIATE_SAMPLE names a RADIATE sequence, real frames. Raises VerificationError
     beyond tolerance (after logging the differences)."""
     runner = OnnxRunner(onnx_path)
@@ -241,6 +268,7 @@ def verify_export(onnx_path: str | os.PathLike[str], model: nn.Module, cfg: RaFD
     for line in report.lines():
         log(line)
     if not report.ok:
-        raise VerificationError(f"{onnx_path}: onnxruntime outputs differ from PyTorch beyond tolerance "
-                                "(see the differences above)")
+        raise VerificationError(
+            f"{onnx_path}: onnxruntime outputs differ from PyTorch beyond tolerance (see the differences above)"
+        )
     return report

@@ -3,6 +3,7 @@
 `import rafd` stays torch-free: the config, geometry and decoding are numpy-only so the
 service can use them. Torch-backed names (`build_model`, checkpoints) load on first access.
 """
+
 from __future__ import annotations
 
 from typing import Any

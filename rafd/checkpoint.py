@@ -3,6 +3,7 @@
 The file is a plain dict of tensors and strings so torch.load(weights_only=True) can read it without
 unpickling arbitrary objects: {"state_dict", "config" (RaFDConfig JSON), "version", "meta" (JSON)}.
 """
+
 from __future__ import annotations
 
 import json
@@ -24,7 +25,9 @@ class CheckpointError(ValueError):
     """A checkpoint file that is missing, unreadable, not an RaFD checkpoint, or does not fit its config."""
 
 
-def save_checkpoint(path: str | os.PathLike[str], model: nn.Module, cfg: RaFDConfig, meta: dict[str, Any] | None = None) -> Path:
+def save_checkpoint(
+    path: str | os.PathLike[str], model: nn.Module, cfg: RaFDConfig, meta: dict[str, Any] | None = None
+) -> Path:
     """Write model weights + cfg + meta to `path` atomically (temp file in the same folder, then os.replace)."""
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
@@ -48,7 +51,9 @@ def save_checkpoint(path: str | os.PathLike[str], model: nn.Module, cfg: RaFDCon
     return path
 
 
-def read_checkpoint(path: str | os.PathLike[str], map_location: str | torch.device = "cpu") -> tuple[dict[str, torch.Tensor], RaFDConfig, dict[str, Any]]:
+def read_checkpoint(
+    path: str | os.PathLike[str], map_location: str | torch.device = "cpu"
+) -> tuple[dict[str, torch.Tensor], RaFDConfig, dict[str, Any]]:
     """-> (state_dict, cfg, meta) without building a model; CheckpointError names the file on any problem."""
     path = Path(path)
     if not path.is_file():
@@ -56,9 +61,13 @@ def read_checkpoint(path: str | os.PathLike[str], map_location: str | torch.devi
     try:
         payload = torch.load(path, map_location=map_location, weights_only=True)
     except Exception as error:  # torch raises several types for truncated, foreign or garbage files
-        raise CheckpointError(f"checkpoint {path} is not a readable torch file (corrupt or not a checkpoint): {error}") from error
+        raise CheckpointError(
+            f"checkpoint {path} is not a readable torch file (corrupt or not a checkpoint): {error}"
+        ) from error
     if not isinstance(payload, dict):
-        raise CheckpointError(f"checkpoint {path} is not an RaFD checkpoint (holds a {type(payload).__name__}, not a dict)")
+        raise CheckpointError(
+            f"checkpoint {path} is not an RaFD checkpoint (holds a {type(payload).__name__}, not a dict)"
+        )
     missing = [key for key in _REQUIRED_KEYS if key not in payload]
     if missing:
         raise CheckpointError(f"checkpoint {path} is not an RaFD checkpoint: missing keys {missing}")
@@ -78,7 +87,9 @@ def read_checkpoint(path: str | os.PathLike[str], map_location: str | torch.devi
     return state_dict, cfg, meta
 
 
-def load_checkpoint(path: str | os.PathLike[str], map_location: str | torch.device = "cpu") -> tuple[nn.Module, RaFDConfig, dict[str, Any]]:
+def load_checkpoint(
+    path: str | os.PathLike[str], map_location: str | torch.device = "cpu"
+) -> tuple[nn.Module, RaFDConfig, dict[str, Any]]:
     """-> (model rebuilt from the stored config, in eval mode, cfg, meta dict)."""
     from rafd.model import build_model
 

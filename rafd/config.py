@@ -1,4 +1,5 @@
 """Typed configuration of the RaFD network (torch-free: the service reads it from ONNX metadata)."""
+
 from __future__ import annotations
 
 import dataclasses
@@ -137,12 +138,16 @@ class RaFDConfig:
             raise ValueError("backbone.blocks and backbone.channels must have the same length")
         # flow.stride / enhance.window: the speed options
         if self.flow.stride % self.output_stride or self.input_size % self.flow.stride:
-            raise ValueError(f"flow.stride {self.flow.stride} must be a multiple of output_stride "
-                             f"{self.output_stride} and divide input_size {self.input_size}")
+            raise ValueError(
+                f"flow.stride {self.flow.stride} must be a multiple of output_stride "
+                f"{self.output_stride} and divide input_size {self.input_size}"
+            )
         window = self.enhance.window
         if window and (window < 2 or window % 2 or self.feature_size % window):
-            raise ValueError(f"enhance.window {window} must be even and divide the feature map side "
-                             f"{self.feature_size} (0 = half the side, the paper)")
+            raise ValueError(
+                f"enhance.window {window} must be even and divide the feature map side "
+                f"{self.feature_size} (0 = half the side, the paper)"
+            )
 
     @property
     def feature_size(self) -> int:
@@ -165,12 +170,12 @@ class RaFDConfig:
         return self.enhance.window or self.feature_size // 2
 
     @classmethod
-    def paper(cls) -> "RaFDConfig":
+    def paper(cls) -> RaFDConfig:
         """The paper's setting: ResNet-34 + FPN neck, stride 4, 256x256, 4 frames."""
         return cls()
 
     @classmethod
-    def tiny(cls, **overrides: Any) -> "RaFDConfig":
+    def tiny(cls, **overrides: Any) -> RaFDConfig:
         """Every part of the architecture, small enough to train on a CPU (128x128, 4 frames)."""
         base = cls(
             input_size=128,
@@ -182,7 +187,7 @@ class RaFDConfig:
         )
         return base.replace(**overrides) if overrides else base
 
-    def replace(self, **changes: Any) -> "RaFDConfig":
+    def replace(self, **changes: Any) -> RaFDConfig:
         return dataclasses.replace(self, **changes)
 
     def to_dict(self) -> dict[str, Any]:
@@ -192,7 +197,7 @@ class RaFDConfig:
         return json.dumps(self.to_dict(), sort_keys=True)
 
     @classmethod
-    def from_dict(cls, data: dict[str, Any]) -> "RaFDConfig":
+    def from_dict(cls, data: dict[str, Any]) -> RaFDConfig:
         """Rebuild from `to_dict()`; unknown keys are an error, not silently dropped. Fields a stored config predates
         take the value they had before they existed (LEGACY_DEFAULTS), never today's default."""
         sub_types = {f.name: f.type for f in dataclasses.fields(cls)}
@@ -220,7 +225,7 @@ class RaFDConfig:
         return cls(**kwargs)
 
     @classmethod
-    def from_json(cls, text: str) -> "RaFDConfig":
+    def from_json(cls, text: str) -> RaFDConfig:
         return cls.from_dict(json.loads(text))
 
 

@@ -1,4 +1,5 @@
 """Decoding of the network's fixed-K outputs into detections (numpy only; shared with the service)."""
+
 from __future__ import annotations
 
 from dataclasses import dataclass
@@ -6,6 +7,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from rafd.geometry import box_polygons_pixels
+from rafd.protocol import DEFAULT_SCORE_THRESHOLD
 
 
 @dataclass(frozen=True)
@@ -27,7 +29,10 @@ class Detections:
 
 
 def decode_detections(
-    boxes: np.ndarray, scores: np.ndarray, score_threshold: float = 0.3, labels: np.ndarray | None = None
+    boxes: np.ndarray,
+    scores: np.ndarray,
+    score_threshold: float = DEFAULT_SCORE_THRESHOLD,
+    labels: np.ndarray | None = None,
 ) -> Detections:
     """Fixed-K outputs (boxes [K, 5], scores [K]) -> detections above the threshold, best first.
 

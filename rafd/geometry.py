@@ -9,6 +9,7 @@ Conventions (used everywhere: model outputs, targets, metrics, service):
 - Pose (x, y, yaw): the ego frame's origin and heading in a fixed world frame,
   world = R(yaw) @ ego + (x, y).
 """
+
 from __future__ import annotations
 
 import numpy as np
@@ -94,8 +95,17 @@ def invert_pose(pose: np.ndarray) -> np.ndarray:
 
 
 def relative_pose(pose_from: np.ndarray, pose_to: np.ndarray) -> np.ndarray:
-    """Pose mapping points of the `pose_from` ego frame into the `pose_to` ego frame."""
-    return compose_poses(invert_pose(pose_to), pose_from)
+    """[..., 3] world poses -> [..., 3], the pose mapping points of the `pose_from` ego frame into the `pose_to` ego
+    frame: invert(to) o from, yaw wrapped to (-pi, pi]. The one definition (the service's windows and odometry, the
+    evaluation); rafd.model.align.relative_pose_torch is its in-graph twin. Differences are taken before rotating, so
+    large world coordinates (UTM metres) lose no precision."""
+    pose_from = np.asarray(pose_from, dtype=np.float64)
+    pose_to = np.asarray(pose_to, dtype=np.float64)
+    dx = pose_from[..., 0] - pose_to[..., 0]
+    dy = pose_from[..., 1] - pose_to[..., 1]
+    cos_to, sin_to = np.cos(pose_to[..., 2]), np.sin(pose_to[..., 2])
+    dyaw = pose_from[..., 2] - pose_to[..., 2]
+    return np.stack([cos_to * dx + sin_to * dy, -sin_to * dx + cos_to * dy, np.arctan2(np.sin(dyaw), np.cos(dyaw))], -1)
 
 
 def transform_points(pose: np.ndarray, points: np.ndarray) -> np.ndarray:
@@ -103,15 +113,6 @@ def transform_points(pose: np.ndarray, points: np.ndarray) -> np.ndarray:
     pose = np.asarray(pose, dtype=np.float64)
     points = np.asarray(points, dtype=np.float64)
     return points @ rotation_matrix(pose[2]).T + pose[:2]
-
-
-def transform_boxes(pose: np.ndarray, boxes: np.ndarray) -> np.ndarray:
-    """Apply one pose [3] to boxes [N, 5]: centres move, yaw turns, sizes stay."""
-    boxes = np.asarray(boxes, dtype=np.float64).reshape(-1, 5)
-    out = boxes.copy()
-    out[:, :2] = transform_points(pose, boxes[:, :2])
-    out[:, 4] = wrap_angle(boxes[:, 4] + pose[2])
-    return out
 
 
 # ---------------------------------------------------------------- oriented boxes
@@ -138,7 +139,10 @@ def radiate_polygon(position: np.ndarray, rotation_deg: float) -> np.ndarray:
 
 
 def radiate_to_box(
-    position: np.ndarray, rotation_deg: float, image_size: int = RADIATE_SCAN_SIZE, resolution: float = RADIATE_RESOLUTION
+    position: np.ndarray,
+    rotation_deg: float,
+    image_size: int = RADIATE_SCAN_SIZE,
+    resolution: float = RADIATE_RESOLUTION,
 ) -> np.ndarray:
     """RADIATE annotation (position [x0, y0, w, h] in pixels, rotation in degrees) -> box [5] in metres."""
     x0, y0, w, h = (float(p) for p in position)

@@ -2,7 +2,7 @@
 
 RADIATE stores each scan as `Navtech_Polar/NNNNNN.png`: uint8 [576, 400] = [range bins, azimuths].
 Conventions, established on the two real polar scans of tiny_foggy against the Cartesian images RADIATE made
-from them (README "Polar scans"; `rafd-polar` prints the agreement):
+from them (docs/data.md "Polar scans"; `rafd-polar` prints the agreement):
 
 - rows are range: row i is the return at (i + 0.21) x 0.173611 m (576 bins, 0-100 m);
 - columns are azimuth: 400 per turn (0.9 deg), counted CLOCKWISE seen from above, starting at the
@@ -20,6 +20,7 @@ RADIATE's residual (correlation 0.974) is its own resampling, which bilinear sam
 simulator's sensor has its own conventions (`NavtechSensor.polar_conventions`); `to_radiate_polar` resamples
 any polar scan onto RADIATE's.
 """
+
 from __future__ import annotations
 
 import functools
@@ -55,8 +56,9 @@ RADIATE_POLAR = PolarConventions()
 NOMINAL_POLAR = PolarConventions(azimuth_offset=0.5, range_offset=0.5, centre_offset=(0.0, 0.0))
 
 
-def cartesian_size(range_bins: int, resolution: float = RADIATE_RESOLUTION,
-                   conventions: PolarConventions = RADIATE_POLAR) -> int:
+def cartesian_size(
+    range_bins: int, resolution: float = RADIATE_RESOLUTION, conventions: PolarConventions = RADIATE_POLAR
+) -> int:
     """Even side in pixels of the Cartesian image that holds the whole polar disc (RADIATE: 576 bins -> 1152)."""
     radius = range_bins * conventions.range_bin / resolution
     return 2 * int(math.ceil(radius - 1e-6))
@@ -77,8 +79,9 @@ def _wrapped(polar: np.ndarray) -> np.ndarray:
 
 
 @functools.lru_cache(maxsize=8)
-def _cartesian_maps(range_bins: int, azimuths: int, size: int, resolution: float,
-                    conventions: PolarConventions) -> tuple[np.ndarray, np.ndarray]:
+def _cartesian_maps(
+    range_bins: int, azimuths: int, size: int, resolution: float, conventions: PolarConventions
+) -> tuple[np.ndarray, np.ndarray]:
     """Per Cartesian pixel centre: (azimuth column, range row) it samples in the wrapped polar, float32 [S, S] each."""
     centres = np.arange(size, dtype=np.float64) + 0.5
     x = (centres - (size / 2.0 + conventions.centre_offset[0])) * resolution  # [S] metres right
@@ -93,8 +96,12 @@ def _cartesian_maps(range_bins: int, azimuths: int, size: int, resolution: float
     return map_x, map_y
 
 
-def polar_to_cartesian(polar: np.ndarray, size: int | None = None, resolution: float = RADIATE_RESOLUTION,
-                       conventions: PolarConventions = RADIATE_POLAR) -> np.ndarray:
+def polar_to_cartesian(
+    polar: np.ndarray,
+    size: int | None = None,
+    resolution: float = RADIATE_RESOLUTION,
+    conventions: PolarConventions = RADIATE_POLAR,
+) -> np.ndarray:
     """Polar scan [range bins, azimuths] (uint8 or float grey) -> uint8 [S, S] Cartesian scan, radar near the
     centre (exactly where `conventions` put it), x right, y forward = image up; black beyond the last bin.
 
@@ -112,8 +119,12 @@ def polar_to_cartesian(polar: np.ndarray, size: int | None = None, resolution: f
     return np.clip(np.rint(image), 0, 255).astype(np.uint8)
 
 
-def to_radiate_polar(polar: np.ndarray, conventions: PolarConventions, range_bins: int = RADIATE_RANGE_BINS,
-                     azimuths: int = RADIATE_AZIMUTHS) -> np.ndarray:
+def to_radiate_polar(
+    polar: np.ndarray,
+    conventions: PolarConventions,
+    range_bins: int = RADIATE_RANGE_BINS,
+    azimuths: int = RADIATE_AZIMUTHS,
+) -> np.ndarray:
     """Polar scan [R, A] sampled under `conventions` -> uint8 [range_bins, azimuths] in RADIATE's layout, bin size
     and sample positions (bilinear; zero beyond the source's last bin). The simulator writes Navtech_Polar with it."""
     polar = _check_polar(polar)

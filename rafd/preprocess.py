@@ -12,6 +12,7 @@ call these functions, so what the network sees cannot drift between them:
 Anything that depends on the scan's intensity statistics (gain-robust normalisation) is the network's first
 module, so PyTorch and the exported ONNX graph compute it identically from this [0, 1] frame.
 """
+
 from __future__ import annotations
 
 import math
@@ -37,7 +38,7 @@ def model_crop(scan: np.ndarray, input_size: int) -> np.ndarray:
 
 
 def rotation_crop(input_size: int) -> int:
-    """Smallest even centre crop from which an input_size crop turned by any angle can be cut (rafd.augment warps
+    """Smallest even centre crop from which an input_size crop turned by any angle can be cut (rafd.data.augment warps
     from exactly this crop, so a prepared cache and the full scan give identical windows)."""
     side = math.ceil(input_size * math.sqrt(2.0)) + 2  # + 2: bilinear neighbours of the corner pixels
     return side + side % 2

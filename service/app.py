@@ -5,6 +5,7 @@ once, /health/ready (and every model route) answers 503 until the model is loade
 Middleware, outermost first: metrics (counts every answer, 401s and 413s included), API keys (401 before
 anything is read), the body size limit (413), then the routes.
 """
+
 from __future__ import annotations
 
 import asyncio
@@ -34,10 +35,13 @@ log = logging.getLogger(__name__)
 
 # Errors any route can answer, before or besides its own (each route's responses list the rest).
 ANY_ROUTE_ERRORS = (
-    "Every error is `{\"error\": {\"code\", \"message\"}}`. Besides each route's own errors, any route may answer: "
-    + "; ".join(f"{ERRORS[code].status} `{code}`: {ERRORS[code].meaning}"
-                for code in ("unauthorized", "not_found", "method_not_allowed", "request_too_large", "http_error"))
-    + ".")
+    'Every error is `{"error": {"code", "message"}}`. Besides each route\'s own errors, any route may answer: '
+    + "; ".join(
+        f"{ERRORS[code].status} `{code}`: {ERRORS[code].meaning}"
+        for code in ("unauthorized", "not_found", "method_not_allowed", "request_too_large", "http_error")
+    )
+    + "."
+)
 
 
 def create_app(
@@ -59,12 +63,19 @@ def create_app(
             loaded = runner if runner is not None else await run_in_threadpool(open_runner, settings)
             check_buffer_length(settings, loaded)
             await run_in_threadpool(warm_up, loaded)
-            store = StreamStore(loaded.new_state, settings.max_streams, settings.stream_ttl_s, clock=clock,
-                                on_evict=lambda reason: service_metrics.evictions.labels(reason=reason).inc(),
-                                queue_limit=settings.stream_queue_limit, retry_after_s=settings.retry_after_s)
+            store = StreamStore(
+                loaded.new_state,
+                settings.max_streams,
+                settings.stream_ttl_s,
+                clock=clock,
+                on_evict=lambda reason: service_metrics.evictions.labels(reason=reason).inc(),
+                queue_limit=settings.stream_queue_limit,
+                retry_after_s=settings.retry_after_s,
+            )
             service_metrics.track_active_streams(lambda: len(store))
-            app.state.service = DetectService(loaded, settings, store, service_metrics, odometry,
-                                              Executors.from_settings(settings, service_metrics))
+            app.state.service = DetectService(
+                loaded, settings, store, service_metrics, odometry, Executors.from_settings(settings, service_metrics)
+            )
             log.info("model ready: %s", loaded.metadata.get("version", "unknown"))
         except Exception as exc:  # readiness reports it; the process stays up for inspection
             log.exception("model failed to load")
@@ -85,8 +96,9 @@ def create_app(
                 app.state.service.executors.shutdown()
             app.state.service = None
 
-    app = FastAPI(title="RaFD radar detection service", version=__version__, lifespan=lifespan,
-                  description=ANY_ROUTE_ERRORS)
+    app = FastAPI(
+        title="RaFD radar detection service", version=__version__, lifespan=lifespan, description=ANY_ROUTE_ERRORS
+    )
     app.state.settings = settings
     app.state.refusal_penalty = RefusalPenalty(settings.refusal_penalty_s, settings.refusal_penalty_after)
     app.state.metrics = service_metrics

@@ -7,6 +7,7 @@ ownership use, so the key itself is never stored or echoed. A request presents i
 sha256 digests, no early exit). A stream belongs to the key that created it: other keys get 403 on it and do not
 see it in GET /streams.
 """
+
 from __future__ import annotations
 
 import hashlib
@@ -64,8 +65,10 @@ def parse_key(text: str, where: str) -> tuple[str, str]:
 
 def load_api_keys(settings: Settings) -> ApiKeys:
     """All configured keys; ValueError on a malformed entry, a missing file or a repeated key or name."""
-    entries = [parse_key(secret.get_secret_value().strip(), f"RAFD_API_KEYS entry {i + 1}")
-               for i, secret in enumerate(settings.api_keys)]
+    entries = [
+        parse_key(secret.get_secret_value().strip(), f"RAFD_API_KEYS entry {i + 1}")
+        for i, secret in enumerate(settings.api_keys)
+    ]
     if settings.api_keys_file is not None:
         path = Path(settings.api_keys_file)
         try:
@@ -104,11 +107,23 @@ class ApiKeyMiddleware:
             return
         name = self.keys.identify(presented_key(scope))
         if name is None:
-            body = json.dumps(error_body("unauthorized", "this service requires an API key: send it as "
-                                                         "'X-API-Key: KEY' or 'Authorization: Bearer KEY'")).encode()
-            await send({"type": "http.response.start", "status": 401, "headers": [
-                (b"content-type", b"application/json"), (b"content-length", str(len(body)).encode()),
-                (b"www-authenticate", b'Bearer realm="rafd"')]})
+            body = json.dumps(
+                error_body(
+                    "unauthorized",
+                    "this service requires an API key: send it as 'X-API-Key: KEY' or 'Authorization: Bearer KEY'",
+                )
+            ).encode()
+            await send(
+                {
+                    "type": "http.response.start",
+                    "status": 401,
+                    "headers": [
+                        (b"content-type", b"application/json"),
+                        (b"content-length", str(len(body)).encode()),
+                        (b"www-authenticate", b'Bearer realm="rafd"'),
+                    ],
+                }
+            )
             await send({"type": "http.response.body", "body": body})
             return
         scope.setdefault("state", {})[CALLER] = name

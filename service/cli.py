@@ -3,6 +3,7 @@
 Other settings come from RAFD_* environment variables (see service/settings.py). Scale out with more
 processes/containers, routing each stream id to one replica (a stream's buffer lives in its process).
 """
+
 from __future__ import annotations
 
 import argparse
@@ -15,13 +16,20 @@ from pydantic import ValidationError
 
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="rafd-serve", description="Serve RaFD radar detection over HTTP.")
-    parser.add_argument("--model", type=Path, default=None,
-                        help="ONNX model from rafd-export "
-                             "(default: RAFD_MODEL_PATH, else the model shipped in the package)")
+    parser.add_argument(
+        "--model",
+        type=Path,
+        default=None,
+        help="ONNX model from rafd-export (default: RAFD_MODEL_PATH, else the model shipped in the package)",
+    )
     parser.add_argument("--host", default="127.0.0.1", help="interface to bind (0.0.0.0 in a container)")
     parser.add_argument("--port", type=int, default=8000)
-    parser.add_argument("--threads", type=int, default=None,
-                        help="onnxruntime intra-op threads (default: the CPUs this process may use)")
+    parser.add_argument(
+        "--threads",
+        type=int,
+        default=None,
+        help="onnxruntime intra-op threads (default: the CPUs this process may use)",
+    )
     parser.add_argument("--log-level", default="info", choices=["critical", "error", "warning", "info", "debug"])
     return parser
 
@@ -46,8 +54,9 @@ def main(argv: list[str] | None = None) -> int:
 
             settings.model_path = Path(default_onnx())
         except (ImportError, OSError, ValueError) as exc:
-            print(f"rafd-serve: no --model given and no default model shipped with the package ({exc})",
-                  file=sys.stderr)
+            print(
+                f"rafd-serve: no --model given and no default model shipped with the package ({exc})", file=sys.stderr
+            )
             return 2
     if not Path(settings.model_path).is_file():
         print(f"rafd-serve: model file {settings.model_path} does not exist", file=sys.stderr)

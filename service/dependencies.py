@@ -3,6 +3,7 @@
 Both are `async def`: a plain `def` dependency runs on the shared thread pool, and readiness must never wait
 behind work queued there.
 """
+
 from __future__ import annotations
 
 from fastapi import Request

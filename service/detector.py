@@ -7,13 +7,14 @@
 
 A refused or failed frame changes no stream; a frame whose client left before its turn is dropped (499).
 """
+
 from __future__ import annotations
 
 import asyncio
 import base64
 import time
 from dataclasses import dataclass
-from typing import Any, Literal
+from typing import TYPE_CHECKING, Any, Literal
 
 import numpy as np
 from fastapi import Request
@@ -21,6 +22,7 @@ from starlette.requests import ClientDisconnect
 
 from rafd.detections import decode_detections
 from rafd.geometry import box_polygons_pixels
+from rafd.protocol import operating_threshold, warming_up
 from service import poses
 from service.errors import ApiError
 from service.executors import AdmissionLimit, BoundedExecutor
@@ -31,35 +33,24 @@ from service.schemas import DetectFields
 from service.settings import Settings
 from service.streams import StreamStore
 
+if TYPE_CHECKING:
+    from rafd.runtime.streaming import Runner
+
 FlowFormat = Literal["list", "base64"]
-CELL_RULE = ("cell (i, j) = (row, col) covers posted pixels u in [origin_u + j*stride_px, +stride_px), "
-             "v in [origin_v + i*stride_px, +stride_px); its centre in metres (ego frame): "
-             "x = (j + 0.5 - width/2) * cell_size_m, y = (height/2 - i - 0.5) * cell_size_m")
-FLOW_AXES = ("component 0 = x (right), component 1 = y (forward), metres in the newest frame's ego axes; "
-             "ego motion removed")
+CELL_RULE = (
+    "cell (i, j) = (row, col) covers posted pixels u in [origin_u + j*stride_px, +stride_px), "
+    "v in [origin_v + i*stride_px, +stride_px); its centre in metres (ego frame): "
+    "x = (j + 0.5 - width/2) * cell_size_m, y = (height/2 - i - 0.5) * cell_size_m"
+)
+FLOW_AXES = (
+    "component 0 = x (right), component 1 = y (forward), metres in the newest frame's ego axes; ego motion removed"
+)
 
 
 @dataclass(frozen=True)
 class DetectOptions:
     flow: bool = True
     flow_format: FlowFormat = "list"
-
-
-DEFAULT_SCORE_THRESHOLD = 0.3  # for a model exported without an operating threshold
-
-
-def score_threshold_of(settings: Settings, runner: Any) -> float:
-    """RAFD_SCORE_THRESHOLD when set, else the model's documented operating threshold, else 0.3."""
-    if settings.score_threshold is not None:
-        return settings.score_threshold
-    value = getattr(runner, "metadata", {}).get("operating_threshold")
-    try:
-        threshold = DEFAULT_SCORE_THRESHOLD if value is None else float(value)
-    except ValueError as error:
-        raise ValueError(f"the model's operating_threshold metadata is not a number: {value!r}") from error
-    if not 0.0 <= threshold <= 1.0:
-        raise ValueError(f"the model's operating_threshold metadata is outside [0, 1]: {threshold}")
-    return threshold
 
 
 @dataclass(frozen=True)
@@ -73,14 +64,17 @@ class Executors:
     @classmethod
     def from_settings(cls, settings: Settings, metrics: ServiceMetrics) -> Executors:
         def make(name: str, workers: int, queue_limit: int) -> BoundedExecutor:
-            executor = BoundedExecutor(name, workers, queue_limit, settings.retry_after_s,
-                                       on_refused=metrics.executor_refused)
+            executor = BoundedExecutor(
+                name, workers, queue_limit, settings.retry_after_s, on_refused=metrics.executor_refused
+            )
             metrics.track_executor(name, lambda: executor.waiting)
             return executor
 
-        return cls(decode=make("decode", settings.decode_workers, settings.decode_queue_limit),
-                   odometry=make("odometry", settings.odometry_workers, settings.odometry_queue_limit),
-                   model=make("model", settings.concurrent_runs, settings.model_queue_limit))
+        return cls(
+            decode=make("decode", settings.decode_workers, settings.decode_queue_limit),
+            odometry=make("odometry", settings.odometry_workers, settings.odometry_queue_limit),
+            model=make("model", settings.concurrent_runs, settings.model_queue_limit),
+        )
 
     def shutdown(self) -> None:
         for executor in (self.decode, self.odometry, self.model):
@@ -90,8 +84,15 @@ class Executors:
 class DetectService:
     """Everything /detect needs once the model is loaded: runner, stream store, executors, odometry, settings."""
 
-    def __init__(self, runner: Any, settings: Settings, store: StreamStore, metrics: ServiceMetrics,
-                 odometry: poses.Odometry | None = None, executors: Executors | None = None) -> None:
+    def __init__(
+        self,
+        runner: Runner,
+        settings: Settings,
+        store: StreamStore,
+        metrics: ServiceMetrics,
+        odometry: poses.Odometry | None = None,
+        executors: Executors | None = None,
+    ) -> None:
         self.runner = runner
         self.config = runner.config
         self.settings = settings
@@ -100,7 +101,8 @@ class DetectService:
         self.executors = executors or Executors.from_settings(settings, metrics)
         self.admission = AdmissionLimit(settings.max_inflight_requests, settings.retry_after_s)
         self._odometry = odometry
-        self.score_threshold = score_threshold_of(settings, runner)
+        # RAFD_SCORE_THRESHOLD when set, else the model's documented operating threshold (rafd.protocol)
+        self.score_threshold = operating_threshold(runner.metadata, settings.score_threshold)
 
     @property
     def accepted_sizes(self) -> tuple[int, ...]:
@@ -111,8 +113,9 @@ class DetectService:
             self._odometry = poses.default_odometry()
         return self._odometry
 
-    async def detect(self, request: Request, stream_hint: str | None, caller: str | None,
-                     options: DetectOptions) -> dict[str, Any]:
+    async def detect(
+        self, request: Request, stream_hint: str | None, caller: str | None, options: DetectOptions
+    ) -> dict[str, Any]:
         """One frame of one stream -> the JSON answer; the stream changes only when everything succeeded.
 
         `stream_hint`: the stream id from the X-Stream-Id header or the path (None: from the body); with it the
@@ -146,8 +149,14 @@ class DetectService:
             elif entry.last_frame is None:  # a stream's first frame anchors its odometry world frame
                 pose, source = np.zeros(3), "odometry"
             else:
-                pose = await self.executors.odometry.run(poses.odometry_pose, entry.last_pose, entry.last_frame,
-                                                         decoded.odometry_view, resolution, self.odometry())
+                pose = await self.executors.odometry.run(
+                    poses.odometry_pose,
+                    entry.last_pose,
+                    entry.last_frame,
+                    decoded.odometry_view,
+                    resolution,
+                    self.odometry(),
+                )
                 source = "odometry"
             odometry_done = time.perf_counter()
             # float64: world poses may be large (UTM metres); the runner takes differences before casting.
@@ -186,12 +195,22 @@ class DetectService:
             async with asyncio.timeout(self.settings.body_timeout_s):
                 return await parse
         except asyncio.TimeoutError as exc:
-            raise ApiError("body_timeout", f"the request body did not arrive within {self.settings.body_timeout_s} "
-                                           "s (RAFD_BODY_TIMEOUT_S)") from exc
+            raise ApiError(
+                "body_timeout",
+                f"the request body did not arrive within {self.settings.body_timeout_s} s (RAFD_BODY_TIMEOUT_S)",
+            ) from exc
 
     # ------------------------------------------------------------------ post-processing
-    def _answer(self, fields: DetectFields, decoded: DecodedFrame, result: Any, pose: np.ndarray, source: str,
-                previous_timestamp: float | None, options: DetectOptions) -> dict[str, Any]:
+    def _answer(
+        self,
+        fields: DetectFields,
+        decoded: DecodedFrame,
+        result: Any,
+        pose: np.ndarray,
+        source: str,
+        previous_timestamp: float | None,
+        options: DetectOptions,
+    ) -> dict[str, Any]:
         cfg = self.config
         frames_used = int(result.frames_used)
         metadata = self.runner.metadata
@@ -200,17 +219,23 @@ class DetectService:
             "timestamp": fields.timestamp,
             "frames_used": frames_used,
             "num_frames": cfg.num_frames,
-            "warming_up": frames_used < cfg.num_frames,
+            "warming_up": warming_up(frames_used, cfg.num_frames),
             "pose_source": source,
             "pose": {"x": float(pose[0]), "y": float(pose[1]), "yaw": float(pose[2])},
             "boxes": self._boxes(result, decoded.posted_size),
             "flow": self._flow(result, decoded, previous_timestamp, fields.timestamp, options),
-            "input": {"posted_size": decoded.posted_size, "model_size": cfg.input_size,
-                      "crop_offset_px": decoded.crop_offset, "posted_format": decoded.posted_format},
-            "model": {"version": metadata.get("version", "unknown"),
-                      "checkpoint_sha256": metadata.get("checkpoint_sha256", "unknown"),
-                      "runtime": getattr(self.runner, "runtime", "unknown"),
-                      "precision": getattr(self.runner, "precision", "unknown")},
+            "input": {
+                "posted_size": decoded.posted_size,
+                "model_size": cfg.input_size,
+                "crop_offset_px": decoded.crop_offset,
+                "posted_format": decoded.posted_format,
+            },
+            "model": {
+                "version": metadata.get("version", "unknown"),
+                "checkpoint_sha256": metadata.get("checkpoint_sha256", "unknown"),
+                "runtime": self.runner.runtime,
+                "precision": self.runner.precision,
+            },
         }
 
     def _boxes(self, result: Any, posted_size: int) -> list[dict[str, Any]]:
@@ -219,18 +244,30 @@ class DetectService:
         names = self.config.class_names
         out = []
         for box, score, label, polygon in zip(detections.boxes, detections.scores, detections.labels, polygons):
-            out.append({
-                # 0.1 mm and 1e-5 rad: far below the radar's 17 cm pixels, keeps the JSON short
-                "x": round(float(box[0]), 4), "y": round(float(box[1]), 4),
-                "width": round(float(box[2]), 4), "length": round(float(box[3]), 4),
-                "yaw": round(float(box[4]), 5), "score": round(float(score), 5), "class_id": int(label),
-                "class": names[label] if label < len(names) else str(label),
-                "polygon": np.round(polygon, 2).tolist(),
-            })
+            out.append(
+                {
+                    # 0.1 mm and 1e-5 rad: far below the radar's 17 cm pixels, keeps the JSON short
+                    "x": round(float(box[0]), 4),
+                    "y": round(float(box[1]), 4),
+                    "width": round(float(box[2]), 4),
+                    "length": round(float(box[3]), 4),
+                    "yaw": round(float(box[4]), 5),
+                    "score": round(float(score), 5),
+                    "class_id": int(label),
+                    "class": names[label] if label < len(names) else str(label),
+                    "polygon": np.round(polygon, 2).tolist(),
+                }
+            )
         return out
 
-    def _flow(self, result: Any, decoded: DecodedFrame, previous_timestamp: float | None, timestamp: float,
-              options: DetectOptions) -> dict[str, Any] | None:
+    def _flow(
+        self,
+        result: Any,
+        decoded: DecodedFrame,
+        previous_timestamp: float | None,
+        timestamp: float,
+        options: DetectOptions,
+    ) -> dict[str, Any] | None:
         """The newest pair's flow [2, Hf, Wf]; None when not asked for or no real pair exists yet."""
         if not options.flow or result.flow is None or result.frames_used < 2:
             return None
@@ -252,7 +289,10 @@ class DetectService:
             "units": "m",
             "axes": FLOW_AXES,
             "grid": {
-                "height": height, "width": width, "cell_size_m": cell, "stride_px": stride,
+                "height": height,
+                "width": width,
+                "cell_size_m": cell,
+                "stride_px": stride,
                 "origin_px": [decoded.crop_offset, decoded.crop_offset],
                 "cell_centre_rule": CELL_RULE,
             },

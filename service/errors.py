@@ -1,9 +1,10 @@
 """One error shape for every 4xx/5xx: {"error": {"code": str, "message": str}}, from one registry of codes.
 
 Every code the service can answer is in `ERRORS` (status and meaning); `ApiError` only takes a registered code,
-the OpenAPI responses are built from the registry (`error_responses`) and service/README.md documents each code
+the OpenAPI responses are built from the registry (`error_responses`) and docs/api.md documents each code
 (a test checks all three agree). Messages are capped (`MAX_MESSAGE_CHARS`) so an error never grows with the input.
 """
+
 from __future__ import annotations
 
 import asyncio
@@ -46,25 +47,35 @@ ERRORS: Mapping[str, ErrorCode] = {
     "not_found": ErrorCode(404, "no such route"),
     "stream_not_found": ErrorCode(404, "no such stream (never seen, deleted or expired)"),
     "method_not_allowed": ErrorCode(405, "the route does not take this HTTP method"),
-    "body_timeout": ErrorCode(408, "the body did not arrive within RAFD_BODY_TIMEOUT_S (its frame held its "
-                                   "stream's place meanwhile)"),
+    "body_timeout": ErrorCode(
+        408, "the body did not arrive within RAFD_BODY_TIMEOUT_S (its frame held its stream's place meanwhile)"
+    ),
     "timestamp_not_increasing": ErrorCode(
-        409, "the frame's timestamp is not after the stream's last accepted frame, or after a frame of that "
-             "stream that arrived earlier and is still queued"),
+        409,
+        "the frame's timestamp is not after the stream's last accepted frame, or after a frame of that "
+        "stream that arrived earlier and is still queued",
+    ),
     "pose_source_conflict": ErrorCode(409, "a request pose on a stream whose world frame was anchored by odometry"),
     "stream_reset": ErrorCode(
-        409, "the stream was deleted (reset) while this frame waited or ran; the frame belongs to the ended "
-             "chain and was not used: send it again to start the new chain"),
+        409,
+        "the stream was deleted (reset) while this frame waited or ran; the frame belongs to the ended "
+        "chain and was not used: send it again to start the new chain",
+    ),
     "request_too_large": ErrorCode(413, "the body exceeds RAFD_MAX_REQUEST_BYTES"),
     "unsupported_media_type": ErrorCode(415, "Content-Type is neither application/json nor multipart/form-data"),
     "validation_error": ErrorCode(
-        422, "a field is missing, unknown, duplicated or of the wrong type (no coercion: a JSON timestamp must be "
-             "a number, not a string or a boolean), or a path, query or header value is invalid"),
+        422,
+        "a field is missing, unknown, duplicated or of the wrong type (no coercion: a JSON timestamp must be "
+        "a number, not a string or a boolean), or a path, query or header value is invalid",
+    ),
     "stream_id_mismatch": ErrorCode(
-        422, "the stream id in the X-Stream-Id header, the URL path and the body do not all agree"),
+        422, "the stream id in the X-Stream-Id header, the URL path and the body do not all agree"
+    ),
     "invalid_image": ErrorCode(
-        422, "the image is not valid base64 / not a PNG / corrupt, or its chunk structure is refused before "
-             "decoding (too many or too large ancillary chunks, image data that inflates beyond its header's size)"),
+        422,
+        "the image is not valid base64 / not a PNG / corrupt, or its chunk structure is refused before "
+        "decoding (too many or too large ancillary chunks, image data that inflates beyond its header's size)",
+    ),
     "unsupported_image_size": ErrorCode(422, "the PNG is not one of the accepted square sizes"),
     "unsupported_image_format": ErrorCode(422, "the PNG is not 8-bit greyscale (colour type 0, bit depth 8)"),
     "stream_queue_full": ErrorCode(429, "RAFD_STREAM_QUEUE_LIMIT frames of this stream are already queued"),
@@ -72,8 +83,10 @@ ERRORS: Mapping[str, ErrorCode] = {
     "odometry_failed": ErrorCode(500, "odometry returned no finite ego motion; no stream changed"),
     "not_ready": ErrorCode(503, "the model is loading or warming up, or failed to load"),
     "overloaded": ErrorCode(
-        503, "too many requests in flight, or the decode / odometry / model queue is full; retry after the "
-             "Retry-After header's seconds"),
+        503,
+        "too many requests in flight, or the decode / odometry / model queue is full; retry after the "
+        "Retry-After header's seconds",
+    ),
     "odometry_unavailable": ErrorCode(503, "this build cannot estimate ego motion: send a pose with every frame"),
     "http_error": ErrorCode(400, "any other refusal by the HTTP framework (not expected)"),
 }
@@ -106,8 +119,9 @@ def format_validation_errors(errors: list[dict]) -> str:
     """Pydantic errors -> one short line: `field.path: reason; ...` (at most MAX_LISTED_ERRORS, names capped)."""
     parts = []
     for error in errors[:MAX_LISTED_ERRORS]:
-        location = ".".join(str(p)[:MAX_LOCATION_CHARS] for p in error.get("loc", ())
-                            if p not in ("body", "query", "path", "header"))
+        location = ".".join(
+            str(p)[:MAX_LOCATION_CHARS] for p in error.get("loc", ()) if p not in ("body", "query", "path", "header")
+        )
         parts.append(f"{location or 'request'}: {error.get('msg', 'invalid')}")
     if len(errors) > MAX_LISTED_ERRORS:
         parts.append(f"and {len(errors) - MAX_LISTED_ERRORS} more")
@@ -122,14 +136,18 @@ def error_responses(*codes: str) -> dict[int | str, dict[str, Any]]:
     for code in codes:
         by_status.setdefault(ERRORS[code].status, []).append(code)
     return {
-        status: {"model": ErrorResponse,
-                 "description": "; ".join(f"`{code}`: {ERRORS[code].meaning}" for code in names)}
+        status: {
+            "model": ErrorResponse,
+            "description": "; ".join(f"`{code}`: {ERRORS[code].meaning}" for code in names),
+        }
         for status, names in sorted(by_status.items())
     }
 
 
 # Refusals of the request's content that a flood repeats (service/penalty.py slows their answers).
-PENALISED_CODES = frozenset({"invalid_image", "request_too_large", "unsupported_image_size", "unsupported_image_format"})
+PENALISED_CODES = frozenset(
+    {"invalid_image", "request_too_large", "unsupported_image_size", "unsupported_image_format"}
+)
 
 
 async def _api_error(request: Request, exc: ApiError) -> JSONResponse:

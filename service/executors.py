@@ -5,6 +5,7 @@ Why: with one shared thread pool, 45 slow decodes in flight made /health/ready t
 at once (the work is refused before it is spent), and the event loop, which answers health and metrics, never
 waits on any of them.
 """
+
 from __future__ import annotations
 
 import asyncio
@@ -21,8 +22,14 @@ T = TypeVar("T")
 class BoundedExecutor:
     """`workers` threads; at most `queue_limit` jobs wait for one. Beyond that, submit answers 503 at once."""
 
-    def __init__(self, name: str, workers: int, queue_limit: int, retry_after_s: int,
-                 on_refused: Callable[[str], None] | None = None) -> None:
+    def __init__(
+        self,
+        name: str,
+        workers: int,
+        queue_limit: int,
+        retry_after_s: int,
+        on_refused: Callable[[str], None] | None = None,
+    ) -> None:
         self.name = name
         self.workers = workers
         self.queue_limit = queue_limit
@@ -55,9 +62,12 @@ class BoundedExecutor:
         if full:
             if self._on_refused is not None:
                 self._on_refused(self.name)
-            raise ApiError("overloaded", f"the {self.name} queue is full ({self.queue_limit} jobs waiting for "
-                                         f"{self.workers} worker(s)); retry after {self.retry_after_s} s",
-                           headers={"Retry-After": str(self.retry_after_s)})
+            raise ApiError(
+                "overloaded",
+                f"the {self.name} queue is full ({self.queue_limit} jobs waiting for "
+                f"{self.workers} worker(s)); retry after {self.retry_after_s} s",
+                headers={"Retry-After": str(self.retry_after_s)},
+            )
         future = self._pool.submit(fn, *args)
         # Counted down when the job really ends, even if the awaiting request was cancelled meanwhile.
         future.add_done_callback(self._finished)
@@ -77,9 +87,12 @@ class AdmissionLimit:
 
     def enter(self) -> None:
         if self.in_flight >= self.limit:
-            raise ApiError("overloaded", f"{self.limit} detect requests are already in flight "
-                                         f"(RAFD_MAX_INFLIGHT_REQUESTS); retry after {self.retry_after_s} s",
-                           headers={"Retry-After": str(self.retry_after_s)})
+            raise ApiError(
+                "overloaded",
+                f"{self.limit} detect requests are already in flight "
+                f"(RAFD_MAX_INFLIGHT_REQUESTS); retry after {self.retry_after_s} s",
+                headers={"Retry-After": str(self.retry_after_s)},
+            )
         self.in_flight += 1
 
     def leave(self) -> None:

@@ -9,6 +9,7 @@ Cartesian path unchanged. `check_posted_image` is its cheap first half (chunk he
 loop as soon as the body is parsed so a hostile file is refused before it takes a decode slot; `upload_check`
 runs the same rules on a multipart upload while it streams in.
 """
+
 from __future__ import annotations
 
 import binascii
@@ -86,10 +87,14 @@ def _check_size(header: png.PngHeader, input_size: int, resolution: float) -> No
     if header.width != header.height or header.width not in sizes:
         accepted = " or ".join(f"{s}x{s}" for s in sizes)
         if polar:
-            accepted += (f" (Cartesian), or {POLAR_SHAPE[1]}x{POLAR_SHAPE[0]} (a polar scan: {POLAR_SHAPE[1]} "
-                         f"azimuth columns x {POLAR_SHAPE[0]} range rows, RADIATE's Navtech_Polar layout)")
-        raise ApiError("unsupported_image_size",
-                       f"image is {header.width}x{header.height} (width x height); accepted sizes: {accepted}")
+            accepted += (
+                f" (Cartesian), or {POLAR_SHAPE[1]}x{POLAR_SHAPE[0]} (a polar scan: {POLAR_SHAPE[1]} "
+                f"azimuth columns x {POLAR_SHAPE[0]} range rows, RADIATE's Navtech_Polar layout)"
+            )
+        raise ApiError(
+            "unsupported_image_size",
+            f"image is {header.width}x{header.height} (width x height); accepted sizes: {accepted}",
+        )
 
 
 def check_posted_image(image: PostedImage, input_size: int, resolution: float) -> png.PngLayout:
@@ -135,5 +140,10 @@ def decode_frame(image: PostedImage, input_size: int, resolution: float) -> Deco
         decoded, posted_format = polar_to_cartesian(decoded), "polar"  # [576, 400] -> [1152, 1152] uint8
     width = decoded.shape[1]
     view = model_crop(decoded, max(input_size, min(width, ODOMETRY_VIEW_SIZE)))
-    return DecodedFrame(crop=model_crop(decoded, input_size), posted_size=width,
-                        crop_offset=(width - input_size) // 2, odometry_view=view, posted_format=posted_format)
+    return DecodedFrame(
+        crop=model_crop(decoded, input_size),
+        posted_size=width,
+        crop_offset=(width - input_size) // 2,
+        odometry_view=view,
+        posted_format=posted_format,
+    )

@@ -1,5 +1,6 @@
 """Request body size limit: 413 from the Content-Length header, and again while the body streams in
 (a chunked request has no Content-Length, and a client may lie in it)."""
+
 from __future__ import annotations
 
 import json
@@ -62,10 +63,15 @@ class BodySizeLimitMiddleware:
 
     async def _reject(self, send: Send) -> None:
         body = _too_large_body(self.max_bytes)
-        await send({
-            "type": "http.response.start",
-            "status": 413,
-            "headers": [(b"content-type", b"application/json"), (b"content-length", str(len(body)).encode()),
-                        (b"connection", b"close")],
-        })
+        await send(
+            {
+                "type": "http.response.start",
+                "status": 413,
+                "headers": [
+                    (b"content-type", b"application/json"),
+                    (b"content-length", str(len(body)).encode()),
+                    (b"connection", b"close"),
+                ],
+            }
+        )
         await send({"type": "http.response.body", "body": body})

@@ -1,4 +1,5 @@
 """Open the ONNX runner and warm it up (runs in a worker thread from the app's lifespan)."""
+
 from __future__ import annotations
 
 import logging
@@ -30,10 +31,17 @@ def open_runner(settings: Settings) -> Any:
     path = resolve_model_path(settings)
     from rafd.runtime import create_runner
 
-    log.info("loading %s (runtime %s, precision %s, %d threads per run, %d concurrent runs)", path, settings.runtime,
-             settings.precision, settings.threads, settings.concurrent_runs)
-    runner = create_runner(path, settings.runtime, settings.precision, threads=settings.threads,
-                           concurrent_runs=settings.concurrent_runs)
+    log.info(
+        "loading %s (runtime %s, precision %s, %d threads per run, %d concurrent runs)",
+        path,
+        settings.runtime,
+        settings.precision,
+        settings.threads,
+        settings.concurrent_runs,
+    )
+    runner = create_runner(
+        path, settings.runtime, settings.precision, threads=settings.threads, concurrent_runs=settings.concurrent_runs
+    )
     log.info("serving on %s", runner.describe())
     return runner
 

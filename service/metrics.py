@@ -4,6 +4,7 @@ Every label comes from a closed set: the route TEMPLATE (never the raw path: str
 "unmatched", a known HTTP method or "other" (a client can send any token as a method), a status the service
 answers or "other". So no request, however made up, adds a series.
 """
+
 from __future__ import annotations
 
 import time
@@ -31,23 +32,45 @@ def status_label(status: int) -> str:
 class ServiceMetrics:
     def __init__(self) -> None:
         self.registry = CollectorRegistry(auto_describe=True)
-        self.requests = Counter("rafd_requests", "HTTP requests by route, method and status code (499: the "
-                                                 "client left before its answer)",
-                                ["route", "method", "code"], registry=self.registry)
-        self.errors = Counter("rafd_request_errors", "HTTP responses with status >= 400 by route and code",
-                              ["route", "code"], registry=self.registry)
-        self.latency = Histogram("rafd_request_duration_seconds", "HTTP request latency by route",
-                                 ["route"], buckets=LATENCY_BUCKETS, registry=self.registry)
-        self.model_latency = Histogram("rafd_model_step_seconds", "onnxruntime time per detect step",
-                                       buckets=LATENCY_BUCKETS, registry=self.registry)
+        self.requests = Counter(
+            "rafd_requests",
+            "HTTP requests by route, method and status code (499: the client left before its answer)",
+            ["route", "method", "code"],
+            registry=self.registry,
+        )
+        self.errors = Counter(
+            "rafd_request_errors",
+            "HTTP responses with status >= 400 by route and code",
+            ["route", "code"],
+            registry=self.registry,
+        )
+        self.latency = Histogram(
+            "rafd_request_duration_seconds",
+            "HTTP request latency by route",
+            ["route"],
+            buckets=LATENCY_BUCKETS,
+            registry=self.registry,
+        )
+        self.model_latency = Histogram(
+            "rafd_model_step_seconds",
+            "onnxruntime time per detect step",
+            buckets=LATENCY_BUCKETS,
+            registry=self.registry,
+        )
         self.frames = Counter("rafd_frames_processed", "frames run through the model", registry=self.registry)
         self.active_streams = Gauge("rafd_active_streams", "streams holding a buffer", registry=self.registry)
-        self.evictions = Counter("rafd_stream_evictions", "streams evicted, by reason (ttl or lru)",
-                                 ["reason"], registry=self.registry)
-        self.queued = Gauge("rafd_executor_queued", "jobs waiting for a worker, by executor",
-                            ["executor"], registry=self.registry)
-        self.refused = Counter("rafd_executor_refused", "jobs refused with 503 because the executor's queue was "
-                                                        "full, by executor", ["executor"], registry=self.registry)
+        self.evictions = Counter(
+            "rafd_stream_evictions", "streams evicted, by reason (ttl or lru)", ["reason"], registry=self.registry
+        )
+        self.queued = Gauge(
+            "rafd_executor_queued", "jobs waiting for a worker, by executor", ["executor"], registry=self.registry
+        )
+        self.refused = Counter(
+            "rafd_executor_refused",
+            "jobs refused with 503 because the executor's queue was full, by executor",
+            ["executor"],
+            registry=self.registry,
+        )
         for reason in ("ttl", "lru"):
             self.evictions.labels(reason=reason)  # export zeros so dashboards see the series from the start
         for executor in EXECUTORS:

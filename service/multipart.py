@@ -7,6 +7,7 @@ every part must be a known field, appear once, and be a file or a plain field as
 are short, and a file part can be inspected piece by piece as it arrives (a hostile upload is refused before the
 rest of it is received).
 """
+
 from __future__ import annotations
 
 from collections.abc import AsyncIterator, Callable, Collection, Mapping
@@ -45,8 +46,9 @@ def boundary_of(content_type: str) -> bytes:
 class _FormReader:
     """python-multipart callbacks -> the parts by name, refusing unknown, duplicated or oversized parts."""
 
-    def __init__(self, files: Collection[str], fields: Collection[str],
-                 inspect: Mapping[str, Callable[[bytes], None]]) -> None:
+    def __init__(
+        self, files: Collection[str], fields: Collection[str], inspect: Mapping[str, Callable[[bytes], None]]
+    ) -> None:
         self.files, self.fields = set(files), set(fields)
         self.inspect = inspect
         self.parts: dict[str, Part] = {}
@@ -58,10 +60,14 @@ class _FormReader:
 
     def callbacks(self) -> dict:
         return {
-            "on_part_begin": self.part_begin, "on_header_field": self.header_field,
-            "on_header_value": self.header_value_data, "on_header_end": self.header_end,
-            "on_headers_finished": self.headers_finished, "on_part_data": self.part_data,
-            "on_part_end": self.part_end, "on_end": self.end,
+            "on_part_begin": self.part_begin,
+            "on_header_field": self.header_field,
+            "on_header_value": self.header_value_data,
+            "on_header_end": self.header_end,
+            "on_headers_finished": self.headers_finished,
+            "on_part_data": self.part_data,
+            "on_part_end": self.part_end,
+            "on_end": self.end,
         }
 
     def part_begin(self) -> None:
@@ -121,9 +127,13 @@ class _FormReader:
         self.ended = True
 
 
-async def read_form(stream: AsyncIterator[bytes], content_type: str, files: Collection[str],
-                    fields: Collection[str], inspect: Mapping[str, Callable[[bytes], None]] | None = None
-                    ) -> dict[str, Part]:
+async def read_form(
+    stream: AsyncIterator[bytes],
+    content_type: str,
+    files: Collection[str],
+    fields: Collection[str],
+    inspect: Mapping[str, Callable[[bytes], None]] | None = None,
+) -> dict[str, Part]:
     """Parse the streamed body; -> {name: Part}. 400 invalid_multipart / 422 validation_error on faults.
 
     `inspect[name]` sees each piece of that part as it arrives and may refuse it (raise) before the rest of the

@@ -7,11 +7,12 @@ refusals alone then take most of a core from the streams that send valid frames.
 waits for its answer before it reuses the connection, so every connection it holds sends at most 1 / delay_s bad
 files per second. Valid requests are never delayed, whoever sends them.
 """
+
 from __future__ import annotations
 
 import time
 from collections import OrderedDict, deque
-from typing import Callable
+from collections.abc import Callable
 
 WINDOW_S = 1.0  # refusals counted over this many seconds
 MAX_CLIENTS = 4096  # addresses remembered (least recently refused forgotten first)

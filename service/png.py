@@ -12,6 +12,7 @@ row (1.2 MB file) takes 2 s. So, before decoding:
     1.3 MB for a 1152 px scan) and refuses a stream that would give more or less, then rebuilds the file from
     IHDR + IDAT + IEND only: ancillary chunks never reach libpng.
 """
+
 from __future__ import annotations
 
 import binascii
@@ -57,8 +58,11 @@ class Base64Bytes:
 
     def __init__(self, text: str) -> None:
         if len(text) % 4:
-            raise ApiError("invalid_image", f"field 'image' is not valid base64: {len(text)} characters is not a "
-                                            "multiple of 4 (no line breaks or spaces allowed)")
+            raise ApiError(
+                "invalid_image",
+                f"field 'image' is not valid base64: {len(text)} characters is not a "
+                "multiple of 4 (no line breaks or spaces allowed)",
+            )
         self.text = text
         padding = 2 if text.endswith("==") else 1 if text.endswith("=") else 0
         self.size = len(text) // 4 * 3 - padding
@@ -114,8 +118,10 @@ def read_header(ihdr: bytes) -> PngHeader:
         raise _invalid("the PNG header (IHDR) is invalid")
     if colour != 0 or depth != 8:
         kind = f"{depth}-bit {COLOUR_TYPES.get(colour, f'colour type {colour}')}"
-        raise ApiError("unsupported_image_format",
-                       f"image is a {kind} PNG; expected 8-bit greyscale (colour type 0) like RADIATE's Navtech scans")
+        raise ApiError(
+            "unsupported_image_format",
+            f"image is a {kind} PNG; expected 8-bit greyscale (colour type 0) like RADIATE's Navtech scans",
+        )
     return PngHeader(width, height, depth, colour, bool(interlace))
 
 
@@ -156,8 +162,10 @@ class _ChunkRules:
             self.ancillary += 1
             self.ancillary_bytes += length
             if self.ancillary > MAX_ANCILLARY_CHUNKS or self.ancillary_bytes > MAX_ANCILLARY_BYTES:
-                raise _invalid(f"the PNG carries more than {MAX_ANCILLARY_CHUNKS} ancillary chunks or "
-                               f"{MAX_ANCILLARY_BYTES} bytes of them (text, metadata); send the image data only")
+                raise _invalid(
+                    f"the PNG carries more than {MAX_ANCILLARY_CHUNKS} ancillary chunks or "
+                    f"{MAX_ANCILLARY_BYTES} bytes of them (text, metadata); send the image data only"
+                )
         if self.idat and kind != b"IDAT":
             self.idat_ended = True
 
@@ -233,8 +241,10 @@ def check_inflated_size(data: bytes, layout: PngLayout) -> None:
                 out = inflater.decompress(pending, expected - produced + 1)
                 produced += len(out)
                 if produced > expected:
-                    raise _invalid(f"the PNG's image data inflates to more than the {expected} bytes its "
-                                   f"{layout.header.width}x{layout.header.height} header declares")
+                    raise _invalid(
+                        f"the PNG's image data inflates to more than the {expected} bytes its "
+                        f"{layout.header.width}x{layout.header.height} header declares"
+                    )
                 if not out and len(inflater.unconsumed_tail) == len(pending):
                     break  # no progress possible with this input
                 pending = inflater.unconsumed_tail
@@ -246,7 +256,8 @@ def check_inflated_size(data: bytes, layout: PngLayout) -> None:
         raise _invalid(f"the PNG's image data is truncated ({produced} of {expected} bytes)")
 
 
-def _chunk(kind: bytes, payload: bytes) -> bytes:
+def png_chunk(kind: bytes, payload: bytes) -> bytes:
+    """One PNG chunk: length, type, payload, CRC."""
     return struct.pack(">I4s", len(payload), kind) + payload + struct.pack(">I", zlib.crc32(kind + payload))
 
 
@@ -256,5 +267,5 @@ def bounded_png(data: bytes, layout: PngLayout) -> bytes:
     start, length = layout.ihdr
     parts = [PNG_SIGNATURE, data[start : start + length]]
     parts += [data[offset - 8 : offset + n + 4] for offset, n in layout.idat]  # whole chunks, CRC included
-    parts.append(_chunk(b"IEND", b""))
+    parts.append(png_chunk(b"IEND", b""))
     return b"".join(parts)

@@ -6,6 +6,7 @@ onto the previous frame's pose, in the same world frame. A stream started withou
 odometry world frame anchored at its first frame (pose 0, 0, 0), so a later request pose would be in an
 unrelated frame: that is refused with 409 (delete the stream to switch).
 """
+
 from __future__ import annotations
 
 from collections.abc import Callable
@@ -20,25 +21,33 @@ Odometry = Callable[[np.ndarray, np.ndarray, float], np.ndarray]
 
 
 def default_odometry() -> Odometry:
-    """rafd.odometry.estimate_relative_pose, imported on first use (never at service import)."""
+    """rafd.data.odometry.estimate_relative_pose, imported on first use (never at service import)."""
     try:
-        from rafd.odometry import estimate_relative_pose
+        from rafd.data.odometry import estimate_relative_pose
     except ImportError as exc:
-        raise ApiError("odometry_unavailable",
-                       f"this build cannot estimate ego motion ({exc}); send a pose with every frame") from exc
+        raise ApiError(
+            "odometry_unavailable", f"this build cannot estimate ego motion ({exc}); send a pose with every frame"
+        ) from exc
     return estimate_relative_pose
 
 
 def check_request_pose(stream_pose_source: str | None) -> None:
     """Refuse a request pose on a stream whose world frame was anchored by odometry."""
     if stream_pose_source == "odometry":
-        raise ApiError("pose_source_conflict",
-                       "this stream started without poses (odometry world frame anchored at its first frame); "
-                       "a request pose would be in another world frame: DELETE the stream to switch to poses")
+        raise ApiError(
+            "pose_source_conflict",
+            "this stream started without poses (odometry world frame anchored at its first frame); "
+            "a request pose would be in another world frame: DELETE the stream to switch to poses",
+        )
 
 
-def odometry_pose(previous_pose: np.ndarray | None, previous_frame: np.ndarray | None, frame: np.ndarray,
-                  resolution: float, odometry: Odometry) -> np.ndarray:
+def odometry_pose(
+    previous_pose: np.ndarray | None,
+    previous_frame: np.ndarray | None,
+    frame: np.ndarray,
+    resolution: float,
+    odometry: Odometry,
+) -> np.ndarray:
     """[3] world pose of `frame`: (0, 0, 0) for a stream's first frame, else previous pose o relative motion."""
     if previous_pose is None or previous_frame is None:
         return np.zeros(3)

@@ -6,6 +6,7 @@ pose_x, pose_y, pose_yaw (all three or none) and the file field `image`, each at
 as JSON numbers. Unknown fields are refused (a typo like `pose_yw` must not silently drop the pose).
 The stream id may come from the body, the X-Stream-Id header or the path; all that are given must agree.
 """
+
 from __future__ import annotations
 
 import json
@@ -33,9 +34,9 @@ POSE_FIELDS = frozenset(Pose.model_fields)
 NUMBER = re.compile(r"-?(?:0|[1-9][0-9]*)(?:\.[0-9]+)?(?:[eE][+-]?[0-9]+)?")
 
 
-async def parse_detect_request(request: Request, stream_hint: str | None,
-                               upload_check: Callable[[], Callable[[bytes], None]] | None = None
-                               ) -> tuple[DetectFields, PostedImage]:
+async def parse_detect_request(
+    request: Request, stream_hint: str | None, upload_check: Callable[[], Callable[[bytes], None]] | None = None
+) -> tuple[DetectFields, PostedImage]:
     """-> (validated fields with the resolved stream id, the image as posted); 400/415/422 with the reason.
 
     `upload_check()` gives a feeder that sees a multipart image upload piece by piece as it streams in."""
@@ -45,18 +46,24 @@ async def parse_detect_request(request: Request, stream_hint: str | None,
     elif media_type == MULTIPART:
         body, image = await _parse_form(request, {"image": upload_check()} if upload_check else {})
     else:
-        raise ApiError("unsupported_media_type",
-                       f"Content-Type must be {JSON} or {MULTIPART}, got {media_type[:64] or 'none'!r}")
+        raise ApiError(
+            "unsupported_media_type", f"Content-Type must be {JSON} or {MULTIPART}, got {media_type[:64] or 'none'!r}"
+        )
     return resolve_stream_id(body, stream_hint), image
 
 
 def resolve_stream_id(body: DetectBody, stream_hint: str | None) -> DetectFields:
     if body.stream_id is None and stream_hint is None:
-        raise ApiError("validation_error", "stream_id: Field required (in the body, the X-Stream-Id header "
-                                           "or the path /streams/{stream_id}/detect)")
+        raise ApiError(
+            "validation_error",
+            "stream_id: Field required (in the body, the X-Stream-Id header or the path /streams/{stream_id}/detect)",
+        )
     if body.stream_id is not None and stream_hint is not None and body.stream_id != stream_hint:
-        raise ApiError("stream_id_mismatch", f"the body's stream_id {body.stream_id!r} differs from "
-                                             f"{stream_hint!r} given in the X-Stream-Id header or the path")
+        raise ApiError(
+            "stream_id_mismatch",
+            f"the body's stream_id {body.stream_id!r} differs from "
+            f"{stream_hint!r} given in the X-Stream-Id header or the path",
+        )
     return DetectFields(stream_id=body.stream_id or stream_hint, timestamp=body.timestamp, pose=body.pose)
 
 
@@ -90,11 +97,14 @@ def load_json(raw: bytes) -> Any:
     try:
         return json.loads(raw, object_pairs_hook=_object, parse_float=_finite_float, parse_constant=_no_constant)
     except _DuplicateKey as exc:
-        raise ApiError("validation_error",
-                       f"key {str(exc)[:MAX_LOCATION_CHARS]!r} appears more than once in a JSON object") from exc
+        raise ApiError(
+            "validation_error", f"key {str(exc)[:MAX_LOCATION_CHARS]!r} appears more than once in a JSON object"
+        ) from exc
     except (ValueError, RecursionError) as exc:
-        raise ApiError("invalid_json", "the body is not valid JSON (NaN, Infinity and out-of-range numbers "
-                                       f"are not allowed): {exc}") from exc
+        raise ApiError(
+            "invalid_json",
+            f"the body is not valid JSON (NaN, Infinity and out-of-range numbers are not allowed): {exc}",
+        ) from exc
 
 
 def _refuse_unknown_keys(obj: dict[str, Any], allowed: frozenset[str], where: str) -> None:
@@ -139,13 +149,14 @@ def _number(name: str, text: str) -> float:
         value = float(text)
         if math.isfinite(value):
             return value
-    raise ApiError("validation_error", f"form field {name!r} must be a finite number written like "
-                                       f"1574859771.74 or -0.5, got {text[:32]!r}")
+    raise ApiError(
+        "validation_error",
+        f"form field {name!r} must be a finite number written like 1574859771.74 or -0.5, got {text[:32]!r}",
+    )
 
 
 async def _parse_form(request: Request, inspect: dict[str, Callable[[bytes], None]]) -> tuple[DetectBody, bytes]:
-    parts = await read_form(request.stream(), request.headers.get("content-type", ""), FORM_FILES, FORM_FIELDS,
-                            inspect)
+    parts = await read_form(request.stream(), request.headers.get("content-type", ""), FORM_FILES, FORM_FIELDS, inspect)
     if "image" not in parts:
         raise ApiError("validation_error", "form field 'image' (the PNG file) is missing")
     values: dict[str, Any] = {}
@@ -155,8 +166,9 @@ async def _parse_form(request: Request, inspect: dict[str, Callable[[bytes], Non
         values["timestamp"] = _number("timestamp", _text(parts["timestamp"]))
     given = [name for name in POSE_FORM_FIELDS if name in parts]
     if given and len(given) != len(POSE_FORM_FIELDS):
-        raise ApiError("validation_error",
-                       f"pose form fields must come together: got {given}, need {list(POSE_FORM_FIELDS)}")
+        raise ApiError(
+            "validation_error", f"pose form fields must come together: got {given}, need {list(POSE_FORM_FIELDS)}"
+        )
     if given:
         values["pose"] = {axis: _number(name, _text(parts[name])) for axis, name in zip(("x", "y", "yaw"), given)}
     return _validate(DetectBody, values), parts["image"].data

@@ -1,14 +1,27 @@
-"""Request and response models of the HTTP API."""
+"""Request and response models of the HTTP API.
+
+Answers are written by hand on the hot path (service.detector builds /detect's dict, orjson writes it); these models
+are their contract: the OpenAPI document is generated from them, and the tests validate real answers against them
+with unknown fields forbidden (`Answer`), so an answer cannot grow a field the schema does not declare.
+"""
+
 from __future__ import annotations
 
-from typing import Annotated, Literal
+from typing import Annotated, Any, Literal
 
 from pydantic import BaseModel, ConfigDict, Field
 
 # URL-path-safe, printable, no whitespace: the id also appears in DELETE /streams/{stream_id}.
 STREAM_ID_PATTERN = r"^[A-Za-z0-9._~:@+\-]{1,128}$"
-StreamId = Annotated[str, Field(min_length=1, max_length=128, pattern=STREAM_ID_PATTERN,
-                                description="1-128 characters from A-Z a-z 0-9 . _ ~ : @ + -")]
+StreamId = Annotated[
+    str,
+    Field(
+        min_length=1,
+        max_length=128,
+        pattern=STREAM_ID_PATTERN,
+        description="1-128 characters from A-Z a-z 0-9 . _ ~ : @ + -",
+    ),
+]
 
 # No coercion: a JSON timestamp is a number (an integer is a number), never "1.5" or true.
 Strict = ConfigDict(extra="forbid", allow_inf_nan=False, strict=True)
@@ -28,15 +41,19 @@ class DetectBody(BaseModel):
 
     model_config = Strict
     stream_id: StreamId | None = Field(
-        default=None, description="required unless the X-Stream-Id header or the path names the stream; "
-                                  "must equal them when both are given")
+        default=None,
+        description="required unless the X-Stream-Id header or the path names the stream; "
+        "must equal them when both are given",
+    )
     timestamp: float = Field(description="seconds (e.g. UNIX time); must increase within a stream")
     pose: Pose | None = Field(default=None, description="omit to estimate ego motion from the radar (odometry)")
 
 
 class DetectJson(DetectBody):
-    image: str = Field(min_length=1, description="base64 PNG, 8-bit greyscale, no line breaks "
-                                                 "(a data:image/png;base64, prefix is accepted)")
+    image: str = Field(
+        min_length=1,
+        description="base64 PNG, 8-bit greyscale, no line breaks (a data:image/png;base64, prefix is accepted)",
+    )
 
 
 class DetectFields(BaseModel):
@@ -48,7 +65,13 @@ class DetectFields(BaseModel):
     pose: Pose | None = None
 
 
-class BoxOut(BaseModel):
+class Answer(BaseModel):
+    """Base of every answer model: unknown fields are an error when an answer is validated against it."""
+
+    model_config = ConfigDict(extra="forbid", populate_by_name=True)
+
+
+class BoxOut(Answer):
     x: float = Field(description="centre, metres right of the radar (ego frame of this frame)")
     y: float = Field(description="centre, metres forward of the radar")
     width: float = Field(description="metres along the box's x axis")
@@ -56,11 +79,11 @@ class BoxOut(BaseModel):
     yaw: float = Field(description="radians, counter-clockwise from ego x")
     score: float
     class_id: int
-    class_name: str = Field(serialization_alias="class")
+    class_name: str = Field(alias="class")
     polygon: list[list[float]] = Field(description="4 corners (u, v) in the POSTED image's pixels")
 
 
-class FlowGrid(BaseModel):
+class FlowGrid(Answer):
     height: int
     width: int
     cell_size_m: float
@@ -69,7 +92,7 @@ class FlowGrid(BaseModel):
     cell_centre_rule: str
 
 
-class FlowOut(BaseModel):
+class FlowOut(Answer):
     pair: list[float | None] = Field(description="timestamps (previous, newest) of the frame pair the flow is for")
     shape: list[int] = Field(description="[2, Hf, Wf]")
     units: Literal["m"] = "m"
@@ -79,16 +102,17 @@ class FlowOut(BaseModel):
     values: list[list[list[float]]] | str
 
 
-class InputOut(BaseModel):
+class InputOut(Answer):
     posted_size: int
     model_size: int
     crop_offset_px: int = Field(description="posted pixel of the model crop's top-left corner")
     posted_format: Literal["cartesian", "polar"] = Field(
         description="polar: a Navtech_Polar scan was posted and converted to RADIATE's Cartesian scan; posted_size, "
-                    "crop_offset_px and every polygon are in that Cartesian scan's pixels")
+        "crop_offset_px and every polygon are in that Cartesian scan's pixels"
+    )
 
 
-class TimingOut(BaseModel):
+class TimingOut(Answer):
     read_ms: float = Field(description="from arrival until the body is read, parsed and placed in its stream")
     decode_ms: float = Field(description="the image: decode queue, base64 and PNG decoding, crop")
     odometry_ms: float
@@ -98,12 +122,14 @@ class TimingOut(BaseModel):
     total_ms: float
 
 
-class ModelRef(BaseModel):
+class ModelRef(Answer):
     version: str
     checkpoint_sha256: str
+    runtime: str = Field(description="the runtime that computed the answer: onnxruntime or openvino")
+    precision: str = Field(description="what it computed in: fp32 or bf16")
 
 
-class DetectResponse(BaseModel):
+class DetectResponse(Answer):
     stream_id: str
     timestamp: float
     frames_used: int
@@ -118,10 +144,11 @@ class DetectResponse(BaseModel):
     timing: TimingOut
 
 
-class StreamOut(BaseModel):
+class StreamOut(Answer):
     stream_id: str
-    generation: int = Field(description="increases each time the stream id starts a new chain "
-                                        "(first frame, after a DELETE or an expiry)")
+    generation: int = Field(
+        description="increases each time the stream id starts a new chain (first frame, after a DELETE or an expiry)"
+    )
     frames_buffered: int
     frames_seen: int
     frames_queued: int = Field(description="frames of this stream waiting or running now")
@@ -131,11 +158,48 @@ class StreamOut(BaseModel):
     state_bytes: int
 
 
-class StreamsResponse(BaseModel):
+class StreamsResponse(Answer):
     count: int = Field(description="streams listed (with API keys: the caller's own)")
     max_streams: int
     ttl_s: float
     streams: list[StreamOut]
+
+
+class RuntimeOut(Answer):
+    runtime: str
+    precision: str
+    threads: int = Field(description="threads of a model run alone")
+    concurrent_runs: int
+    threads_per_concurrent_run: int
+    selection_ms_per_run: dict[str, float] = Field(
+        description="RAFD_RUNTIME=auto: the median ms per run of every candidate timed at start-up"
+    )
+
+
+class ModelInfo(Answer):
+    metadata: dict[str, str] = Field(description="the ONNX model's metadata (rafd.runtime.METADATA_KEYS and more)")
+    config: dict[str, Any] = Field(description="the model's RaFDConfig")
+    input_size: int
+    num_frames: int
+    feature_size: int
+    cell_size_m: float
+    resolution_m_per_px: float
+    class_names: list[str]
+    accepted_image_sizes: list[int]
+    accepted_polar_shape: list[int] | None = Field(
+        description="[range rows, azimuth columns] of a Navtech_Polar scan, accepted where a full RADIATE scan is"
+    )
+    score_threshold: float = Field(description="detections scoring below it are not answered")
+    runtime: RuntimeOut = Field(description="how the graph runs")
+
+
+class Liveness(Answer):
+    status: Literal["alive"]
+
+
+class Readiness(Answer):
+    status: Literal["ready"]
+    model_version: str
 
 
 class ErrorBody(BaseModel):

@@ -1,4 +1,5 @@
 """Service settings from RAFD_* environment variables (pydantic-settings), cached per process."""
+
 from __future__ import annotations
 
 import math
@@ -15,8 +16,9 @@ CGROUP_V1_QUOTA = Path("/sys/fs/cgroup/cpu/cpu.cfs_quota_us")
 CGROUP_V1_PERIOD = Path("/sys/fs/cgroup/cpu/cpu.cfs_period_us")
 
 
-def cgroup_cpu_limit(cpu_max: Path = CGROUP_V2_CPU_MAX, v1_quota: Path = CGROUP_V1_QUOTA,
-                     v1_period: Path = CGROUP_V1_PERIOD) -> int | None:
+def cgroup_cpu_limit(
+    cpu_max: Path = CGROUP_V2_CPU_MAX, v1_quota: Path = CGROUP_V1_QUOTA, v1_period: Path = CGROUP_V1_PERIOD
+) -> int | None:
     """Whole CPUs allowed by the container's CFS quota (rounded up), None when unlimited or unknown."""
     try:
         if cpu_max.is_file():

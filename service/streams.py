@@ -14,6 +14,7 @@ Expiry is lazy: every store access first drops streams idle past the TTL (never 
 background task is needed. The LRU cap applies when a request that committed a frame ends; streams with frames
 queued are never evicted. All methods run on the event loop (no locking needed).
 """
+
 from __future__ import annotations
 
 import asyncio
@@ -85,8 +86,10 @@ class StreamEntry:
             if other is ticket:
                 break
             if other.timestamp is not None and other.timestamp >= t:
-                return (f"timestamp {t!r} is not after {other.timestamp!r}, a frame of this stream that arrived "
-                        "earlier and is still queued")
+                return (
+                    f"timestamp {t!r} is not after {other.timestamp!r}, a frame of this stream that arrived "
+                    "earlier and is still queued"
+                )
         return None
 
 
@@ -104,9 +107,12 @@ class StreamInfo:
 
 
 def _reset_error(entry: StreamEntry) -> ApiError:
-    return ApiError("stream_reset", f"stream {entry.stream_id!r} (generation {entry.generation}) was deleted while "
-                                    "this frame waited or ran; the frame was not used: send it again to start "
-                                    "the new chain")
+    return ApiError(
+        "stream_reset",
+        f"stream {entry.stream_id!r} (generation {entry.generation}) was deleted while "
+        "this frame waited or ran; the frame was not used: send it again to start "
+        "the new chain",
+    )
 
 
 class StreamStore:
@@ -151,15 +157,23 @@ class StreamStore:
         self._expire()
         entry = self._entries.get(stream_id)
         if entry is None:
-            entry = StreamEntry(stream_id=stream_id, owner=owner, generation=next(self._generations),
-                                state=self._new_state(), last_used=self._clock())
+            entry = StreamEntry(
+                stream_id=stream_id,
+                owner=owner,
+                generation=next(self._generations),
+                state=self._new_state(),
+                last_used=self._clock(),
+            )
             self._entries[stream_id] = entry
         elif entry.owner != owner:
             raise ApiError("stream_forbidden", f"stream {stream_id!r} belongs to another API key")
         elif len(entry.queue) >= self.queue_limit:
-            raise ApiError("stream_queue_full", f"{len(entry.queue)} frames of stream {stream_id!r} are already "
-                                                f"queued (RAFD_STREAM_QUEUE_LIMIT); retry after {self.retry_after_s} s",
-                           headers={"Retry-After": str(self.retry_after_s)})
+            raise ApiError(
+                "stream_queue_full",
+                f"{len(entry.queue)} frames of stream {stream_id!r} are already "
+                f"queued (RAFD_STREAM_QUEUE_LIMIT); retry after {self.retry_after_s} s",
+                headers={"Retry-After": str(self.retry_after_s)},
+            )
         ticket = Ticket(entry=entry)
         entry.queue.append(ticket)
         return ticket
@@ -192,8 +206,9 @@ class StreamStore:
             raise _reset_error(ticket.entry)
         return ticket.entry
 
-    def commit(self, ticket: Ticket, state: Any, timestamp: float, frame: np.ndarray, pose: np.ndarray,
-               pose_source: str) -> None:
+    def commit(
+        self, ticket: Ticket, state: Any, timestamp: float, frame: np.ndarray, pose: np.ndarray, pose_source: str
+    ) -> None:
         """The frame was accepted: the only place a stream changes, moves in the LRU order and stops being idle."""
         entry = self.check_turn(ticket)
         assert entry.queue and entry.queue[0] is ticket, "commit out of turn"

@@ -1,5 +1,6 @@
 """Shared fixtures: the real RADIATE sample is found through RAFD_RADIATE_SAMPLE (set by .ci/run); its real polar
 scans through RAFD_RADIATE_POLAR_SAMPLE (default: tiny_foggy_polar beside the sample)."""
+
 from __future__ import annotations
 
 import os
@@ -25,5 +26,7 @@ def radiate_polar_sample(radiate_sample: Path) -> Path:
     """Navtech_Polar/ + Navtech_Polar.txt of tiny_foggy's first two frames; skips with the reason when absent."""
     path = Path(os.environ.get("RAFD_RADIATE_POLAR_SAMPLE") or radiate_sample.parent / "tiny_foggy_polar")
     if not (path / "Navtech_Polar").is_dir():
-        pytest.skip(f"no polar RADIATE sample at {path} (set RAFD_RADIATE_POLAR_SAMPLE to shared/radiate/tiny_foggy_polar)")
+        pytest.skip(
+            f"no polar RADIATE sample at {path} (set RAFD_RADIATE_POLAR_SAMPLE to shared/radiate/tiny_foggy_polar)"
+        )
     return path

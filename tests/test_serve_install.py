@@ -2,6 +2,7 @@
 installs the package non-editably (as the Dockerfile does), starts `rafd-serve` on the shipped model with an
 API key configured, keeps its probes open, and answers POST /detect only with the key.
 """
+
 from __future__ import annotations
 
 import base64
@@ -17,6 +18,8 @@ import httpx
 import numpy as np
 import pytest
 
+pytestmark = pytest.mark.network
+
 REPO = Path(__file__).resolve().parents[1]
 
 
@@ -30,23 +33,36 @@ def free_port() -> int:
 def serve_venv(tmp_path_factory: pytest.TempPathFactory) -> Path:
     venv = tmp_path_factory.mktemp("serve-venv")
     subprocess.run([sys.executable, "-m", "venv", str(venv)], check=True)
-    install = subprocess.run([str(venv / "bin" / "pip"), "install", "-q", f"{REPO}[serve]"],
-                             capture_output=True, text=True)
+    install = subprocess.run(
+        [str(venv / "bin" / "pip"), "install", "-q", f"{REPO}[serve]"], capture_output=True, text=True
+    )
     assert install.returncode == 0, install.stderr[-3000:]
     return venv
 
 
+@pytest.mark.slow
 def test_serve_extra_installs_without_torch_and_answers_detect(serve_venv: Path, tmp_path: Path):
     python = serve_venv / "bin" / "python"
-    probe = subprocess.run([str(python), "-c", "import importlib.util as u; print(u.find_spec('torch') is None)"],
-                           capture_output=True, text=True, check=True, cwd=tmp_path)
+    probe = subprocess.run(
+        [str(python), "-c", "import importlib.util as u; print(u.find_spec('torch') is None)"],
+        capture_output=True,
+        text=True,
+        check=True,
+        cwd=tmp_path,
+    )
     assert probe.stdout.strip() == "True", "the serve extra pulled in torch"
 
     port = free_port()
     key = "install-check-key-0123456789"
     env = {k: v for k, v in os.environ.items() if not k.startswith("RAFD_")} | {"RAFD_API_KEYS": f"ci:{key}"}
-    server = subprocess.Popen([str(serve_venv / "bin" / "rafd-serve"), "--port", str(port), "--threads", "1"],
-                              cwd=tmp_path, env=env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+    server = subprocess.Popen(
+        [str(serve_venv / "bin" / "rafd-serve"), "--port", str(port), "--threads", "1"],
+        cwd=tmp_path,
+        env=env,
+        stdout=subprocess.PIPE,
+        stderr=subprocess.STDOUT,
+        text=True,
+    )
     url = f"http://127.0.0.1:{port}"
     try:
         deadline = time.monotonic() + 90.0
@@ -64,8 +80,12 @@ def test_serve_extra_installs_without_torch_and_answers_detect(serve_venv: Path,
         image = np.random.default_rng(0).integers(0, 60, (int(size), int(size)), dtype=np.uint8)
         ok, png = cv2.imencode(".png", image)
         assert ok
-        body = {"stream_id": "install-check", "timestamp": 1.0, "pose": {"x": 0.0, "y": 0.0, "yaw": 0.0},
-                "image": base64.b64encode(png.tobytes()).decode("ascii")}
+        body = {
+            "stream_id": "install-check",
+            "timestamp": 1.0,
+            "pose": {"x": 0.0, "y": 0.0, "yaw": 0.0},
+            "image": base64.b64encode(png.tobytes()).decode("ascii"),
+        }
         assert httpx.post(f"{url}/detect", timeout=30.0, json=body).status_code == 401
         answer = httpx.post(f"{url}/detect", timeout=30.0, json=body, headers={"Authorization": f"Bearer {key}"})
         assert answer.status_code == 200, answer.text

@@ -1,8 +1,9 @@
 """The default model shipped inside the package: its checkpoint and its streaming ONNX export.
 
-How they were made (training command, data seeds, test figures) is recorded in the README and in
+How they were made (training command, data seeds, test figures) is recorded in CHANGELOG.md, docs/benchmark.md and in
 `default_model.json` beside them.
 """
+
 from __future__ import annotations
 
 from pathlib import Path

@@ -4,17 +4,19 @@ Posts every radar frame in timestamp order (with its pose from ego_poses.csv whe
 service estimates ego motion). A folder with only the sensor's polar scans (Navtech_Polar/) posts them as
 they are (the service converts them with the same rafd.polar conversion the client draws and logs), or
 converted first when meta.json asks for another size or resolution. With --out: each frame's picture
-(rafd.viz_answer: the model's crop zoomed, predictions with scores, ground truth where labelled, flow,
-legend), the answers as JSON lines and an MP4. With --mcap: a Foxglove/MCAP log of scans, poses, boxes, flow and ground truth
-(rafd.mcap_log, `logs` extra). Uses only the standard library for HTTP.
+(rafd.viz.answer: the model's crop zoomed, predictions with scores, ground truth where labelled, flow,
+legend), the answers as JSON lines and an MP4. With --mcap: a Foxglove/MCAP log of scans, poses, boxes, flow and
+ground truth
+(rafd.viz.mcap, `logs` extra). Uses only the standard library for HTTP.
 """
+
 from __future__ import annotations
 
 import argparse
 import base64
 import json
-import sys
 import os
+import sys
 import urllib.error
 import urllib.request
 from dataclasses import dataclass
@@ -59,8 +61,12 @@ class ClientFrame:
         """The PNG to post: a RADIATE polar scan as it is on disk when it was converted to RADIATE's own grid (the
         service converts it the same way, and the answer's pixels are that grid's); else the scan's PNG."""
         polar = self.source.polar
-        if (polar is not None and polar.size == RADIATE_SCAN_SIZE and polar.resolution == RADIATE_RESOLUTION
-                and _png_size(self.source.image_path) == (RADIATE_AZIMUTHS, RADIATE_RANGE_BINS)):
+        if (
+            polar is not None
+            and polar.size == RADIATE_SCAN_SIZE
+            and polar.resolution == RADIATE_RESOLUTION
+            and _png_size(self.source.image_path) == (RADIATE_AZIMUTHS, RADIATE_RANGE_BINS)
+        ):
             return self.source.image_path.read_bytes()
         return scan_png
 
@@ -85,16 +91,21 @@ def read_frames(sequence_dir: Path) -> ClientSequence:
         ClientFrame(f.number, float(f.timestamp), f, None if sequence.poses is None else sequence.poses[i])
         for i, f in enumerate(sequence.frames)
     ]
-    return ClientSequence(sequence.name or sequence_dir.name, sequence.resolution, sequence.annotated,
-                          sorted(frames, key=lambda f: f.timestamp))
+    return ClientSequence(
+        sequence.name or sequence_dir.name,
+        sequence.resolution,
+        sequence.annotated,
+        sorted(frames, key=lambda f: f.timestamp),
+    )
 
 
 class ServiceError(RuntimeError):
     pass
 
 
-def post_frame(url: str, stream_id: str, frame: ClientFrame, png: bytes, use_pose: bool,
-               timeout: float, api_key: str | None = None) -> dict[str, Any]:
+def post_frame(
+    url: str, stream_id: str, frame: ClientFrame, png: bytes, use_pose: bool, timeout: float, api_key: str | None = None
+) -> dict[str, Any]:
     """One POST /detect (JSON body, base64 PNG); `api_key` goes in the X-API-Key header the service checks."""
     body: dict[str, Any] = {
         "stream_id": stream_id,
@@ -106,8 +117,9 @@ def post_frame(url: str, stream_id: str, frame: ClientFrame, png: bytes, use_pos
     headers = {"content-type": "application/json"}
     if api_key:
         headers["x-api-key"] = api_key
-    request = urllib.request.Request(f"{url.rstrip('/')}/detect", data=json.dumps(body).encode(),
-                                     headers=headers, method="POST")
+    request = urllib.request.Request(
+        f"{url.rstrip('/')}/detect", data=json.dumps(body).encode(), headers=headers, method="POST"
+    )
     try:
         with urllib.request.urlopen(request, timeout=timeout) as response:
             return json.loads(response.read())
@@ -128,15 +140,17 @@ def truth_polygons(frame: ClientFrame, annotated: bool) -> np.ndarray | None:
     return np.array([o.polygon for o in frame.source.objects], dtype=np.float64).reshape(-1, 4, 2)
 
 
-def logged_frame(frame: ClientFrame, scan: np.ndarray, png: bytes, answer: dict[str, Any], resolution: float,
-                 annotated: bool):
-    """One answer -> rafd.mcap_log.LoggedFrame (boxes, polygons and flow as the service answered them)."""
-    from rafd.mcap_log import LoggedFrame
-    from rafd.viz_answer import flow_arrows
+def logged_frame(
+    frame: ClientFrame, scan: np.ndarray, png: bytes, answer: dict[str, Any], resolution: float, annotated: bool
+):
+    """One answer -> rafd.viz.mcap.LoggedFrame (boxes, polygons and flow as the service answered them)."""
+    from rafd.viz.answer import flow_arrows
+    from rafd.viz.mcap import LoggedFrame
 
     size, offset, model_size = scan.shape[0], answer["input"]["crop_offset_px"], answer["input"]["model_size"]
-    boxes = np.array([[b[k] for k in ("x", "y", "width", "length", "yaw")] for b in answer["boxes"]],
-                     dtype=np.float64).reshape(-1, 5)
+    boxes = np.array(
+        [[b[k] for k in ("x", "y", "width", "length", "yaw")] for b in answer["boxes"]], dtype=np.float64
+    ).reshape(-1, 5)
     heads = motions = None
     if answer.get("flow"):
         heads_px, motions = flow_arrows(answer["flow"], min_m=0.05)
@@ -145,13 +159,21 @@ def logged_frame(frame: ClientFrame, scan: np.ndarray, png: bytes, answer: dict[
     if annotated:
         truth = np.array([o.box for o in frame.source.objects], dtype=np.float64).reshape(-1, 5)
     return LoggedFrame(
-        timestamp_ns=frame.source.timestamp_ns, scan_png=png, scan_size=size, resolution=resolution,
-        crop=(offset, model_size), crop_pixels=scan[offset : offset + model_size, offset : offset + model_size],
-        pose=np.array([answer["pose"][k] for k in ("x", "y", "yaw")], dtype=np.float64), boxes=boxes,
+        timestamp_ns=frame.source.timestamp_ns,
+        scan_png=png,
+        scan_size=size,
+        resolution=resolution,
+        crop=(offset, model_size),
+        crop_pixels=scan[offset : offset + model_size, offset : offset + model_size],
+        pose=np.array([answer["pose"][k] for k in ("x", "y", "yaw")], dtype=np.float64),
+        boxes=boxes,
         scores=np.array([b["score"] for b in answer["boxes"]], dtype=np.float64),
         classes=[b["class"] for b in answer["boxes"]],
         polygons=np.array([b["polygon"] for b in answer["boxes"]], dtype=np.float64).reshape(-1, 4, 2),
-        flow_heads=heads, flow_motions=motions, truth_boxes=truth, truth_polygons=truth_polygons(frame, annotated),
+        flow_heads=heads,
+        flow_motions=motions,
+        truth_boxes=truth,
+        truth_polygons=truth_polygons(frame, annotated),
     )
 
 
@@ -165,21 +187,31 @@ def frame_rate(frames: list[ClientFrame]) -> float:
 
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="rafd-client", description=__doc__.splitlines()[0])
-    parser.add_argument("sequence", type=Path,
-                        help="RADIATE-format sequence folder (Navtech_Cartesian/ + .txt, or Navtech_Polar/ + .txt)")
+    parser.add_argument(
+        "sequence",
+        type=Path,
+        help="RADIATE-format sequence folder (Navtech_Cartesian/ + .txt, or Navtech_Polar/ + .txt)",
+    )
     parser.add_argument("--url", required=True, help="service base URL, e.g. http://127.0.0.1:8000")
     parser.add_argument("--out", type=Path, default=None, help="where to write frames/, answers.jsonl, sequence.mp4")
     parser.add_argument("--mcap", type=Path, default=None, help="write a Foxglove/MCAP log of the run to this file")
     parser.add_argument("--stream-id", default=None, help="stream id (default: the sequence name)")
     parser.add_argument("--no-pose", action="store_true", help="do not send ego_poses.csv: the service uses odometry")
     parser.add_argument("--limit", type=int, default=None, help="only the first N frames")
-    parser.add_argument("--flow-scale", type=float, default=None,
-                        help="draw flow arrows this many times their true length (default: 1, or more when zoomed out)")
+    parser.add_argument(
+        "--flow-scale",
+        type=float,
+        default=None,
+        help="draw flow arrows this many times their true length (default: 1, or more when zoomed out)",
+    )
     parser.add_argument("--flow-step", type=int, default=2, help="draw every n-th flow cell (default 2)")
     parser.add_argument("--view", type=int, default=768, help="side in pixels of the zoomed model view (default 768)")
     parser.add_argument("--timeout", type=float, default=30.0, help="seconds per request")
-    parser.add_argument("--api-key", default=os.environ.get("RAFD_API_KEY"),
-                        help="key for a service run with RAFD_API_KEYS (default: $RAFD_API_KEY; sent as X-API-Key)")
+    parser.add_argument(
+        "--api-key",
+        default=os.environ.get("RAFD_API_KEY"),
+        help="key for a service run with RAFD_API_KEYS (default: $RAFD_API_KEY; sent as X-API-Key)",
+    )
     return parser
 
 
@@ -187,7 +219,7 @@ def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     try:
         sequence = read_frames(args.sequence)
-        from rafd.viz_answer import AnswerView, draw_answer
+        from rafd.viz.answer import AnswerView, draw_answer
 
         view = AnswerView(view_px=args.view, flow_step=args.flow_step, flow_scale=args.flow_scale)
     except (OSError, ValueError) as exc:
@@ -209,30 +241,40 @@ def main(argv: list[str] | None = None) -> int:
     try:
         if args.mcap is not None:
             try:
-                from rafd.mcap_log import RadarMcapLog
+                from rafd.viz.mcap import RadarMcapLog
             except ImportError as exc:
                 raise ServiceError(f"--mcap needs the logs extra (pip install 'rafd[logs]'): {exc}") from exc
             log = RadarMcapLog(args.mcap)
         for frame in frames:
             scan, png = frame.scan_and_png()
-            answer = last_answer = post_frame(args.url, stream_id, frame, frame.posted_png(png), not args.no_pose,
-                                              args.timeout, args.api_key)
-            print(f"frame {frame.number:06d} t={frame.timestamp:.3f}: {len(answer['boxes'])} boxes, "
-                  f"frames_used {answer['frames_used']}, pose {answer['pose_source']}, "
-                  f"{answer['timing']['total_ms']:.1f} ms")
+            answer = last_answer = post_frame(
+                args.url, stream_id, frame, frame.posted_png(png), not args.no_pose, args.timeout, args.api_key
+            )
+            print(
+                f"frame {frame.number:06d} t={frame.timestamp:.3f}: {len(answer['boxes'])} boxes, "
+                f"frames_used {answer['frames_used']}, pose {answer['pose_source']}, "
+                f"{answer['timing']['total_ms']:.1f} ms"
+            )
             if log is not None:
                 log.write(logged_frame(frame, scan, png, answer, sequence.resolution, sequence.annotated))
             if out is None:
                 continue
             answers.write(json.dumps(answer) + "\n")
-            canvas = draw_answer(scan, answer, truth_polygons(frame, sequence.annotated), sequence.resolution, view,
-                                 title=f"{sequence.name} frame {frame.number}")
+            canvas = draw_answer(
+                scan,
+                answer,
+                truth_polygons(frame, sequence.annotated),
+                sequence.resolution,
+                view,
+                title=f"{sequence.name} frame {frame.number}",
+            )
             if not cv2.imwrite(str(out / "frames" / f"{frame.number:06d}.png"), canvas):
                 raise OSError(f"could not write {out / 'frames' / f'{frame.number:06d}.png'}")
             if writer is None:
                 size = (canvas.shape[1], canvas.shape[0])
-                writer = cv2.VideoWriter(str(out / "sequence.mp4"), cv2.VideoWriter_fourcc(*"mp4v"),
-                                         frame_rate(frames), size)
+                writer = cv2.VideoWriter(
+                    str(out / "sequence.mp4"), cv2.VideoWriter_fourcc(*"mp4v"), frame_rate(frames), size
+                )
             writer.write(canvas)
     except (ServiceError, OSError, ValueError) as exc:
         print(f"rafd-client: {exc}", file=sys.stderr)
@@ -244,11 +286,17 @@ def main(argv: list[str] | None = None) -> int:
             answers.close()
         if log is not None:
             if last_answer is not None:
-                log.write_metadata("rafd-client", {
-                    "sequence": sequence.name, "stream_id": stream_id, "url": args.url, "frames": log.frames,
-                    "model_version": last_answer["model"]["version"],
-                    "checkpoint_sha256": last_answer["model"]["checkpoint_sha256"],
-                })
+                log.write_metadata(
+                    "rafd-client",
+                    {
+                        "sequence": sequence.name,
+                        "stream_id": stream_id,
+                        "url": args.url,
+                        "frames": log.frames,
+                        "model_version": last_answer["model"]["version"],
+                        "checkpoint_sha256": last_answer["model"]["checkpoint_sha256"],
+                    },
+                )
             log.close()
     if out is not None:
         print(f"wrote {len(frames)} frames, answers.jsonl and sequence.mp4 to {out}")

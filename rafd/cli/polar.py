@@ -1,13 +1,14 @@
 """rafd-polar: convert a sequence's polar scans to RADIATE's Cartesian grid; compare with RADIATE's own images.
 
-    rafd-polar POLAR_SEQ --compare CARTESIAN_SEQ    per frame: mean absolute grey difference and correlation
-                                                    inside the disc, RADIATE's conventions vs bin centres
-    rafd-polar POLAR_SEQ --compare CARTESIAN_SEQ --fit
-                                                    also search, frame by frame, the sample offsets and the
-                                                    radar's pixel that best reproduce RADIATE's image (how
-                                                    RADIATE_POLAR was set: frame 1's values, rounded)
-    rafd-polar POLAR_SEQ --out DIR                  write DIR/Navtech_Cartesian/NNNNNN.png (+ the timestamps)
+rafd-polar POLAR_SEQ --compare CARTESIAN_SEQ    per frame: mean absolute grey difference and correlation
+                                                inside the disc, RADIATE's conventions vs bin centres
+rafd-polar POLAR_SEQ --compare CARTESIAN_SEQ --fit
+                                                also search, frame by frame, the sample offsets and the
+                                                radar's pixel that best reproduce RADIATE's image (how
+                                                RADIATE_POLAR was set: frame 1's values, rounded)
+rafd-polar POLAR_SEQ --out DIR                  write DIR/Navtech_Cartesian/NNNNNN.png (+ the timestamps)
 """
+
 from __future__ import annotations
 
 import argparse
@@ -27,15 +28,20 @@ FIT_STEPS = (0.25, 0.25, 0.5, 0.5)  # first step of (azimuth offset, range offse
 FIT_HALVINGS = 6  # final step 1/64 of the first: below 0.01 bins / pixels
 
 
-def fit_conventions(polar: np.ndarray, reference: np.ndarray,
-                    start: PolarConventions = NOMINAL_POLAR) -> PolarConventions:
+def fit_conventions(
+    polar: np.ndarray, reference: np.ndarray, start: PolarConventions = NOMINAL_POLAR
+) -> PolarConventions:
     """The sample offsets and radar pixel that minimise the mean absolute grey difference between the converted
     `polar` and the Cartesian `reference` (coordinate search, halving the step until it stops improving)."""
     size = reference.shape[0]
 
     def cost(params: np.ndarray) -> float:
-        conventions = dataclasses.replace(start, azimuth_offset=float(params[0]), range_offset=float(params[1]),
-                                          centre_offset=(float(params[2]), float(params[3])))
+        conventions = dataclasses.replace(
+            start,
+            azimuth_offset=float(params[0]),
+            range_offset=float(params[1]),
+            centre_offset=(float(params[2]), float(params[3])),
+        )
         return scan_agreement(polar_to_cartesian(polar, size, conventions=conventions), reference)[0]
 
     params = np.array([start.azimuth_offset, start.range_offset, *start.centre_offset], dtype=np.float64)
@@ -54,13 +60,18 @@ def fit_conventions(polar: np.ndarray, reference: np.ndarray,
                         best, params, improved = value, trial, True
         steps /= 2.0
     rounded = [round(float(p), 3) for p in params]
-    return dataclasses.replace(start, azimuth_offset=rounded[0], range_offset=rounded[1],
-                               centre_offset=(rounded[2], rounded[3]))
+    return dataclasses.replace(
+        start, azimuth_offset=rounded[0], range_offset=rounded[1], centre_offset=(rounded[2], rounded[3])
+    )
 
 
 def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(prog="rafd-polar", description=__doc__.splitlines()[0],
-                                     formatter_class=argparse.RawDescriptionHelpFormatter, epilog=__doc__)
+    parser = argparse.ArgumentParser(
+        prog="rafd-polar",
+        description=__doc__.splitlines()[0],
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+        epilog=__doc__,
+    )
     parser.add_argument("sequence", type=Path, help=f"folder holding {POLAR_DIR}/ and {POLAR_TIMESTAMPS_FILE}")
     parser.add_argument("--compare", type=Path, help="RADIATE folder with the same frames' Navtech_Cartesian/")
     parser.add_argument("--fit", action="store_true", help="with --compare: fit the conventions on each frame")
@@ -94,7 +105,9 @@ def main(argv: list[str] | None = None) -> int:
             if reference.shape != scans[number].shape:
                 return _fail(f"{path} is {reference.shape}, the converted scan {scans[number].shape}: pass --size")
             for name, conventions in (("radiate", RADIATE_POLAR), ("bin centres", NOMINAL_POLAR)):
-                mad, correlation = scan_agreement(polar_to_cartesian(polar, args.size, conventions=conventions), reference)
+                mad, correlation = scan_agreement(
+                    polar_to_cartesian(polar, args.size, conventions=conventions), reference
+                )
                 print(f"{number:>6} {name:>12} {mad:>9.3f} {correlation:>12.4f}")
         if args.fit:
             for number, polar in polars.items():
@@ -102,9 +115,11 @@ def main(argv: list[str] | None = None) -> int:
                 fitted = fit_conventions(polar, reference)
                 converted = polar_to_cartesian(polar, args.size, conventions=fitted)
                 mad, correlation = scan_agreement(converted, reference)
-                print(f"{number:>6} {'fitted':>12} {mad:>9.3f} {correlation:>12.4f}   azimuth_offset "
-                      f"{fitted.azimuth_offset} range_offset {fitted.range_offset} "
-                      f"centre_offset {fitted.centre_offset}")
+                print(
+                    f"{number:>6} {'fitted':>12} {mad:>9.3f} {correlation:>12.4f}   azimuth_offset "
+                    f"{fitted.azimuth_offset} range_offset {fitted.range_offset} "
+                    f"centre_offset {fitted.centre_offset}"
+                )
     elif args.fit:
         return _fail("--fit needs --compare CARTESIAN_SEQ")
     first = next(iter(polars.values()))
@@ -113,8 +128,10 @@ def main(argv: list[str] | None = None) -> int:
         start = time.perf_counter()
         polar_to_cartesian(first, args.size)
         seconds.append(time.perf_counter() - start)
-    print(f"conversion {first.shape[0]}x{first.shape[1]} -> {scans[listed[0][0]].shape[0]} px: "
-          f"median {1e3 * float(np.median(seconds)):.2f} ms over {len(seconds)} runs (maps cached)")
+    print(
+        f"conversion {first.shape[0]}x{first.shape[1]} -> {scans[listed[0][0]].shape[0]} px: "
+        f"median {1e3 * float(np.median(seconds)):.2f} ms over {len(seconds)} runs (maps cached)"
+    )
     if args.out is not None:
         image_dir = args.out / "Navtech_Cartesian"
         image_dir.mkdir(parents=True, exist_ok=True)

@@ -1,4 +1,5 @@
 """rafd-simulate: write synthetic Navtech sequences in RADIATE's format, or a sim-vs-real preview."""
+
 from __future__ import annotations
 
 import argparse
@@ -17,36 +18,62 @@ from rafd.sim.sensor import WEATHER_PROBABILITIES, WEATHERS, Difficulty
 def _parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(
         prog="rafd-simulate",
-        description="Simulate RADIATE-format radar sequences (Navtech_Cartesian/, annotations, meta.json, ego_poses.csv).",
+        description="Simulate RADIATE-format radar sequences (Navtech_Cartesian/, annotations, meta.json, "
+        "ego_poses.csv).",
     )
     parser.add_argument("out_dir", nargs="?", type=Path, help="folder receiving sim_<seed>_<k>/ sequence folders")
     parser.add_argument("--sequences", type=int, default=1, help="number of sequences (default 1)")
     parser.add_argument("--frames", type=int, default=50, help="frames per sequence (default 50)")
-    parser.add_argument("--seed", type=int, default=0, help="dataset seed; sequence k uses a seed derived from (seed, k)")
-    parser.add_argument("--split", default="train_good_weather", help="meta.json 'set' value (default train_good_weather)")
+    parser.add_argument(
+        "--seed", type=int, default=0, help="dataset seed; sequence k uses a seed derived from (seed, k)"
+    )
+    parser.add_argument(
+        "--split", default="train_good_weather", help="meta.json 'set' value (default train_good_weather)"
+    )
     parser.add_argument("--size", type=int, default=RADIATE_SCAN_SIZE, help="scan side in pixels, even (default 1152)")
     parser.add_argument("--clutter", type=float, default=1.0, help="clutter strength (1 = matched to real scans)")
     parser.add_argument("--ghosts", type=float, default=1.0, help="multipath ghost strength (1 = default)")
     parser.add_argument("--noise", type=float, default=1.0, help="noise floor power (1 = matched to real scans)")
-    parser.add_argument("--weather", choices=WEATHERS,
-                        help="the same drives, every one in this weather (default: drawn per drive, "
-                             + ", ".join(f"{100 * p:.0f}%% {w}" for w, p in zip(WEATHERS, WEATHER_PROBABILITIES))
-                             + "); with --realism, compare with real scans taken in that weather")
-    parser.add_argument("--exact-labels", action="store_true",
-                        help="label every box with width across and yaw along its travel (default: RADIATE's "
-                             "annotators' 180-degree and width/length ambiguity)")
-    parser.add_argument("--no-poses", action="store_true",
-                        help="write no ego_poses.csv, like a real RADIATE sequence (prepare with rafd-odometry)")
-    parser.add_argument("--polar", action="store_true", help="also write the polar scans (Navtech_Polar/, RADIATE's layout)")
-    parser.add_argument("--realism", type=Path, nargs="+", metavar="REAL_SEQ",
-                        help="instead of writing: compare simulated scans with these real sequences' scans (no labels "
-                             "used) and print the realism table (rafd.sim.realism)")
-    parser.add_argument("--realism-sim", type=Path,
-                        help="with --realism: take the simulated scans from this data root instead of simulating")
+    parser.add_argument(
+        "--weather",
+        choices=WEATHERS,
+        help="the same drives, every one in this weather (default: drawn per drive, "
+        + ", ".join(f"{100 * p:.0f}%% {w}" for w, p in zip(WEATHERS, WEATHER_PROBABILITIES))
+        + "); with --realism, compare with real scans taken in that weather",
+    )
+    parser.add_argument(
+        "--exact-labels",
+        action="store_true",
+        help="label every box with width across and yaw along its travel (default: RADIATE's "
+        "annotators' 180-degree and width/length ambiguity)",
+    )
+    parser.add_argument(
+        "--no-poses",
+        action="store_true",
+        help="write no ego_poses.csv, like a real RADIATE sequence (prepare with rafd-odometry)",
+    )
+    parser.add_argument(
+        "--polar", action="store_true", help="also write the polar scans (Navtech_Polar/, RADIATE's layout)"
+    )
+    parser.add_argument(
+        "--realism",
+        type=Path,
+        nargs="+",
+        metavar="REAL_SEQ",
+        help="instead of writing: compare simulated scans with these real sequences' scans (no labels "
+        "used) and print the realism table (rafd.sim.realism)",
+    )
+    parser.add_argument(
+        "--realism-sim",
+        type=Path,
+        help="with --realism: take the simulated scans from this data root instead of simulating",
+    )
     parser.add_argument("--json", type=Path, help="with --realism: also write the table as JSON here")
     parser.add_argument("--realism-steps", type=int, default=400, help="with --realism: classifier training steps")
     parser.add_argument("--preview", type=Path, help="write a simulated-vs-real side-by-side PNG here instead")
-    parser.add_argument("--sample", type=Path, help="real RADIATE sequence for --preview (default $RAFD_RADIATE_SAMPLE)")
+    parser.add_argument(
+        "--sample", type=Path, help="real RADIATE sequence for --preview (default $RAFD_RADIATE_SAMPLE)"
+    )
     return parser
 
 
@@ -66,7 +93,9 @@ def main(argv: list[str] | None = None) -> int:
     if args.realism is not None:
         return _realism(args, difficulty)
     if args.preview is not None:
-        sample = args.sample or (Path(os.environ["RAFD_RADIATE_SAMPLE"]) if os.environ.get("RAFD_RADIATE_SAMPLE") else None)
+        sample = args.sample or (
+            Path(os.environ["RAFD_RADIATE_SAMPLE"]) if os.environ.get("RAFD_RADIATE_SAMPLE") else None
+        )
         if sample is None:
             return _fail("--preview needs a real sequence: pass --sample DIR or set RAFD_RADIATE_SAMPLE")
         if not (sample / "Navtech_Cartesian").is_dir():
@@ -95,9 +124,19 @@ def main(argv: list[str] | None = None) -> int:
         return _fail(f"OUT_DIR {args.out_dir} is not writable")
     start = time.perf_counter()
     try:
-        paths = simulate_dataset(args.out_dir, args.sequences, args.frames, args.seed, args.split, args.size, difficulty,
-                                 ambiguous=not args.exact_labels, poses=not args.no_poses, polar=args.polar,
-                                 weather=args.weather)
+        paths = simulate_dataset(
+            args.out_dir,
+            args.sequences,
+            args.frames,
+            args.seed,
+            args.split,
+            args.size,
+            difficulty,
+            ambiguous=not args.exact_labels,
+            poses=not args.no_poses,
+            polar=args.polar,
+            weather=args.weather,
+        )
     except OSError as error:
         return _fail(str(error))
     for path in paths:
@@ -115,28 +154,41 @@ def _sequences_of(root: Path) -> list[list]:
     from rafd.data.dataset import find_sequences
     from rafd.data.reader import read_sequence
 
-    return [[frame.load() for frame in read_sequence(folder, estimate_poses=False).frames]
-            for folder in find_sequences(root)]
+    return [
+        [frame.load() for frame in read_sequence(folder, estimate_poses=False).frames]
+        for folder in find_sequences(root)
+    ]
 
 
 def _realism(args: argparse.Namespace, difficulty: Difficulty) -> int:
     """Simulated vs real scans, label-free: one table (rafd.sim.realism)."""
     import json
 
+    from rafd.sim.api import sequence_seed
     from rafd.sim.realism import format_table, realism_table
     from rafd.sim.sequence import run_simulation
-    from rafd.sim.api import sequence_seed
 
     if args.realism_sim is not None and args.weather is not None:
-        return _fail("--weather chooses the weather of the scans simulated here; --realism-sim reads scans already made")
+        return _fail(
+            "--weather chooses the weather of the scans simulated here; --realism-sim reads scans already made"
+        )
     try:
         real = [scans for root in args.realism for scans in _sequences_of(root)]
         if args.realism_sim is not None:
             simulated = _sequences_of(args.realism_sim)
         else:  # RADIATE-sized scans, a few consecutive frames from each of several drives
-            simulated = [run_simulation(sequence_seed(args.seed, k), min(args.frames, 3), "realism", RADIATE_SCAN_SIZE,
-                                        difficulty, name=f"realism_{k}", weather=args.weather).images
-                         for k in range(args.sequences if args.sequences > 1 else REALISM_DRIVES)]
+            simulated = [
+                run_simulation(
+                    sequence_seed(args.seed, k),
+                    min(args.frames, 3),
+                    "realism",
+                    RADIATE_SCAN_SIZE,
+                    difficulty,
+                    name=f"realism_{k}",
+                    weather=args.weather,
+                ).images
+                for k in range(args.sequences if args.sequences > 1 else REALISM_DRIVES)
+            ]
     except (FileNotFoundError, ValueError) as error:
         return _fail(str(error))
     sizes = {scan.shape for scans in real + simulated for scan in scans}

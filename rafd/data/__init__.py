@@ -3,6 +3,7 @@
 `read_sequence` and the pose file helpers are torch-free; `RadarWindowDataset` imports torch on first
 access (so `rafd.data` stays importable where only the reader is needed, e.g. rafd-client).
 """
+
 from __future__ import annotations
 
 from typing import Any

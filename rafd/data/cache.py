@@ -7,6 +7,7 @@ full scans per window starves a GPU. `rafd-prepare ROOT CACHE` decodes every sca
 CACHE/<sequence>/cache.json is written last and marks the sequence complete (so `rafd-prepare` is resumable);
 it records the frame numbers, the crop, the source folder and the scan size, which the dataset checks.
 """
+
 from __future__ import annotations
 
 import json
@@ -26,7 +27,7 @@ DEFAULT_CROP = 384  # covers a 256 px input turned by any angle (needs 364)
 
 
 def required_crop(input_size: int, rotates: bool, shift_m: float = 0.0, resolution: float = 1.0) -> int:
-    """Smallest even crop from which rafd.augment can cut an input_size crop (turned by any angle when `rotates`,
+    """Smallest even crop from which rafd.data.augment can cut an input_size crop (turned by any angle when `rotates`,
     centred up to shift_m metres from the radar)."""
     side = rotation_crop(input_size) if rotates else input_size
     return side + 2 * math.ceil(shift_m / resolution) + 2 if shift_m > 0 else side
@@ -61,19 +62,23 @@ def read_cached(folder: Path, numbers: np.ndarray, image_size: int, min_crop: in
         raise CacheError(f"{folder}: not prepared (no {CACHE_FILE}); run `rafd-prepare DATA_ROOT CACHE_ROOT`")
     try:
         info = json.loads(marker.read_text())
-        cached = CachedSequence(folder, np.asarray(info["numbers"], np.int64), int(info["crop"]),
-                                int(info["image_size"]))
+        cached = CachedSequence(
+            folder, np.asarray(info["numbers"], np.int64), int(info["crop"]), int(info["image_size"])
+        )
         version = info["version"]
     except (OSError, ValueError, KeyError, TypeError) as error:
         raise CacheError(f"{marker}: unreadable cache record ({error}); rerun `rafd-prepare ... --force`") from error
     if version != CACHE_VERSION:
         raise CacheError(f"{marker}: cache version {version}, this rafd reads {CACHE_VERSION}; rerun rafd-prepare")
     if not np.array_equal(cached.numbers, numbers) or cached.image_size != image_size:
-        raise CacheError(f"{folder}: prepared from other frames than the sequence now holds; "
-                         "rerun `rafd-prepare ... --force`")
+        raise CacheError(
+            f"{folder}: prepared from other frames than the sequence now holds; rerun `rafd-prepare ... --force`"
+        )
     if cached.crop < min_crop:
-        raise CacheError(f"{folder}: crops of {cached.crop} px, this run needs {min_crop} px "
-                         f"(rerun `rafd-prepare ... --crop {min_crop} --force`)")
+        raise CacheError(
+            f"{folder}: crops of {cached.crop} px, this run needs {min_crop} px "
+            f"(rerun `rafd-prepare ... --crop {min_crop} --force`)"
+        )
     return cached
 
 
@@ -95,8 +100,13 @@ def write_cached(folder: Path, scans, numbers: list[int], crop: int, image_size:
         os.replace(temporary, folder / CROPS_FILE)
     finally:
         temporary.unlink(missing_ok=True)
-    record = {"version": CACHE_VERSION, "numbers": [int(n) for n in numbers], "crop": crop,
-              "image_size": int(image_size), "source": str(Path(source).resolve())}
+    record = {
+        "version": CACHE_VERSION,
+        "numbers": [int(n) for n in numbers],
+        "crop": crop,
+        "image_size": int(image_size),
+        "source": str(Path(source).resolve()),
+    }
     marker_tmp = folder / f".{CACHE_FILE}.tmp"
     marker_tmp.write_text(json.dumps(record))
     os.replace(marker_tmp, folder / CACHE_FILE)  # last: marks the sequence complete

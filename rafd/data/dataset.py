@@ -14,25 +14,27 @@ an error naming that command, unless estimate_poses=True asks for radar odometry
 Scans: from a prepared cache (`rafd-prepare ROOT CACHE`, rafd.data.cache: centre crops in one memory-mapped array
 per sequence, no PNG decode per window) when `cache` is given, else decoded from the PNGs per window (slow).
 
-Augmentation (augment=True or an AugmentConfig): one rafd.augment.Augmentation per window, applied to the scans
+Augmentation (augment=True or an AugmentConfig): one rafd.data.augment.Augmentation per window, applied to the scans
 before the crop and to boxes and poses; the crop protocol is applied to the augmented boxes. It is drawn from a
 generator seeded by (seed, epoch, window index): ask for dataset[(epoch, index)] (rafd.train.distributed's
 EpochSampler yields those keys) and the result depends on nothing else -- not on DataLoader workers, their number,
 or where a run was resumed. dataset[index] draws as epoch 0.
 """
+
 from __future__ import annotations
 
 import dataclasses
 import logging
 import os
+from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Sequence
+from typing import Any
 
 import numpy as np
 
-from rafd.augment import AugmentConfig, Augmentation
 from rafd.config import RaFDConfig
+from rafd.data.augment import Augmentation, AugmentConfig
 from rafd.data.cache import CROPS_FILE, cache_folder, read_cached, required_crop
 from rafd.data.poses import POSES_FILE
 from rafd.data.reader import IMAGE_DIR, META_FILE, POLAR_DIR, read_meta, read_sequence
@@ -46,7 +48,6 @@ except ImportError:  # pragma: no cover - torch-free installs
 log = logging.getLogger(__name__)
 
 DROPPED_CLASSES = frozenset({"pedestrian", "group_of_pedestrians"})
-MERGED_CLASS = "vehicle"
 
 
 class MissingPosesError(ValueError):
@@ -152,7 +153,9 @@ class RadarWindowDataset(_Base):
         self.cache_root = None if cache is None else Path(cache)
         folders, seen_splits = select_sequences(root, split)
         if split is not None and not folders:
-            log.warning("no sequence of split %s under %s (splits found: %s)", sorted(split_names(split)), root, seen_splits)
+            log.warning(
+                "no sequence of split %s under %s (splits found: %s)", sorted(split_names(split)), root, seen_splits
+            )
         sequences = [read_sequence(folder, estimate_poses=estimate_poses) for folder in folders]
         missing = [s.path for s in sequences if s.poses is None]
         if missing:
@@ -160,7 +163,8 @@ class RadarWindowDataset(_Base):
             raise MissingPosesError(
                 f"{len(missing)} of {len(sequences)} sequences have no {POSES_FILE} ({names}): prepare them once with "
                 f"`rafd-odometry {root}` (radar odometry, in parallel, resumable), or ask for odometry now "
-                "with --estimate-poses (slow)")
+                "with --estimate-poses (slow)"
+            )
         self.sequences: list[_SequenceMeta] = [self._meta(sequence, Path(root)) for sequence in sequences]
         self.windows: list[tuple[int, int]] = []  # (sequence index, first frame position)
         span = cfg.num_frames
@@ -175,13 +179,20 @@ class RadarWindowDataset(_Base):
         if skipped:
             log.warning("skipped %d windows spanning gaps in the frame numbers", skipped)
         self._crops: dict[int, np.ndarray] = {}  # sequence index -> memory-mapped crops (opened per process)
-        log.info("%d windows of %d frames from %d sequences (split %s) under %s%s",
-                 len(self.windows), span, len(self.sequences), split, root,
-                 "" if self.cache_root is None else f", scans from the cache {self.cache_root}")
+        log.info(
+            "%d windows of %d frames from %d sequences (split %s) under %s%s",
+            len(self.windows),
+            span,
+            len(self.sequences),
+            split,
+            root,
+            "" if self.cache_root is None else f", scans from the cache {self.cache_root}",
+        )
 
     def keep_newest_with_history(self, frames: int) -> int:
         """Keep only the windows whose newest frame has `frames` - 1 consecutive predecessors in its sequence: the
-        frames a `frames`-frame model scores, so a model of fewer frames is compared on equal frames. -> windows kept."""
+        frames a `frames`-frame model scores, so a model of fewer frames is compared on equal frames.
+        -> windows kept."""
         kept = []
         for s, start in self.windows:
             newest = start + self.cfg.num_frames - 1
@@ -193,9 +204,13 @@ class RadarWindowDataset(_Base):
 
     def _meta(self, sequence, root: Path) -> _SequenceMeta:
         if not sequence.annotated:
-            raise FileNotFoundError(f"{sequence.path}: annotations/annotations.json not found (a training/evaluation dataset needs them)")
+            raise FileNotFoundError(
+                f"{sequence.path}: annotations/annotations.json not found (a training/evaluation dataset needs them)"
+            )
         if abs(sequence.resolution - self.cfg.resolution) > 1e-6 * self.cfg.resolution:
-            raise ValueError(f"{sequence.path}: resolution {sequence.resolution} m/px, the config expects {self.cfg.resolution}")
+            raise ValueError(
+                f"{sequence.path}: resolution {sequence.resolution} m/px, the config expects {self.cfg.resolution}"
+            )
         if sequence.image_size < self.cfg.input_size or (sequence.image_size - self.cfg.input_size) % 2:
             raise ValueError(
                 f"{sequence.path}: {sequence.image_size} px scans cannot be centre-cropped to {self.cfg.input_size} px "
@@ -208,8 +223,9 @@ class RadarWindowDataset(_Base):
             rotates = augment is not None and augment.max_rotation_deg > 0
             shift = 0.0 if augment is None or augment.shift_probability == 0 else augment.shift_max_m
             needed = min(required_crop(self.cfg.input_size, rotates, shift, self.cfg.resolution), sequence.image_size)
-            cache = read_cached(cache_folder(self.cache_root, root, sequence.path), numbers, sequence.image_size,
-                                needed).folder
+            cache = read_cached(
+                cache_folder(self.cache_root, root, sequence.path), numbers, sequence.image_size, needed
+            ).folder
         return _SequenceMeta(
             name=sequence.name,
             frames=[dataclasses.replace(f, objects=[]) for f in sequence.frames],  # objects live in boxes/ids below
@@ -250,7 +266,7 @@ class RadarWindowDataset(_Base):
         return Augmentation.sample(rng, self.augment_config, self.cfg.resolution)
 
     def __getitem__(self, key: int | tuple[int, int]) -> dict[str, Any]:
-        epoch, index = (key if isinstance(key, tuple) else (0, key))
+        epoch, index = key if isinstance(key, tuple) else (0, key)
         if not -len(self) <= index < len(self):
             raise IndexError(f"window {index} out of range ({len(self)} windows)")
         index %= len(self)

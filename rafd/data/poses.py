@@ -13,13 +13,14 @@ Format (UTF-8 CSV, one header line, one row per radar frame, rows in frame order
 
 Written by the simulator (true poses) and by `rafd-odometry SEQ_DIR` (poses estimated from the scans).
 """
+
 from __future__ import annotations
 
 import csv
 import math
 import os
+from collections.abc import Sequence
 from pathlib import Path
-from typing import Sequence
 
 import numpy as np
 
@@ -49,7 +50,9 @@ def write_ego_poses(path: str | Path, frames: Sequence[int], timestamps: Sequenc
     if poses.ndim != 2 or poses.shape[1] != 3:
         raise ValueError(f"poses must be [N, 3], got shape {poses.shape}")
     if not (len(frames) == len(stamps) == len(poses)):
-        raise ValueError(f"frames ({len(frames)}), timestamps ({len(stamps)}) and poses ({len(poses)}) differ in length")
+        raise ValueError(
+            f"frames ({len(frames)}), timestamps ({len(stamps)}) and poses ({len(poses)}) differ in length"
+        )
     if any(b <= a for a, b in zip(frames, frames[1:])):
         raise ValueError("frame numbers must be strictly increasing")
     if not (np.all(np.isfinite(poses)) and np.all(np.isfinite(stamps))):

@@ -1,6 +1,6 @@
 """Read one RADIATE sequence folder (real or simulated) into frames, objects and ego poses.
 
-Folder layout (DESIGN.md section 2):
+Folder layout (RADIATE's, docs/data.md):
     Navtech_Cartesian/000001.png ...   uint8 grey Cartesian scans, radar at the image centre
     Navtech_Cartesian.txt              `Frame: 000001 Time: 1574859771.744660272`, one line per scan
     Navtech_Polar/000001.png ...       or, instead of the two above, the sensor's polar scans uint8 [576, 400]
@@ -18,6 +18,7 @@ logged), never silently identity. A folder with both Cartesian and polar scans (
 from its Cartesian scans; a polar-only folder gives scans of meta.json "image_size" pixels (default: the whole
 polar disc, 1152 for RADIATE), and RadarFrame.load() / FrameList.load() convert each on load.
 """
+
 from __future__ import annotations
 
 import json
@@ -332,7 +333,9 @@ def _check_images(
     paths = []
     for number in numbers:
         if number not in on_disk:
-            raise FileNotFoundError(f"radar image {image_dir / f'{number:06d}.png'} not found ({timestamps_path.name} lists frame {number})")
+            raise FileNotFoundError(
+                f"radar image {image_dir / f'{number:06d}.png'} not found ({timestamps_path.name} lists frame {number})"
+            )
         paths.append(on_disk[number])
     extra = sorted(set(on_disk) - set(numbers))
     if extra:
@@ -342,7 +345,9 @@ def _check_images(
     for path in paths:
         width, height = png_size(path)
         if width != height and image_dir_name == IMAGE_DIR:
-            raise ValueError(f"radar image {path} is {width}x{height}; scans must be square with the radar at the centre")
+            raise ValueError(
+                f"radar image {path} is {width}x{height}; scans must be square with the radar at the centre"
+            )
         sizes.setdefault((width, height), path)
     if len(sizes) > 1:
         detail = ", ".join(f"{w}x{h} px ({path.name})" for (w, h), path in sizes.items())
@@ -425,14 +430,20 @@ def list_frames(path: str | Path) -> FrameList:
             if isinstance(image_size, bool) or not isinstance(image_size, int) or image_size < 2 or image_size % 2:
                 raise ValueError(f"{meta_path}: image_size must be an even number of pixels, got {image_size!r}")
         polar = PolarSource(image_size, resolution)
-        log.info("%s: polar-only sequence (%d range bins x %d azimuths): scans are converted to %d px on load",
-                 folder, height, width, image_size)
+        log.info(
+            "%s: polar-only sequence (%d range bins x %d azimuths): scans are converted to %d px on load",
+            folder,
+            height,
+            width,
+            image_size,
+        )
     else:
         image_size = width
         if "image_size" in meta and meta["image_size"] != image_size:
             raise ValueError(f"{meta_path}: image_size {meta['image_size']!r} but the scans are {image_size} px")
-    return FrameList(folder, numbers, stamps, [text for _, _, text in listed], image_paths, image_size, resolution,
-                     meta, polar)
+    return FrameList(
+        folder, numbers, stamps, [text for _, _, text in listed], image_paths, image_size, resolution, meta, polar
+    )
 
 
 def read_sequence(path: str | Path, estimate_poses: bool = True) -> RadarSequence:
@@ -460,14 +471,19 @@ def read_sequence(path: str | Path, estimate_poses: bool = True) -> RadarSequenc
     if poses_path.exists():
         poses, pose_source = _file_poses(poses_path, numbers, stamps), "file"
     elif estimate_poses:
-        from rafd.odometry import estimate_sequence_poses  # opencv only; imported here to keep the reader light
+        from rafd.data.odometry import estimate_sequence_poses  # opencv only; imported here to keep the reader light
 
         start = time.perf_counter()
         poses = estimate_sequence_poses((frame.load() for frame in frames), resolution)
         pose_source = "odometry"
         log.info(
-            "%s: no %s; ego poses of %d frames estimated by radar odometry in %.1f s (run `rafd-odometry %s` to save them)",
-            folder, POSES_FILE, len(frames), time.perf_counter() - start, folder,
+            "%s: no %s; ego poses of %d frames estimated by radar odometry in %.1f s "
+            "(run `rafd-odometry %s` to save them)",
+            folder,
+            POSES_FILE,
+            len(frames),
+            time.perf_counter() - start,
+            folder,
         )
     else:
         log.info("%s: no %s and odometry not requested: sequence without poses", folder, POSES_FILE)

@@ -3,6 +3,7 @@
 backbone.py + neck.py + enhance.py -> per-frame features S; flow.py -> pair flow V;
 propagation.py -> flow-guided deformable propagation chain; head.py + decoder.py -> boxes.
 """
+
 from rafd.model.align import relative_pose_torch
 from rafd.model.build import build_model, count_parameters
 from rafd.model.detector import RaFD

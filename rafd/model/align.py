@@ -6,6 +6,7 @@ grid_sample (align_corners=False) addresses the same map with normalised coordin
 column axis = x / half_extent, row axis = -y / half_extent (image rows grow backwards in y),
 half_extent = Wf * cell / 2 metres.
 """
+
 from __future__ import annotations
 
 import numpy as np

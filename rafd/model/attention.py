@@ -1,8 +1,9 @@
 """Single-head attention building blocks shared by enhancement, flow and the decoder."""
+
 from __future__ import annotations
 
 import math
-from typing import Callable
+from collections.abc import Callable
 
 from torch import Tensor, nn
 
@@ -22,7 +23,9 @@ class FeedForward(nn.Module):
 
     def __init__(self, channels: int, ratio: int) -> None:
         super().__init__()
-        self.net = nn.Sequential(nn.Linear(channels, channels * ratio), nn.GELU(), nn.Linear(channels * ratio, channels))
+        self.net = nn.Sequential(
+            nn.Linear(channels, channels * ratio), nn.GELU(), nn.Linear(channels * ratio, channels)
+        )
 
     def forward(self, x: Tensor) -> Tensor:
         return self.net(x)
@@ -45,7 +48,9 @@ class AttentionLayer(nn.Module):
         self.ffn = FeedForward(channels, ffn_ratio) if ffn_ratio > 0 else None
         self.norm2 = nn.LayerNorm(channels) if ffn_ratio > 0 else None
 
-    def forward(self, x: Tensor, source: Tensor | None = None, attention: AttentionFn = single_head_attention) -> Tensor:
+    def forward(
+        self, x: Tensor, source: Tensor | None = None, attention: AttentionFn = single_head_attention
+    ) -> Tensor:
         source = x if source is None else source
         message = attention(self.q_proj(x), self.k_proj(source), self.v_proj(source))  # [B, N, C]
         x = self.norm1(x + self.out_proj(message))

@@ -1,4 +1,5 @@
 """Basic-block ResNet on one radar channel (ResNet-34 = blocks (3, 4, 6, 3) in the paper config)."""
+
 from __future__ import annotations
 
 from torch import Tensor, nn

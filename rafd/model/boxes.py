@@ -1,4 +1,5 @@
 """Box decoding: per-query regression at a cell -> (x, y, width, length, yaw) in the ego frame."""
+
 from __future__ import annotations
 
 import math
@@ -16,7 +17,7 @@ def decode_boxes(
     """centres [B, K, 2] m, offset [B, K, 2] cells, log_size [B, K, 2], rotation [B, K, 2] -> [B, K, 5].
 
     encoding "symmetric" (rafd.config.HeadConfig.box_encoding): rotation is (sin 2yaw, cos 2yaw); the box comes out
-    canonical like the targets (rafd.targets.canonical_boxes): width <= length, yaw in [-pi/2, pi/2).
+    canonical like the targets (rafd.data.targets.canonical_boxes): width <= length, yaw in [-pi/2, pi/2).
     "as_labelled": rotation is (sin yaw, cos yaw), sizes as regressed.
     """
     xy = centres + offset * cell_size  # [B, K, 2] metres (x right, y forward like the offsets)

@@ -1,4 +1,5 @@
 """build_model(cfg): the only place that reads RaFDConfig and wires the modules together."""
+
 from __future__ import annotations
 
 from torch import nn
@@ -57,7 +58,9 @@ def build_model(cfg: RaFDConfig) -> RaFD:
         propagation = FlowGuidedPropagation(
             [
                 DeformableLayer(
-                    DeformableAttention(channels, prop_cfg.num_points, (size, size)), channels, prop_cfg.ffn_ratio,
+                    DeformableAttention(channels, prop_cfg.num_points, (size, size)),
+                    channels,
+                    prop_cfg.ffn_ratio,
                     norm=prop_cfg.norm,
                 )
                 for _ in range(prop_cfg.num_blocks)
@@ -74,7 +77,9 @@ def build_model(cfg: RaFDConfig) -> RaFD:
         [
             DecoderLayer(
                 AttentionLayer(channels, ffn_ratio=0),
-                DeformableLayer(DeformableAttention(channels, head_cfg.num_points, (size, size)), channels, head_cfg.ffn_ratio),
+                DeformableLayer(
+                    DeformableAttention(channels, head_cfg.num_points, (size, size)), channels, head_cfg.ffn_ratio
+                ),
             )
             for _ in range(head_cfg.decoder_layers)
         ]
@@ -96,5 +101,3 @@ def build_model(cfg: RaFDConfig) -> RaFD:
 def count_parameters(model: nn.Module) -> int:
     """Number of learned parameters."""
     return sum(p.numel() for p in model.parameters())
-
-

@@ -1,5 +1,6 @@
 """DETR-style query decoder (CenterFormer): self-attention over the peak queries, deformable
 cross-attention into the final BEV map around each peak, FFN; then the box regression heads."""
+
 from __future__ import annotations
 
 import math

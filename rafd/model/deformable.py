@@ -10,6 +10,7 @@ is applied as a 1x1 convolution and LayerNorm normalises over the channel axis, 
 transposed, GridSample writes [B, C, P, Q] and the point weighting reduces over the P axis of whole
 contiguous rows of queries (sampling and weighting fused into one pass over the samples).
 """
+
 from __future__ import annotations
 
 import math
@@ -23,14 +24,18 @@ from rafd.model.attention import FeedForward
 
 def deformable_sample(value: Tensor, locations: Tensor, weights: Tensor) -> Tensor:
     """value [B, C, H, W], locations [B, Q, P, 2] (normalised), weights [B, Q, P] -> [B, Q, C]."""
-    sampled = F.grid_sample(value, locations, mode="bilinear", padding_mode="zeros", align_corners=False)  # [B, C, Q, P]
+    sampled = F.grid_sample(
+        value, locations, mode="bilinear", padding_mode="zeros", align_corners=False
+    )  # [B, C, Q, P]
     out = (sampled * weights[:, None]).sum(dim=-1)  # [B, C, Q]
     return out.transpose(1, 2)  # [B, Q, C]
 
 
 def deformable_sample_points_major(value: Tensor, locations: Tensor, weights: Tensor) -> Tensor:
     """value [B, C, H, W], locations [B, P, Q, 2] (normalised), weights [B, P, Q] -> [B, C, Q] (channel-major)."""
-    sampled = F.grid_sample(value, locations, mode="bilinear", padding_mode="zeros", align_corners=False)  # [B, C, P, Q]
+    sampled = F.grid_sample(
+        value, locations, mode="bilinear", padding_mode="zeros", align_corners=False
+    )  # [B, C, P, Q]
     weighted = sampled * weights[:, None]  # [B, C, P, Q]
     # a chain of adds of the P point planes, not ReduceSum: runtimes fuse the adds into one element-wise pass
     # (OpenVINO's ReduceSum over this axis took ~4 ms per call on the paper map, the adds a fraction of it)
@@ -65,9 +70,7 @@ class DeformableAttention(nn.Module):
         self.value_proj = nn.Conv2d(channels, channels, 1)  # a Linear on every cell, applied to the map
         self.output_proj = nn.Linear(channels, channels)
         # One cell is 2 / W (x) and 2 / H (y) in normalised coordinates: offsets are predicted in cells.
-        self.register_buffer(
-            "cell", torch.tensor([2.0 / map_size[1], 2.0 / map_size[0]]), persistent=False
-        )
+        self.register_buffer("cell", torch.tensor([2.0 / map_size[1], 2.0 / map_size[0]]), persistent=False)
         self._reset_parameters()
 
     def _reset_parameters(self) -> None:

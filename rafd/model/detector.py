@@ -1,4 +1,5 @@
 """RaFD: the whole network, decomposed into the streaming steps encode_frame / pair_flow / detect."""
+
 from __future__ import annotations
 
 from torch import Tensor, nn

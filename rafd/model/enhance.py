@@ -5,6 +5,7 @@ map; the shifted layer rolls the map by half a window and masks attention betwee
 wrapped together (Swin), as GMFlow's single_head_split_window_attention does. The mask depends only on the
 static map size and window: a buffer.
 """
+
 from __future__ import annotations
 
 import math
@@ -86,7 +87,11 @@ class WindowBlock(nn.Module):
     """
 
     def __init__(
-        self, regular: AttentionLayer, shifted: AttentionLayer, size: tuple[int, int], window: tuple[int, int] | None = None
+        self,
+        regular: AttentionLayer,
+        shifted: AttentionLayer,
+        size: tuple[int, int],
+        window: tuple[int, int] | None = None,
     ) -> None:
         super().__init__()
         self.regular, self.shifted = regular, shifted

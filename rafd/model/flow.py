@@ -8,6 +8,7 @@ Speed option (flow.stride > output_stride, not the paper's): the features are av
 `pool` before phi, the whole matching runs on the coarse grid, and the flow (metres, so no rescaling)
 is upsampled bilinearly to the detection grid.
 """
+
 from __future__ import annotations
 
 import math
@@ -97,8 +98,9 @@ class FlowEstimator(nn.Module):
         flow = flow.transpose(1, 2).reshape(batch, 2, height, width)  # [B, 2, Hm, Wm]
         if self.pool > 1:
             # metres are metres on any grid: only resample (half-pixel centres match the cell geometry)
-            flow = F.interpolate(flow, size=(height * self.pool, width * self.pool), mode="bilinear",
-                                 align_corners=False)  # [B, 2, Hf, Wf]
+            flow = F.interpolate(
+                flow, size=(height * self.pool, width * self.pool), mode="bilinear", align_corners=False
+            )  # [B, 2, Hf, Wf]
         return flow
 
     def forward(self, previous: Tensor, current: Tensor, relative_pose: Tensor) -> Tensor:

@@ -1,6 +1,6 @@
 """Centre heatmap head + top-K peak queries (CenterFormer) + decoder -> per-query boxes and scores."""
-from __future__ import annotations
 
+from __future__ import annotations
 
 import torch
 from torch import Tensor, nn
@@ -87,7 +87,9 @@ class DetectionHead(nn.Module):
         self.register_buffer("centres", centres, persistent=False)  # [Hf*Wf, 2] metres
         self.register_buffer("grid", grid, persistent=False)  # [Hf*Wf, 2] normalised (x, y down)
 
-    def forward(self, features: Tensor, gt_indices: Tensor | None = None, gt_mask: Tensor | None = None) -> dict[str, Tensor]:
+    def forward(
+        self, features: Tensor, gt_indices: Tensor | None = None, gt_mask: Tensor | None = None
+    ) -> dict[str, Tensor]:
         batch = features.shape[0]
         heatmap = self.heatmap(features)  # [B, Ncls, Hf, Wf]
         indices = peak_indices(heatmap, self.num_queries)  # [B, K]
@@ -106,7 +108,11 @@ class DetectionHead(nn.Module):
             query_indices=indices,
             scores=torch.sigmoid(torch.gather(logits, 1, indices)),  # [B, K]
             boxes=decode_boxes(
-                centres, outputs["pred_offset"], outputs["pred_log_size"], outputs["pred_rotation"], self.cell_size,
+                centres,
+                outputs["pred_offset"],
+                outputs["pred_log_size"],
+                outputs["pred_rotation"],
+                self.cell_size,
                 self.box_encoding,
             ),
         )

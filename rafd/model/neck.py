@@ -1,4 +1,5 @@
 """FPN-style top-down neck: all backbone stages fused into ONE BEV map at the finest stage's stride."""
+
 from __future__ import annotations
 
 from torch import Tensor, nn

@@ -1,4 +1,5 @@
 """Fixed 2D sine position encoding (DETR / GMFlow PositionEmbeddingSine, normalised coordinates)."""
+
 from __future__ import annotations
 
 import math

@@ -4,6 +4,7 @@ Queries are the current frame's cells; values the previous propagated map T_{t-1
 current grid by the ego pose; each query's reference point is its own cell moved back by the
 estimated flow, r_t - V (where its content was), or r_t itself for the vanilla ablation.
 """
+
 from __future__ import annotations
 
 from torch import Tensor, nn

@@ -1,4 +1,5 @@
 """The one interface every runtime backend implements (one file per backend), and what they share."""
+
 from __future__ import annotations
 
 import os

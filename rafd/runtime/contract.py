@@ -4,10 +4,20 @@ Step graphs cache the previous frame's flow features E = phi(S) (input past_flow
 flow_features) beside its enhanced features; step graphs exported before that cache existed (no such input)
 are still served: the runner reads which contract a graph follows from its inputs (`flow_cache`).
 """
+
 from __future__ import annotations
 
-METADATA_KEYS = ("config", "input_size", "resolution", "num_frames", "class_names", "checkpoint_sha256", "version",
-                 "form", "feature_channels")
+METADATA_KEYS = (
+    "config",
+    "input_size",
+    "resolution",
+    "num_frames",
+    "class_names",
+    "checkpoint_sha256",
+    "version",
+    "form",
+    "feature_channels",
+)
 FORMS = ("step", "window")
 
 

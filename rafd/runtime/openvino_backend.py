@@ -1,10 +1,11 @@
 """OpenVINO CPU backend (the native `openvino` package), bf16 or float32.
 
 Chosen over onnxruntime's OpenVINO execution provider by measurement (same bf16 speed on the paper step graph
-here, see the README's Performance section), and because `onnxruntime-openvino` installs a second `onnxruntime`
+here, see docs/performance.md), and because `onnxruntime-openvino` installs a second `onnxruntime`
 module over the reference one. OpenVINO reads the ONNX file directly, metadata included (rt_info "framework").
 bf16 runs on avx512_bf16 (and AMX where present); OpenVINO keeps precision-sensitive parts in float32 itself.
 """
+
 from __future__ import annotations
 
 import os
@@ -30,8 +31,9 @@ class OpenVinoBackend:
 
     runtime = "openvino"
 
-    def __init__(self, model_path: str | os.PathLike[str], precision: str, threads: int,
-                 concurrent_runs: int = 1) -> None:
+    def __init__(
+        self, model_path: str | os.PathLike[str], precision: str, threads: int, concurrent_runs: int = 1
+    ) -> None:
         import openvino as ov
 
         path = Path(model_path)

@@ -1,4 +1,5 @@
 """onnxruntime CPU backend, float32: the reference path every other runtime is gated against."""
+
 from __future__ import annotations
 
 import os
@@ -13,8 +14,9 @@ class OrtBackend:
     runtime = "onnxruntime"
     precision = "fp32"
 
-    def __init__(self, model_path: str | os.PathLike[str], threads: int, concurrent_runs: int = 1,
-                 spinning: bool = True) -> None:
+    def __init__(
+        self, model_path: str | os.PathLike[str], threads: int, concurrent_runs: int = 1, spinning: bool = True
+    ) -> None:
         import onnxruntime as ort
 
         path = Path(model_path)

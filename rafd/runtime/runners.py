@@ -1,5 +1,6 @@
 """Opening a RaFD graph on a runtime: OnnxRunner (the fp32 reference), OpenVinoRunner, and create_runner, which
 picks the fastest runtime and precision this CPU supports by timing them on the model itself."""
+
 from __future__ import annotations
 
 import logging
@@ -38,13 +39,17 @@ class OnnxRunner(StreamRunner):
     """StreamRunner over onnxruntime, float32 (the reference path). `threads`: intra-op threads of a run alone;
     with concurrent_runs > 1, runs that overlap use a second session of threads // concurrent_runs threads."""
 
-    def __init__(self, model_path: str | os.PathLike[str], threads: int | None = None, concurrent_runs: int = 1) -> None:
+    def __init__(
+        self, model_path: str | os.PathLike[str], threads: int | None = None, concurrent_runs: int = 1
+    ) -> None:
         threads = threads or default_threads()
         shared = crowd_threads(threads, concurrent_runs)
         # With overlapping runs, a finished run's pool threads must not spin on the cores the others need.
         spinning = concurrent_runs == 1
-        super().__init__(OrtBackend(model_path, threads, 1 if shared else concurrent_runs, spinning),
-                         OrtBackend(model_path, shared, concurrent_runs, spinning) if shared else None)
+        super().__init__(
+            OrtBackend(model_path, threads, 1 if shared else concurrent_runs, spinning),
+            OrtBackend(model_path, shared, concurrent_runs, spinning) if shared else None,
+        )
 
     @property
     def session(self):  # noqa: ANN201 - onnxruntime.InferenceSession, not imported at module level
@@ -55,14 +60,21 @@ class OpenVinoRunner(StreamRunner):
     """StreamRunner over OpenVINO's CPU plugin in `precision` ("bf16" or "fp32"); threads and concurrent runs as
     OnnxRunner (the overlapping runs use one compilation with concurrent_runs CPU streams)."""
 
-    def __init__(self, model_path: str | os.PathLike[str], precision: str = "bf16", threads: int | None = None,
-                 concurrent_runs: int = 1) -> None:
+    def __init__(
+        self,
+        model_path: str | os.PathLike[str],
+        precision: str = "bf16",
+        threads: int | None = None,
+        concurrent_runs: int = 1,
+    ) -> None:
         from rafd.runtime.openvino_backend import OpenVinoBackend
 
         threads = threads or default_threads()
         shared = crowd_threads(threads, concurrent_runs)
-        super().__init__(OpenVinoBackend(model_path, precision, threads, 1 if shared else concurrent_runs),
-                         OpenVinoBackend(model_path, precision, shared, concurrent_runs) if shared else None)
+        super().__init__(
+            OpenVinoBackend(model_path, precision, threads, 1 if shared else concurrent_runs),
+            OpenVinoBackend(model_path, precision, shared, concurrent_runs) if shared else None,
+        )
 
 
 def supported_choices() -> list[tuple[str, str]]:
@@ -81,8 +93,13 @@ def supported_choices() -> list[tuple[str, str]]:
     return choices
 
 
-def open_runner(model_path: str | os.PathLike[str], runtime: str, precision: str, threads: int | None = None,
-                concurrent_runs: int = 1) -> StreamRunner:
+def open_runner(
+    model_path: str | os.PathLike[str],
+    runtime: str,
+    precision: str,
+    threads: int | None = None,
+    concurrent_runs: int = 1,
+) -> StreamRunner:
     """One explicit (runtime, precision)."""
     if runtime == "onnxruntime":
         if precision != "fp32":
@@ -111,9 +128,14 @@ def time_runner(runner: StreamRunner, repeats: int = 5, warmup: int = 2, seed: i
     return statistics.median(samples)
 
 
-def create_runner(model_path: str | os.PathLike[str], runtime: str = "auto", precision: str = "auto",
-                  threads: int | None = None, concurrent_runs: int = 1,
-                  timer: Callable[[StreamRunner], float] = time_runner) -> StreamRunner:
+def create_runner(
+    model_path: str | os.PathLike[str],
+    runtime: str = "auto",
+    precision: str = "auto",
+    threads: int | None = None,
+    concurrent_runs: int = 1,
+    timer: Callable[[StreamRunner], float] = time_runner,
+) -> StreamRunner:
     """Open the model on the given runtime and precision; "auto" (either) times every supported candidate on this
     model and keeps the fastest. With precision "auto" a reduced precision is a candidate only when the model's
     accuracy gate passed for it (metadata GATE_KEY); an explicit precision is the operator's choice (logged
@@ -130,11 +152,12 @@ def create_runner(model_path: str | os.PathLike[str], runtime: str = "auto", pre
         if not gate_passed(runner.metadata, runner.precision):
             log.warning("%s runs in %s without a passed accuracy gate (rafd-export --gate)", model_path, precision)
         return runner
-    candidates = [(r, p) for r, p in supported_choices()
-                  if runtime in ("auto", r) and precision in ("auto", p)]
+    candidates = [(r, p) for r, p in supported_choices() if runtime in ("auto", r) and precision in ("auto", p)]
     if not candidates:
-        raise ValueError(f"no supported runtime for runtime={runtime!r}, precision={precision!r} on this machine "
-                         f"(supported: {supported_choices()})")
+        raise ValueError(
+            f"no supported runtime for runtime={runtime!r}, precision={precision!r} on this machine "
+            f"(supported: {supported_choices()})"
+        )
     runners: list[StreamRunner] = []
     metadata: dict[str, str] | None = None  # known after the first candidate is open
     for candidate in candidates:
@@ -148,8 +171,10 @@ def create_runner(model_path: str | os.PathLike[str], runtime: str = "auto", pre
             continue
         runners.append(runner)
     if not runners:
-        raise ValueError(f"no runtime for runtime={runtime!r}, precision={precision!r}: {model_path} has no passed "
-                         "accuracy gate for a reduced precision (rafd-export --gate), and fp32 was excluded")
+        raise ValueError(
+            f"no runtime for runtime={runtime!r}, precision={precision!r}: {model_path} has no passed "
+            "accuracy gate for a reduced precision (rafd-export --gate), and fp32 was excluded"
+        )
     selection = {f"{r.runtime}/{r.precision}": (timer(r) if len(runners) > 1 else 0.0) for r in runners}
     best = min(runners, key=lambda r: selection[f"{r.runtime}/{r.precision}"])
     selection = {name: round(seconds * 1e3, 3) for name, seconds in selection.items()}

@@ -40,20 +40,25 @@ the whole request succeeded). States are immutable and their cached arrays are r
 The runner is backend-independent: a rafd.runtime.backend.Backend (onnxruntime fp32, OpenVINO bf16/fp32) only runs
 the graph; states hold float32 numpy arrays whatever the backend computes in.
 """
+
 from __future__ import annotations
 
 import threading
 from collections.abc import Sequence
 from dataclasses import dataclass
+from typing import Any, Protocol
 
 import numpy as np
 
 from rafd.config import RaFDConfig
+from rafd.geometry import relative_pose
 from rafd.runtime.backend import Backend
 from rafd.runtime.contract import FORMS, graph_inputs, graph_outputs
 
-def window_from_history(frames: Sequence[np.ndarray], poses: np.ndarray | Sequence[np.ndarray],
-                        num_frames: int) -> tuple[np.ndarray, np.ndarray]:
+
+def window_from_history(
+    frames: Sequence[np.ndarray], poses: np.ndarray | Sequence[np.ndarray], num_frames: int
+) -> tuple[np.ndarray, np.ndarray]:
     """A stream's history (oldest first, any length >= 1) -> its newest window under the warm-up rule.
 
     Returns (frames [T, ...] stacked as given, poses float64 [T, 3]): the last T frames, padded at the old end by
@@ -72,18 +77,11 @@ def window_from_history(frames: Sequence[np.ndarray], poses: np.ndarray | Sequen
 def poses_in_newest_frame(poses: np.ndarray) -> np.ndarray:
     """World poses [T, 3] (float64) -> float32 [T, 3] expressed in the newest pose's ego frame.
 
-    Pose i becomes invert(newest) o pose_i (yaw wrapped to [-pi, pi)); relative poses between any two are unchanged,
-    and the differences are taken in float64 so large world coordinates lose no precision.
+    Pose i becomes geometry.relative_pose(pose_i, newest); relative poses between any two are unchanged, and the
+    differences are taken in float64 before the cast, so large world coordinates lose no precision.
     """
     poses = np.asarray(poses, dtype=np.float64)
-    ref = poses[-1]
-    c, s = np.cos(ref[2]), np.sin(ref[2])
-    dx, dy = poses[:, 0] - ref[0], poses[:, 1] - ref[1]
-    out = np.empty(poses.shape, dtype=np.float32)
-    out[:, 0] = c * dx + s * dy
-    out[:, 1] = -s * dx + c * dy
-    out[:, 2] = (poses[:, 2] - ref[2] + np.pi) % (2.0 * np.pi) - np.pi
-    return out
+    return relative_pose(poses, poses[-1]).astype(np.float32)
 
 
 def _frozen(array: np.ndarray) -> np.ndarray:
@@ -118,6 +116,27 @@ class StepResult:
     frames_used: int
 
 
+class Runner(Protocol):
+    """What a server needs of a streaming runner: StreamRunner implements it (and the tests' stand-ins do)."""
+
+    config: RaFDConfig
+    metadata: dict[str, str]
+
+    @property
+    def runtime(self) -> str: ...
+
+    @property
+    def precision(self) -> str: ...
+
+    def new_state(self) -> Any: ...
+
+    def step(self, state: Any, frame: np.ndarray, pose: np.ndarray) -> tuple[Any, Any]:
+        """(state, float32 [S, S] frame, world pose [3]) -> (a StepResult-like answer, the new state)."""
+        ...
+
+    def describe(self) -> dict[str, object]: ...
+
+
 class StreamRunner:
     """Streams frames through one backend's exported RaFD graph (step or window form); thread-safe, stateless.
 
@@ -134,8 +153,9 @@ class StreamRunner:
         self.selection: dict[str, float] = {}  # create_runner("auto"): median ms per run of each candidate
         self.metadata: dict[str, str] = dict(backend.metadata)
         if "config" not in self.metadata:
-            raise ValueError(f"{path} is not a RaFD export: its metadata has no 'config' "
-                             f"(keys: {sorted(self.metadata)})")
+            raise ValueError(
+                f"{path} is not a RaFD export: its metadata has no 'config' (keys: {sorted(self.metadata)})"
+            )
         self.config = RaFDConfig.from_json(self.metadata["config"])
         self.input_names = tuple(backend.input_shapes)
         self.output_names = tuple(backend.output_names)
@@ -144,10 +164,15 @@ class StreamRunner:
         self.flow_cache = "past_flow_features" in self.input_names  # False: a step graph from before the cache
         expected = graph_inputs(self.form, T, self.flow_cache)
         needed_outputs = graph_outputs(self.form, T, self.flow_cache)
-        if (self.form not in FORMS or set(self.input_names) != set(expected)
-                or not set(needed_outputs) <= set(self.output_names)):
-            raise ValueError(f"{path}: not a RaFD {self.form!r} graph for T = {T}: inputs {self.input_names}, "
-                             f"outputs {self.output_names} (expected inputs {expected}, outputs {needed_outputs})")
+        if (
+            self.form not in FORMS
+            or set(self.input_names) != set(expected)
+            or not set(needed_outputs) <= set(self.output_names)
+        ):
+            raise ValueError(
+                f"{path}: not a RaFD {self.form!r} graph for T = {T}: inputs {self.input_names}, "
+                f"outputs {self.output_names} (expected inputs {expected}, outputs {needed_outputs})"
+            )
         shapes = backend.input_shapes
         size = self.config.input_size
         if self.form == "step" and T > 1:
@@ -160,7 +185,10 @@ class StreamRunner:
         if tuple(frame_shape[-2:]) != (size, size):
             raise ValueError(f"{path}: input frame shape {frame_shape} does not match input_size {size}")
         if crowd is not None and (crowd.runtime, crowd.precision, crowd.input_shapes) != (
-                backend.runtime, backend.precision, backend.input_shapes):
+            backend.runtime,
+            backend.precision,
+            backend.input_shapes,
+        ):
             raise ValueError("the crowd backend must run the same graph on the same runtime and precision")
         self.concurrent_runs = max(1, backend.concurrent_runs, crowd.concurrent_runs if crowd is not None else 1)
         self._slots = threading.BoundedSemaphore(self.concurrent_runs)
@@ -182,9 +210,14 @@ class StreamRunner:
     def describe(self) -> dict[str, object]:
         """How the graph runs: runtime, precision, threads of a lone run, concurrent runs and their threads."""
         crowd = self.crowd or self.backend
-        return {"runtime": self.runtime, "precision": self.precision, "threads": self.threads,
-                "concurrent_runs": self.concurrent_runs, "threads_per_concurrent_run": crowd.threads,
-                "selection_ms_per_run": dict(self.selection)}
+        return {
+            "runtime": self.runtime,
+            "precision": self.precision,
+            "threads": self.threads,
+            "concurrent_runs": self.concurrent_runs,
+            "threads_per_concurrent_run": crowd.threads,
+            "selection_ms_per_run": dict(self.selection),
+        }
 
     # ------------------------------------------------------------------ API
     def new_state(self) -> StreamState:
@@ -206,8 +239,10 @@ class StreamRunner:
         """Add one frame (float32 [S, S] in [0, 1]) with its world pose [3] -> (result for its window, new state)."""
         size = self.config.input_size
         if not isinstance(frame, np.ndarray) or frame.dtype != np.float32 or frame.shape != (size, size):
-            raise ValueError(f"frame must be float32 [{size}, {size}], got "
-                             f"{getattr(frame, 'dtype', type(frame).__name__)} {getattr(frame, 'shape', '')}")
+            raise ValueError(
+                f"frame must be float32 [{size}, {size}], got "
+                f"{getattr(frame, 'dtype', type(frame).__name__)} {getattr(frame, 'shape', '')}"
+            )
         if not (frame.min() >= 0.0 and frame.max() <= 1.0):  # also false for NaN
             raise ValueError("frame values must lie in [0, 1]")
         pose = np.array(pose, dtype=np.float64)  # a copy: the state keeps it
@@ -251,15 +286,22 @@ class StreamRunner:
         if T > 2:  # the self-pair flow S1 fills the flow caches; rerun with them
             flows = (_frozen(out["flow"][0, -1].copy()),) * (T - 2)
             out = self._run_step(frame, poses, features, flows, flow_features)
-        new_state = StreamState(frames_used=1, poses=poses[1:], features=features, flows=flows,
-                                flow_features=flow_features)
+        new_state = StreamState(
+            frames_used=1, poses=poses[1:], features=features, flows=flows, flow_features=flow_features
+        )
         return self._result(out, 1), new_state
 
     def _flow_features(self, out: dict[str, np.ndarray]) -> tuple[np.ndarray, ...]:
         return (_frozen(out["flow_features"][0]),) if self.flow_cache else ()
 
-    def _run_step(self, frame: np.ndarray, poses: tuple[np.ndarray, ...], features: tuple[np.ndarray, ...],
-                  flows: tuple[np.ndarray, ...], flow_features: tuple[np.ndarray, ...] = ()) -> dict[str, np.ndarray]:
+    def _run_step(
+        self,
+        frame: np.ndarray,
+        poses: tuple[np.ndarray, ...],
+        features: tuple[np.ndarray, ...],
+        flows: tuple[np.ndarray, ...],
+        flow_features: tuple[np.ndarray, ...] = (),
+    ) -> dict[str, np.ndarray]:
         feeds = {
             "frame": frame[None, None],
             "poses": poses_in_newest_frame(np.stack(poses))[None],
@@ -279,14 +321,19 @@ class StreamRunner:
             frames, poses = (frame,) * T, (pose,) * T
         else:
             frames, poses = state.frames + (frame,), state.poses + (pose,)
-        out = self.run({"frames": np.stack(frames)[None, :, None],
-                        "poses": poses_in_newest_frame(np.stack(poses))[None]})
+        out = self.run(
+            {"frames": np.stack(frames)[None, :, None], "poses": poses_in_newest_frame(np.stack(poses))[None]}
+        )
         new_state = StreamState(frames_used=min(state.frames_used + 1, T), poses=poses[1:], frames=frames[1:])
         return self._result(out, new_state.frames_used), new_state
 
     # ------------------------------------------------------------------ outputs
     def _result(self, out: dict[str, np.ndarray], frames_used: int) -> StepResult:
         flow = out.get("flow")
-        return StepResult(heatmap=out["heatmap"][0, 0], boxes=out["boxes"][0], scores=out["scores"][0],
-                          flow=None if flow is None else flow[0], frames_used=frames_used)
-
+        return StepResult(
+            heatmap=out["heatmap"][0, 0],
+            boxes=out["boxes"][0],
+            scores=out["scores"][0],
+            flow=None if flow is None else flow[0],
+            frames_used=frames_used,
+        )

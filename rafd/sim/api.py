@@ -1,4 +1,5 @@
 """Public entry points: simulate one RADIATE-format sequence or a whole split of them."""
+
 from __future__ import annotations
 
 from pathlib import Path
@@ -33,8 +34,9 @@ def simulate_sequence(
     ego_poses.csv (like a real RADIATE sequence before `rafd-odometry`); polar=True also writes the polar scans
     (Navtech_Polar/); `weather` forces the drive's weather (None: drawn per drive)."""
     out_dir = Path(out_dir)
-    sequence = run_simulation(seed, num_frames, split, size, difficulty, name=out_dir.name, ambiguous=ambiguous,
-                              weather=weather)
+    sequence = run_simulation(
+        seed, num_frames, split, size, difficulty, name=out_dir.name, ambiguous=ambiguous, weather=weather
+    )
     return write_sequence(sequence, out_dir, poses=poses, polar=polar)
 
 
@@ -56,7 +58,17 @@ def simulate_dataset(
         raise ValueError(f"sequences must be >= 1, got {sequences}")
     root = Path(root)
     return [
-        simulate_sequence(root / f"sim_{seed}_{k}", sequence_seed(seed, k), frames, split, size, difficulty, ambiguous,
-                          poses, polar, weather)
+        simulate_sequence(
+            root / f"sim_{seed}_{k}",
+            sequence_seed(seed, k),
+            frames,
+            split,
+            size,
+            difficulty,
+            ambiguous,
+            poses,
+            polar,
+            weather,
+        )
         for k in range(sequences)
     ]

@@ -6,6 +6,7 @@ and a building line behind them. Blocks are filled with buildings (textured faca
 (textured vegetation, trees), car parks (rows of parked cars) or open ground. Every static return is a point
 scatterer (rafd.sim.scene.Scatterers); parked cars are returned separately as boxes (they are annotated objects).
 """
+
 from __future__ import annotations
 
 from dataclasses import dataclass
@@ -73,11 +74,26 @@ class _Builder:
         if n == 0:
             return
         normal = np.zeros((n, 2)) if normal is None else np.broadcast_to(normal, (n, 2)).astype(np.float64)
-        self.parts.append(Scatterers(np.asarray(xy, np.float64), np.asarray(amplitude, np.float64), normal,
-                                     np.full(n, occluder), np.full(n, -1)))
+        self.parts.append(
+            Scatterers(
+                np.asarray(xy, np.float64),
+                np.asarray(amplitude, np.float64),
+                normal,
+                np.full(n, occluder),
+                np.full(n, -1),
+            )
+        )
 
-    def wall(self, start: np.ndarray, end: np.ndarray, normal: np.ndarray, base: float, occluder: bool = True,
-             fill: float = 1.0, depth: float = 0.0) -> None:
+    def wall(
+        self,
+        start: np.ndarray,
+        end: np.ndarray,
+        normal: np.ndarray,
+        base: float,
+        occluder: bool = True,
+        fill: float = 1.0,
+        depth: float = 0.0,
+    ) -> None:
         """A straight wall (facade, kerb, fence) of textured returns facing `normal`, spread over `depth` metres
         behind its line (recesses, balconies, windows: real building returns are thick bands)."""
         xy = _segment(start, end, KERB_STEP)
@@ -87,7 +103,9 @@ class _Builder:
         texture = base * self.rng.lognormal(0.0, 0.7, len(xy))
         texture *= 1.0 + 3.0 * (self.rng.random(len(xy)) < 0.04)  # windows, doors, drainpipes
         # slow variation along the wall: materials, parked bikes, bins
-        texture *= np.exp(0.5 * np.sin(np.arange(len(xy)) * KERB_STEP / self.rng.uniform(3, 15) + self.rng.uniform(0, 6)))
+        texture *= np.exp(
+            0.5 * np.sin(np.arange(len(xy)) * KERB_STEP / self.rng.uniform(3, 15) + self.rng.uniform(0, 6))
+        )
         self.add(xy[keep], texture[keep], normal, occluder)
 
     def blob(self, centre: np.ndarray, radius: float, base: float, occluder: bool) -> None:
@@ -139,8 +157,13 @@ def _gaps(crossings: list[tuple[float, float]], lo: float, hi: float) -> list[tu
     return [(a, b) for a, b in pieces if b - a > 0.5]
 
 
-def build_city(rng: np.random.Generator, bounds: tuple[float, float, float, float], ego_street_x: Street,
-               clutter: float = 1.0, parked_density: float = 1.0) -> City:
+def build_city(
+    rng: np.random.Generator,
+    bounds: tuple[float, float, float, float],
+    ego_street_x: Street,
+    clutter: float = 1.0,
+    parked_density: float = 1.0,
+) -> City:
     """Lay out a street grid over `bounds` (x_lo, x_hi, y_lo, y_hi) containing `ego_street_x` (a street along y)."""
     x_lo, x_hi, y_lo, y_hi = bounds
     xs = _street_lines(rng, x_lo, x_hi, ego_street_x.position)
@@ -164,8 +187,14 @@ def build_city(rng: np.random.Generator, bounds: tuple[float, float, float, floa
                     position = a
                     while position < b:  # continuous kerb, broken by driveways
                         end = min(position + rng.uniform(15.0, 80.0), b)
-                        build.wall(_along(s, position, kerb)[0], _along(s, end, kerb)[0], inward,
-                                   rng.uniform(5.0, 16.0), occluder=False, fill=0.85)
+                        build.wall(
+                            _along(s, position, kerb)[0],
+                            _along(s, end, kerb)[0],
+                            inward,
+                            rng.uniform(5.0, 16.0),
+                            occluder=False,
+                            fill=0.85,
+                        )
                         position = end + (rng.uniform(3.0, 6.0) if rng.random() < 0.5 else 0.0)
                     for pole in np.arange(a + rng.uniform(0, 10), b, rng.uniform(12.0, 30.0)):  # poles, signs
                         build.point(_along(s, pole, kerb + side * rng.uniform(0.3, 0.8))[0], rng.uniform(60, 250))
@@ -188,18 +217,30 @@ def build_city(rng: np.random.Generator, bounds: tuple[float, float, float, floa
                                 build.point(post, rng.uniform(15, 50))
                         elif kind == "hedge":
                             for centre in _segment(p, q, 1.6):
-                                build.blob(centre + side * _left(s) * rng.uniform(0, 1.0), rng.uniform(0.8, 1.8),
-                                           rng.uniform(8.0, 25.0) * clutter, occluder=True)
+                                build.blob(
+                                    centre + side * _left(s) * rng.uniform(0, 1.0),
+                                    rng.uniform(0.8, 1.8),
+                                    rng.uniform(8.0, 25.0) * clutter,
+                                    occluder=True,
+                                )
                         position = end + (rng.uniform(1.0, 8.0) if rng.random() < 0.5 else 0.0)
                     # trees on the pavement and occasional cars parked at the kerb (not every kerb)
                     for tree in np.arange(a + rng.uniform(0, 20), b, rng.uniform(6.0, 25.0)):
                         if rng.random() < 0.7:
-                            build.blob(_along(s, tree, kerb + side * s.pavement * 0.5)[0], rng.uniform(1.5, 5.0),
-                                       rng.uniform(12.0, 45.0) * clutter, occluder=True)
+                            build.blob(
+                                _along(s, tree, kerb + side * s.pavement * 0.5)[0],
+                                rng.uniform(1.5, 5.0),
+                                rng.uniform(12.0, 45.0) * clutter,
+                                occluder=True,
+                            )
                     for garden in np.arange(a + rng.uniform(0, 15), b, rng.uniform(8.0, 30.0)):  # front gardens
                         if rng.random() < 0.5:
-                            build.blob(_along(s, garden, line + side * rng.uniform(2.0, 8.0))[0],
-                                       rng.uniform(2.0, 6.0), rng.uniform(10.0, 40.0) * clutter, occluder=True)
+                            build.blob(
+                                _along(s, garden, line + side * rng.uniform(2.0, 8.0))[0],
+                                rng.uniform(2.0, 6.0),
+                                rng.uniform(10.0, 40.0) * clutter,
+                                occluder=True,
+                            )
                     if rng.random() < 0.35 * parked_density:
                         yaw = 0.0 if s.axis == 1 else np.pi / 2  # box length along the street
                         position = a + rng.uniform(2.0, 20.0)
@@ -210,19 +251,26 @@ def build_city(rng: np.random.Generator, bounds: tuple[float, float, float, floa
     # the blocks between the streets
     for xa, xb in zip(x_streets[:-1], x_streets[1:]):
         for ya, yb in zip(y_streets[:-1], y_streets[1:]):
-            inner = (xa.position + xa.half_width + xa.pavement + 1.0, xb.position - xb.half_width - xb.pavement - 1.0,
-                     ya.position + ya.half_width + ya.pavement + 1.0, yb.position - yb.half_width - yb.pavement - 1.0)
+            inner = (
+                xa.position + xa.half_width + xa.pavement + 1.0,
+                xb.position - xb.half_width - xb.pavement - 1.0,
+                ya.position + ya.half_width + ya.pavement + 1.0,
+                yb.position - yb.half_width - yb.pavement - 1.0,
+            )
             if inner[1] - inner[0] < 8 or inner[3] - inner[2] < 8:
                 continue
             _fill_block(build, inner, clutter, parked_density)
     scatterers = Scatterers.concat(build.parts)
-    scatterers = Scatterers(scatterers.xy, scatterers.amplitude * STATIC_GAIN, scatterers.normal, scatterers.occluder,
-                            scatterers.owner)
+    scatterers = Scatterers(
+        scatterers.xy, scatterers.amplitude * STATIC_GAIN, scatterers.normal, scatterers.occluder, scatterers.owner
+    )
     parked = np.stack(build.parked) if build.parked else np.zeros((0, 5))
     return City(x_streets, y_streets, bounds, scatterers, parked)
 
 
-def _fill_block(build: _Builder, inner: tuple[float, float, float, float], clutter: float, parked_density: float) -> None:
+def _fill_block(
+    build: _Builder, inner: tuple[float, float, float, float], clutter: float, parked_density: float
+) -> None:
     """One block: buildings (walls facing out), a park (vegetation, trees), a car park, or open ground."""
     rng = build.rng
     x0, x1, y0, y1 = inner
@@ -231,17 +279,26 @@ def _fill_block(build: _Builder, inner: tuple[float, float, float, float], clutt
         for _ in range(rng.integers(1, 5)):
             w, h = rng.uniform(8.0, min(40.0, x1 - x0)), rng.uniform(8.0, min(40.0, y1 - y0))
             cx, cy = rng.uniform(x0 + w / 2, x1 - w / 2), rng.uniform(y0 + h / 2, y1 - h / 2)
-            corners = np.array([[cx - w / 2, cy - h / 2], [cx + w / 2, cy - h / 2], [cx + w / 2, cy + h / 2],
-                                [cx - w / 2, cy + h / 2]])
+            corners = np.array(
+                [[cx - w / 2, cy - h / 2], [cx + w / 2, cy - h / 2], [cx + w / 2, cy + h / 2], [cx - w / 2, cy + h / 2]]
+            )
             for k, normal in enumerate(([0.0, -1.0], [1.0, 0.0], [0.0, 1.0], [-1.0, 0.0])):
                 build.wall(corners[k], corners[(k + 1) % 4], np.array(normal), rng.uniform(10.0, 50.0))
     elif kind == "park":
         for _ in range(int(rng.poisson(clutter * (x1 - x0) * (y1 - y0) / 80.0)) + 1):
-            build.blob(np.array([rng.uniform(x0, x1), rng.uniform(y0, y1)]), rng.uniform(2.0, 9.0),
-                       rng.uniform(12.0, 45.0) * clutter, occluder=rng.random() < 0.5)
+            build.blob(
+                np.array([rng.uniform(x0, x1), rng.uniform(y0, y1)]),
+                rng.uniform(2.0, 9.0),
+                rng.uniform(12.0, 45.0) * clutter,
+                occluder=rng.random() < 0.5,
+            )
         grass = int(clutter * (x1 - x0) * (y1 - y0) * 0.12)
-        build.add(np.stack([rng.uniform(x0, x1, grass), rng.uniform(y0, y1, grass)], -1),
-                  rng.uniform(2.0, 5.0) * rng.lognormal(0.0, 0.7, grass), None, False)
+        build.add(
+            np.stack([rng.uniform(x0, x1, grass), rng.uniform(y0, y1, grass)], -1),
+            rng.uniform(2.0, 5.0) * rng.lognormal(0.0, 0.7, grass),
+            None,
+            False,
+        )
     elif kind == "car_park":
         yaw = float(rng.choice([0.0, np.pi / 2]))
         length_along_x = yaw != 0.0  # yaw 0: a car's length runs along y
@@ -256,5 +313,9 @@ def _fill_block(build: _Builder, inner: tuple[float, float, float, float], clutt
             build.wall(np.array(side[:2]), np.array(side[2:]), np.array([0.0, 1.0]), rng.uniform(4, 15), False, 0.8)
     else:
         count = int(clutter * (x1 - x0) * (y1 - y0) * 0.12)
-        build.add(np.stack([rng.uniform(x0, x1, count), rng.uniform(y0, y1, count)], -1),
-                  rng.uniform(1.5, 4.0) * rng.lognormal(0.0, 0.7, count), None, False)
+        build.add(
+            np.stack([rng.uniform(x0, x1, count), rng.uniform(y0, y1, count)], -1),
+            rng.uniform(1.5, 4.0) * rng.lognormal(0.0, 0.7, count),
+            None,
+            False,
+        )

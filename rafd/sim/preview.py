@@ -1,6 +1,7 @@
 """Side-by-side picture: a simulated scan (its boxes drawn) and a real RADIATE scan (image only), same crop and scale.
 
 The real sample's labels are a frozen test set: the preview shows its scan, never its boxes."""
+
 from __future__ import annotations
 
 from pathlib import Path
@@ -46,7 +47,12 @@ def simulated_panel(seed: int, frame: int, crop: int, difficulty: Difficulty) ->
 
 
 def render_preview(
-    out_path: Path, sample_dir: Path, seed: int = 0, frame: int = 4, crop: int = 768, difficulty: Difficulty = Difficulty()
+    out_path: Path,
+    sample_dir: Path,
+    seed: int = 0,
+    frame: int = 4,
+    crop: int = 768,
+    difficulty: Difficulty = Difficulty(),
 ) -> Path:
     """Write [crop, 2 * crop + 8] BGR PNG: simulated (left) | real (right), labelled."""
     panels = [simulated_panel(seed, frame, crop, difficulty), real_panel(Path(sample_dir), 1, crop)]

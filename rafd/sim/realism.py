@@ -8,7 +8,8 @@ Five kinds of measure, each a row of `realism_table` (real value, simulated valu
 - azimuth striping: the relative spread of the per-azimuth mean grey level after removing its slow trend (how much
   whole beams differ from their neighbours), 10-60 m;
 - scan-to-scan stability: how much the bright returns of one scan are still there in the next, once the previous
-  scan is aligned to the current one by radar odometry (rafd.odometry, the same estimator for both kinds): walls and
+  scan is aligned to the current one by radar odometry (rafd.data.odometry, the same estimator for both kinds): walls
+  and
   kerbs persist, spray and multipath flicker;
 - a real-vs-simulated patch classifier: a small CNN trained on 48 x 48 px patches of half the frames of each kind and
   tested on patches of the other half, and the other way round (2-fold); held-out accuracy 50% = indistinguishable,
@@ -16,6 +17,7 @@ Five kinds of measure, each a row of `realism_table` (real value, simulated valu
 Scans are 1152 px Cartesian scans on RADIATE's grid (radar at the centre); polar measures resample them with
 cv2.warpPolar (one sample per pixel along range, 1440 azimuths).
 """
+
 from __future__ import annotations
 
 import math
@@ -67,8 +69,13 @@ def polar_view(scan: np.ndarray) -> np.ndarray:
     """[S, S] Cartesian scan -> float32 [POLAR_ANGLES, S/2] (rows: azimuth, columns: range, one pixel per sample)."""
     size = scan.shape[0]
     centre = (size / 2.0, size / 2.0)  # cv2 pixel centres are integers: the radar sits between four pixels
-    return cv2.warpPolar(np.asarray(scan, np.float32), (size // 2, POLAR_ANGLES), centre, size / 2.0,
-                         cv2.INTER_LINEAR | cv2.WARP_POLAR_LINEAR)
+    return cv2.warpPolar(
+        np.asarray(scan, np.float32),
+        (size // 2, POLAR_ANGLES),
+        centre,
+        size / 2.0,
+        cv2.INTER_LINEAR | cv2.WARP_POLAR_LINEAR,
+    )
 
 
 def _band(polar: np.ndarray, resolution: float) -> np.ndarray:
@@ -87,8 +94,9 @@ def speckle_grain_m(scans: Sequence[np.ndarray], resolution: float = RADIATE_RES
         variance = (detrended**2).mean(axis=1)
         keep = variance > 1e-6
         rows = detrended[keep]
-        curve = [1.0] + [float(((rows[:, :-k] * rows[:, k:]).mean(axis=1) / variance[keep]).mean())
-                         for k in range(1, max_lag + 1)]
+        curve = [1.0] + [
+            float(((rows[:, :-k] * rows[:, k:]).mean(axis=1) / variance[keep]).mean()) for k in range(1, max_lag + 1)
+        ]
         curves.append(curve)
     curve = np.mean(curves, axis=0)
     below = np.flatnonzero(curve < 0.5)
@@ -117,7 +125,7 @@ def scan_to_scan_stability(sequences: Sequence[Sequence[np.ndarray]], resolution
     one pixel (odometry errors of a pixel should not count as flicker), and the grey levels of the brightest
     BRIGHT_SHARE of the 5-40 m pixels, ranked by the pair's mean, are correlated: 1 = every bright return persists,
     0 = bright returns are redrawn every scan."""
-    from rafd.odometry import estimate_relative_pose, pose_to_warp
+    from rafd.data.odometry import estimate_relative_pose, pose_to_warp
 
     values, in_band = [], {}  # in_band: scan size -> the 5-40 m ring's pixels
     for scans in sequences:
@@ -127,8 +135,9 @@ def scan_to_scan_stability(sequences: Sequence[Sequence[np.ndarray]], resolution
                 radius = _radius_m(size, resolution)
                 in_band[size] = (radius > STABILITY_BAND_M[0]) & (radius < STABILITY_BAND_M[1])
             warp = pose_to_warp(estimate_relative_pose(previous, current, resolution), size, resolution)
-            moved = cv2.warpAffine(np.asarray(previous, np.float32), warp, (size, size),
-                                   flags=cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP)  # previous on the current grid
+            moved = cv2.warpAffine(
+                np.asarray(previous, np.float32), warp, (size, size), flags=cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP
+            )  # previous on the current grid
             band = in_band[size] & (moved > 0)
             before = cv2.GaussianBlur(moved, (0, 0), 1.0)[band]
             after = cv2.GaussianBlur(np.asarray(current, np.float32), (0, 0), 1.0)[band]
@@ -141,8 +150,9 @@ def scan_to_scan_stability(sequences: Sequence[Sequence[np.ndarray]], resolution
     return float(np.median(values))
 
 
-def _patches(scans: Sequence[np.ndarray], count: int, rng: np.random.Generator,
-             resolution: float = RADIATE_RESOLUTION) -> np.ndarray:
+def _patches(
+    scans: Sequence[np.ndarray], count: int, rng: np.random.Generator, resolution: float = RADIATE_RESOLUTION
+) -> np.ndarray:
     """`count` random PATCH x PATCH patches per scan whose centres lie within PATCH_MAX_RANGE_M -> uint8 [N, P, P]."""
     out = []
     for scan in scans:
@@ -154,8 +164,13 @@ def _patches(scans: Sequence[np.ndarray], count: int, rng: np.random.Generator,
     return np.stack(out)
 
 
-def patch_classifier_accuracy(real: Sequence[np.ndarray], simulated: Sequence[np.ndarray], seed: int = 0,
-                              steps: int = 400, patches_per_scan: int = 200) -> float:
+def patch_classifier_accuracy(
+    real: Sequence[np.ndarray],
+    simulated: Sequence[np.ndarray],
+    seed: int = 0,
+    steps: int = 400,
+    patches_per_scan: int = 200,
+) -> float:
     """Held-out accuracy of a small CNN telling real from simulated patches: scans split in halves by index (time),
     trained on one half and tested on the other, both ways, averaged."""
     half_real, half_sim = len(real) // 2, len(simulated) // 2
@@ -163,8 +178,11 @@ def patch_classifier_accuracy(real: Sequence[np.ndarray], simulated: Sequence[np
         raise ValueError("the patch classifier needs at least 2 real and 2 simulated scans")
     folds = [((real[:half_real], simulated[:half_sim]), (real[half_real:], simulated[half_sim:]))]
     folds.append((folds[0][1], folds[0][0]))
-    return float(np.mean([_fold_accuracy(train, test, seed + k, steps, patches_per_scan)
-                          for k, (train, test) in enumerate(folds)]))
+    return float(
+        np.mean(
+            [_fold_accuracy(train, test, seed + k, steps, patches_per_scan) for k, (train, test) in enumerate(folds)]
+        )
+    )
 
 
 def _fold_accuracy(train: tuple, test: tuple, seed: int, steps: int, patches_per_scan: int) -> float:
@@ -186,9 +204,17 @@ def _fold_accuracy(train: tuple, test: tuple, seed: int, steps: int, patches_per
     x_train, y_train = data(*train)
     x_test, y_test = data(*test)
     net = nn.Sequential(
-        nn.Conv2d(1, 16, 3, padding=1), nn.ReLU(), nn.MaxPool2d(2),
-        nn.Conv2d(16, 32, 3, padding=1), nn.ReLU(), nn.MaxPool2d(2),
-        nn.Conv2d(32, 32, 3, padding=1), nn.ReLU(), nn.AdaptiveAvgPool2d(1), nn.Flatten(), nn.Linear(32, 1),
+        nn.Conv2d(1, 16, 3, padding=1),
+        nn.ReLU(),
+        nn.MaxPool2d(2),
+        nn.Conv2d(16, 32, 3, padding=1),
+        nn.ReLU(),
+        nn.MaxPool2d(2),
+        nn.Conv2d(32, 32, 3, padding=1),
+        nn.ReLU(),
+        nn.AdaptiveAvgPool2d(1),
+        nn.Flatten(),
+        nn.Linear(32, 1),
     )
     optimizer = torch.optim.Adam(net.parameters(), lr=2e-3)
     for _ in range(steps):
@@ -205,8 +231,13 @@ def _fold_accuracy(train: tuple, test: tuple, seed: int, steps: int, patches_per
 CLASSIFIER_SEEDS = 2  # independent classifiers (each 2-fold) averaged: one alone varies by several points
 
 
-def realism_table(real_sequences: Sequence[Sequence[np.ndarray]], simulated_sequences: Sequence[Sequence[np.ndarray]],
-                  classifier: bool = True, seed: int = 0, classifier_steps: int = 400) -> list[Row]:
+def realism_table(
+    real_sequences: Sequence[Sequence[np.ndarray]],
+    simulated_sequences: Sequence[Sequence[np.ndarray]],
+    classifier: bool = True,
+    seed: int = 0,
+    classifier_steps: int = 400,
+) -> list[Row]:
     """Every measure of the module docstring for two lists of sequences (each a list of uint8 [1152, 1152] scans in
     time order; the scan-to-scan measure pairs consecutive scans of a sequence, the others pool every scan)."""
     real = [scan for scans in real_sequences for scan in scans]
@@ -214,21 +245,48 @@ def realism_table(real_sequences: Sequence[Sequence[np.ndarray]], simulated_sequ
     rows = []
     real_q, sim_q = ring_quantiles(real), ring_quantiles(simulated)
     for r in RING_RANGES_M:
-        rows.append(Row(f"grey p50/p90/p99 at {r:g} m", "/".join(f"{v:.0f}" for v in real_q[r]),
-                        "/".join(f"{v:.0f}" for v in sim_q[r]), float(np.abs(real_q[r] - sim_q[r]).mean()), "grey"))
+        rows.append(
+            Row(
+                f"grey p50/p90/p99 at {r:g} m",
+                "/".join(f"{v:.0f}" for v in real_q[r]),
+                "/".join(f"{v:.0f}" for v in sim_q[r]),
+                float(np.abs(real_q[r] - sim_q[r]).mean()),
+                "grey",
+            )
+        )
     grain_real, grain_sim = speckle_grain_m(real), speckle_grain_m(simulated)
-    rows.append(Row("speckle grain along range", f"{grain_real:.2f}", f"{grain_sim:.2f}", abs(grain_real - grain_sim),
-                    "m"))
+    rows.append(
+        Row("speckle grain along range", f"{grain_real:.2f}", f"{grain_sim:.2f}", abs(grain_real - grain_sim), "m")
+    )
     stripe_real, stripe_sim = azimuth_striping(real), azimuth_striping(simulated)
     rows.append(Row("azimuth striping", f"{stripe_real:.3f}", f"{stripe_sim:.3f}", abs(stripe_real - stripe_sim)))
     stable_real, stable_sim = scan_to_scan_stability(real_sequences), scan_to_scan_stability(simulated_sequences)
-    rows.append(Row("scan-to-scan stability of bright returns", f"{stable_real:.2f}", f"{stable_sim:.2f}",
-                    abs(stable_real - stable_sim)))
+    rows.append(
+        Row(
+            "scan-to-scan stability of bright returns",
+            f"{stable_real:.2f}",
+            f"{stable_sim:.2f}",
+            abs(stable_real - stable_sim),
+        )
+    )
     if classifier:
-        accuracy = float(np.mean([patch_classifier_accuracy(real, simulated, seed=seed + 10 * k, steps=classifier_steps)
-                                  for k in range(CLASSIFIER_SEEDS)]))
-        rows.append(Row("patch classifier, held-out accuracy", "50%", f"{100 * accuracy:.1f}%",
-                        100 * abs(accuracy - 0.5), "points above 50%"))
+        accuracy = float(
+            np.mean(
+                [
+                    patch_classifier_accuracy(real, simulated, seed=seed + 10 * k, steps=classifier_steps)
+                    for k in range(CLASSIFIER_SEEDS)
+                ]
+            )
+        )
+        rows.append(
+            Row(
+                "patch classifier, held-out accuracy",
+                "50%",
+                f"{100 * accuracy:.1f}%",
+                100 * abs(accuracy - 0.5),
+                "points above 50%",
+            )
+        )
     return rows
 
 

@@ -1,4 +1,5 @@
 """The ego's route through the town (a street, possibly turning at a junction) and its drive along it."""
+
 from __future__ import annotations
 
 from dataclasses import dataclass
@@ -35,8 +36,15 @@ class Road:
         return np.stack([x, y], -1), heading
 
 
-def make_route(street_x: float, s_min: float, s_max: float, lanes: int, turn: int = 0, junction_y: float = 0.0,
-               radius: float = 10.0) -> Road:
+def make_route(
+    street_x: float,
+    s_min: float,
+    s_max: float,
+    lanes: int,
+    turn: int = 0,
+    junction_y: float = 0.0,
+    radius: float = 10.0,
+) -> Road:
     """The centreline of the ego's street (world x = street_x, heading +y, arc length s = world y before any turn);
     turn +1 (left) / -1 (right) leaves it on a quarter circle of `radius` into the crossing street at world
     y = junction_y, whose centreline the route then follows; 0 keeps straight on."""
@@ -53,7 +61,8 @@ def make_route(street_x: float, s_min: float, s_max: float, lanes: int, turn: in
         heading[on_arc] = np.pi / 2.0 + turn * angle[on_arc]
         beyond = s > start + length  # then straight on along the crossing street
         points[beyond] += (s[beyond] - start - length)[:, None] * np.stack(
-            [np.cos(heading[beyond]), np.sin(heading[beyond])], -1)
+            [np.cos(heading[beyond]), np.sin(heading[beyond])], -1
+        )
     return Road(s=s, points=points, heading=heading, lanes_per_direction=lanes)
 
 

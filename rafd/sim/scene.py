@@ -1,4 +1,5 @@
 """Radar scatterers: the point reflectors the sensor model illuminates (static world and road users)."""
+
 from __future__ import annotations
 
 from dataclasses import dataclass, field
@@ -27,7 +28,7 @@ class Scatterers:
         return len(self.xy)
 
     @staticmethod
-    def concat(parts: list["Scatterers"]) -> "Scatterers":
+    def concat(parts: list[Scatterers]) -> Scatterers:
         return Scatterers(
             xy=np.concatenate([p.xy for p in parts]).reshape(-1, 2),
             amplitude=np.concatenate([p.amplitude for p in parts]),
@@ -37,11 +38,23 @@ class Scatterers:
             diffuse=np.concatenate([p.diffuse for p in parts]),
         )
 
-    def subset(self, keep: np.ndarray) -> "Scatterers":
-        return Scatterers(self.xy[keep], self.amplitude[keep], self.normal[keep], self.occluder[keep],
-                          self.owner[keep], self.diffuse[keep])
+    def subset(self, keep: np.ndarray) -> Scatterers:
+        return Scatterers(
+            self.xy[keep],
+            self.amplitude[keep],
+            self.normal[keep],
+            self.occluder[keep],
+            self.owner[keep],
+            self.diffuse[keep],
+        )
 
-    def transformed(self, rotation: np.ndarray, translation: np.ndarray) -> "Scatterers":
+    def transformed(self, rotation: np.ndarray, translation: np.ndarray) -> Scatterers:
         """Apply p -> rotation @ p + translation (rotation [2, 2]) to points and normals."""
-        return Scatterers(self.xy @ rotation.T + translation, self.amplitude, self.normal @ rotation.T, self.occluder,
-                          self.owner, self.diffuse)
+        return Scatterers(
+            self.xy @ rotation.T + translation,
+            self.amplitude,
+            self.normal @ rotation.T,
+            self.occluder,
+            self.owner,
+            self.diffuse,
+        )

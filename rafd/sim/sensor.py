@@ -9,6 +9,7 @@ and a bright streak just behind it, in the sensor's own frame, in every scan. We
 (rain) diffuse backscatter near the radar.
 A drive's conditions (gain, floor, striping, speckle grain, weather) are drawn once per sequence (Conditions).
 """
+
 from __future__ import annotations
 
 import math
@@ -67,7 +68,7 @@ class Conditions:
     beam_seed: int = 0  # draws the per-beam gains that repeat in every scan of the drive (STRIPING_FIXED)
 
     @classmethod
-    def sample(cls, rng: np.random.Generator, weather: str | None = None) -> "Conditions":
+    def sample(cls, rng: np.random.Generator, weather: str | None = None) -> Conditions:
         """Draw one drive's conditions; `weather` forces its weather instead of drawing it (e.g. to compare with
         real scans taken in that weather). Forcing takes from `rng` exactly what drawing would, so the drive's every
         other draw (its gain, floor, town, traffic) stays as it was: the same drive, in another weather."""
@@ -81,8 +82,9 @@ class Conditions:
         striping, speckle_grain = float(rng.uniform(0.15, 0.4)), float(rng.uniform(2.0, 3.6))
         # one-way power attenuation at 77 GHz (ITU-R P.840 / P.838): dense fog up to ~1.2 dB/km, rain of ~2-40 mm/h
         # about 2-15 dB/km
-        attenuation = float({"clear": 0.0, "fog": rng.uniform(0.0, 0.0003),
-                             "rain": rng.uniform(0.0005, 0.0035)}[weather])
+        attenuation = float(
+            {"clear": 0.0, "fog": rng.uniform(0.0, 0.0003), "rain": rng.uniform(0.0005, 0.0035)}[weather]
+        )
         # The rain backscatter's strength is taken from the stream only where the drive drew rain; a drive forced into
         # rain takes it from a side stream (Generator.spawn leaves the main stream where it is).
         drawn_rain = float(rng.uniform(0.5, 3.0)) if drawn == "rain" else None
@@ -91,8 +93,14 @@ class Conditions:
         else:
             rain = drawn_rain if drawn_rain is not None else float(rng.spawn(1)[0].uniform(0.5, 3.0))
         return cls(
-            weather=weather, gain=gain, floor_near=floor_near, floor_far=floor_far, striping=striping,
-            speckle_grain=speckle_grain, attenuation=attenuation, rain=rain,
+            weather=weather,
+            gain=gain,
+            floor_near=floor_near,
+            floor_far=floor_far,
+            striping=striping,
+            speckle_grain=speckle_grain,
+            attenuation=attenuation,
+            rain=rain,
             vehicle_gain=float(rng.uniform(0.4, 1.0) if weather != "clear" else rng.uniform(0.7, 1.3)),
             clutter_persistence=float(rng.uniform(*CLUTTER_PERSISTENCE_RANGE)),
             beam_seed=int(rng.integers(2**31)),
@@ -148,8 +156,12 @@ class NavtechSensor:
         # Azimuth kernel: main lobe + wide sidelobe; wrapped padding makes it circular.
         self._pad = 12
         main = _gaussian(config.beam_sigma_bins, self._pad)
-        self._azimuth_kernel = ((1 - config.azimuth_sidelobe) * main + config.azimuth_sidelobe * _gaussian(5.0, self._pad)).astype(np.float32)
-        self._range_kernel = _gaussian(config.range_sigma_bins, int(math.ceil(3 * config.range_sigma_bins))).astype(np.float32)
+        self._azimuth_kernel = (
+            (1 - config.azimuth_sidelobe) * main + config.azimuth_sidelobe * _gaussian(5.0, self._pad)
+        ).astype(np.float32)
+        self._range_kernel = _gaussian(config.range_sigma_bins, int(math.ceil(3 * config.range_sigma_bins))).astype(
+            np.float32
+        )
         self._map_x, self._map_y = self._cartesian_maps()
         self.mount = self._mount_pattern()
 
@@ -190,8 +202,9 @@ class NavtechSensor:
     @property
     def polar_conventions(self) -> PolarConventions:
         """Where to_cartesian places the samples of the transposed [R, A] polar: bin centres, radar at S/2."""
-        return PolarConventions(azimuth_offset=0.5, range_offset=0.5, range_bin=self.config.range_bin,
-                                centre_offset=(0.0, 0.0))
+        return PolarConventions(
+            azimuth_offset=0.5, range_offset=0.5, range_bin=self.config.range_bin, centre_offset=(0.0, 0.0)
+        )
 
     def polar_coordinates(self, xy: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """[N, 2] ego metres -> ([N] continuous azimuth bins in [0, A), [N] ranges in metres)."""
@@ -217,11 +230,18 @@ class NavtechSensor:
         attenuation = 0.0 if conditions is None else conditions.attenuation
         power = np.where(shadowed, power * cfg.shadow, power) / (1.0 + rng_m / cfg.attenuation_range)
         power = power * np.exp(-2.0 * attenuation * rng_m)
-        return Echoes(azimuth[inside], rng_m[inside], power[inside], (~shadowed)[inside], scatterers.owner[inside],
-                      scatterers.diffuse[inside])
+        return Echoes(
+            azimuth[inside],
+            rng_m[inside],
+            power[inside],
+            (~shadowed)[inside],
+            scatterers.owner[inside],
+            scatterers.diffuse[inside],
+        )
 
-    def accumulate(self, azimuth: np.ndarray, ranges: np.ndarray, power: np.ndarray,
-                   diffuse: np.ndarray | None = None) -> np.ndarray:
+    def accumulate(
+        self, azimuth: np.ndarray, ranges: np.ndarray, power: np.ndarray, diffuse: np.ndarray | None = None
+    ) -> np.ndarray:
         """Point returns -> [A, R] polar power: a cell keeps its dominant point scatterer plus the sum of the
         diffuse ones (extended returns add up incoherently)."""
         cfg = self.config
@@ -243,8 +263,9 @@ class NavtechSensor:
         intensity = real.astype(np.float64) ** 2 + imag.astype(np.float64) ** 2
         return intensity / (2.0 * float((kernel**2).sum()) * float((across**2).sum()))
 
-    def receive(self, signal: np.ndarray, rng: np.random.Generator, difficulty: Difficulty,
-                conditions: Conditions | None = None) -> np.ndarray:
+    def receive(
+        self, signal: np.ndarray, rng: np.random.Generator, difficulty: Difficulty, conditions: Conditions | None = None
+    ) -> np.ndarray:
         """[A, R] echo power -> [A, R] float32 grey levels: beam and range blur, radial streaks, the range-dependent
         floor, the mounting pattern, rain backscatter, interference rays, per-beam gain, speckle, detection."""
         cfg = self.config
@@ -255,8 +276,15 @@ class NavtechSensor:
         # Strong echoes leak along their whole ray (phase noise / range sidelobes): the radial lines.
         energy = blurred.sum(1, keepdims=True) * cfg.range_bin  # [A, 1]
         streak = cfg.radial_streak * energy * np.exp(-self.ranges / 60.0)[None] / 10.0
-        floor = NOISE_FLOOR * difficulty.noise * (1.0 + conditions.floor_near * np.exp(-self.ranges / 2.0)
-                                                  + FLOOR_FAR_SCALE * conditions.floor_far * self.ranges / 40.0)[None]
+        floor = (
+            NOISE_FLOOR
+            * difficulty.noise
+            * (
+                1.0
+                + conditions.floor_near * np.exp(-self.ranges / 2.0)
+                + FLOOR_FAR_SCALE * conditions.floor_far * self.ranges / 40.0
+            )[None]
+        )
         rain = conditions.rain * np.exp(-self.ranges / 25.0)[None]
         rays = np.ones((cfg.azimuths, 1))
         for row in rng.integers(2, cfg.azimuths - 2, rng.poisson(1.5 * difficulty.clutter)):
@@ -267,8 +295,10 @@ class NavtechSensor:
         log_gain = conditions.striping * (math.sqrt(STRIPING_FIXED) * fixed + math.sqrt(1.0 - STRIPING_FIXED) * fresh)
         if BEAM_CORRELATION > 0:
             kernel = _gaussian(BEAM_CORRELATION, int(math.ceil(3 * BEAM_CORRELATION)))
-            wrapped = np.concatenate([log_gain[-len(kernel):], log_gain, log_gain[:len(kernel)]])[:, 0]
-            log_gain = (np.convolve(wrapped, kernel / np.sqrt((kernel**2).sum()), "same")[len(kernel):-len(kernel)])[:, None]
+            wrapped = np.concatenate([log_gain[-len(kernel) :], log_gain, log_gain[: len(kernel)]])[:, 0]
+            log_gain = (np.convolve(wrapped, kernel / np.sqrt((kernel**2).sum()), "same")[len(kernel) : -len(kernel)])[
+                :, None
+            ]
         beams = np.exp(log_gain)
         noise = (floor + rain) * rays
         speckle_noise = self._speckle(rng, blurred.shape, NOISE_GRAIN)  # receiver noise: nearly white in range
@@ -279,5 +309,7 @@ class NavtechSensor:
     def to_cartesian(self, polar: np.ndarray) -> np.ndarray:
         """[A, R] grey levels -> [S, S] uint8 Cartesian scan (bilinear, wrapped at azimuth 0)."""
         padded = np.concatenate([polar[-1:], polar, polar[:1]])  # [A + 2, R]
-        image = cv2.remap(padded, self._map_x, self._map_y, cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT, borderValue=0)
+        image = cv2.remap(
+            padded, self._map_x, self._map_y, cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT, borderValue=0
+        )
         return np.clip(np.rint(image), 0, 255).astype(np.uint8)

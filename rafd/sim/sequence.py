@@ -6,6 +6,7 @@ things and the static world are smeared by the motion during the sweep, and the 
 straight ahead, displaced by the ego's motion during one rotation. A frame's timestamp and pose are those of the
 middle of its sweep; each label is where its road user was seen (rafd.sim.vehicles.annotation_box).
 """
+
 from __future__ import annotations
 
 import logging
@@ -79,8 +80,9 @@ BURST_POWER = (math.log(10.0), 0.7)  # log-normal (mu, sigma) of a burst point's
 SCINTILLATION = 0.3  # std of the per-scan log power of world-fixed clutter (aspect changes as the ego moves)
 
 
-def world_clutter(rng: np.random.Generator, bounds: tuple[float, float, float, float], difficulty: Difficulty,
-                  persistence: float) -> tuple[np.ndarray, np.ndarray]:
+def world_clutter(
+    rng: np.random.Generator, bounds: tuple[float, float, float, float], difficulty: Difficulty, persistence: float
+) -> tuple[np.ndarray, np.ndarray]:
     """The persistent share of the point clutter (road furniture, litter, small signs), fixed in the world over
     `bounds`: ([N, 2] world metres, [N] power), at the same density per m^2 as _transient_returns draws per scan."""
     x_lo, x_hi, y_lo, y_hi = bounds
@@ -97,7 +99,10 @@ def world_clutter(rng: np.random.Generator, bounds: tuple[float, float, float, f
 
 
 def _transient_returns(
-    rng: np.random.Generator, sensor: NavtechSensor, difficulty: Difficulty, persistence: float,
+    rng: np.random.Generator,
+    sensor: NavtechSensor,
+    difficulty: Difficulty,
+    persistence: float,
     ghosts_from: list[tuple[np.ndarray, np.ndarray, np.ndarray]],
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Returns that do not persist between scans: the transient 1 - `persistence` share of the scattered clutter
@@ -180,8 +185,7 @@ def visible_beams(echoes, owners: int, azimuths: int) -> tuple[np.ndarray, np.nd
     order = np.lexsort((echoes.ranges[mine], keys))  # by beam key, nearest first
     first = order[np.r_[True, keys[order][1:] != keys[order][:-1]]]  # each (owner, beam)'s nearest return
     owner = echoes.owner[mine][first]
-    return (np.bincount(owner[echoes.lit[mine][first]], minlength=owners),
-            np.bincount(owner, minlength=owners))
+    return (np.bincount(owner[echoes.lit[mine][first]], minlength=owners), np.bincount(owner, minlength=owners))
 
 
 def annotator_sees(lit: np.ndarray, seen: np.ndarray, strength: np.ndarray, shadow: float) -> np.ndarray:
@@ -194,8 +198,15 @@ def annotator_sees(lit: np.ndarray, seen: np.ndarray, strength: np.ndarray, shad
 
 
 def run_simulation(
-    seed: int, num_frames: int, split: str, size: int, difficulty: Difficulty, name: str,
-    resolution: float = RADIATE_RESOLUTION, ambiguous: bool = True, weather: str | None = None,
+    seed: int,
+    num_frames: int,
+    split: str,
+    size: int,
+    difficulty: Difficulty,
+    name: str,
+    resolution: float = RADIATE_RESOLUTION,
+    ambiguous: bool = True,
+    weather: str | None = None,
 ) -> SimulatedSequence:
     """Simulate `num_frames` scans of size x size pixels deterministically from `seed`. `ambiguous` labels boxes as
     RADIATE's annotators do (ambiguous_labels); False keeps width across and yaw along each road user's travel.
@@ -218,14 +229,26 @@ def run_simulation(
     ego_street = Street(axis=1, position=ego_offset, lanes=lanes, pavement=float(rng.uniform(2.0, 4.5)))
     density = 0.0 if rng.random() < EMPTY_STREETS_PROBABILITY else math.exp(rng.uniform(*np.log(DENSITY_RANGE)))
     parked_density = float(rng.uniform(0.0, 1.5))
-    city = build_city(rng, (-view - reach - 60.0, view + reach + 60.0, -view - 60.0, view + reach + 60.0), ego_street,
-                      difficulty.clutter, parked_density)
+    city = build_city(
+        rng,
+        (-view - reach - 60.0, view + reach + 60.0, -view - 60.0, view + reach + 60.0),
+        ego_street,
+        difficulty.clutter,
+        parked_density,
+    )
     turn, junction = 0, 0.0
     ahead = [st.position for st in city.y_streets if 12.0 < st.position < reach - 15.0]
     if ahead and rng.random() < TURN_PROBABILITY:
         turn, junction = int(rng.choice([-1, 1])), float(rng.choice(ahead))
-    route = make_route(ego_street.position, -view - 100.0, reach + view + 100.0, lanes, turn, junction,
-                       radius=float(rng.uniform(7.0, 14.0)))
+    route = make_route(
+        ego_street.position,
+        -view - 100.0,
+        reach + view + 100.0,
+        lanes,
+        turn,
+        junction,
+        radius=float(rng.uniform(7.0, 14.0)),
+    )
     ego = drive_ego(rng, route, fine, ego_offset)
     agents = spawn_traffic(rng, city, route, fine, ego.s, ego_offset, view, density)
     looks = [sample_look(rng, agent.class_name, conditions.vehicle_gain) for agent in agents]
@@ -241,8 +264,10 @@ def run_simulation(
         ego_start, ego_end = _interpolate(fine, ego.poses, np.array(sweep), angle_column=2)
         near = np.hypot(*(world.xy - poses[t, :2]).T) < view + 5.0
         static = world.subset(near)
-        seen, _ = sweep_positions(_to_ego(np.broadcast_to(ego_start, (len(static), 3)), static.xy),
-                                  _to_ego(np.broadcast_to(ego_end, (len(static), 3)), static.xy))
+        seen, _ = sweep_positions(
+            _to_ego(np.broadcast_to(ego_start, (len(static), 3)), static.xy),
+            _to_ego(np.broadcast_to(ego_end, (len(static), 3)), static.xy),
+        )
         turn_by = rotation_matrix(-poses[t, 2])  # normals: the world's orientation in this frame's ego axes
         parts = [Scatterers(seen, static.amplitude, static.normal @ turn_by.T, static.occluder, static.owner)]
         ego_boxes = np.full((len(agents), 5), np.nan)
@@ -250,8 +275,9 @@ def run_simulation(
             at_start, at_end = _interpolate(fine, agent.boxes, np.array(sweep), angle_column=4)
             if min(np.hypot(*(at_start[:2] - ego_start[:2])), np.hypot(*(at_end[:2] - ego_end[:2]))) > view + 15.0:
                 continue
-            _, fraction = sweep_positions(_to_ego(ego_start[None], at_start[None, :2]),
-                                          _to_ego(ego_end[None], at_end[None, :2]))
+            _, fraction = sweep_positions(
+                _to_ego(ego_start[None], at_start[None, :2]), _to_ego(ego_end[None], at_end[None, :2])
+            )
             moment = sweep[0] + fraction[0] * SCAN_PERIOD
             box = _interpolate(fine, agent.boxes, moment, angle_column=4)[0]
             pose = _interpolate(fine, ego.poses, moment, angle_column=2)[0]
@@ -270,16 +296,24 @@ def run_simulation(
         # clutter it is added in the polar domain (no facing, occlusion or range loss: calibrated as it is seen).
         close = np.hypot(*(clutter_xy - poses[t, :2]).T) < view + 5.0
         nearby = clutter_xy[close]
-        clutter_seen, _ = sweep_positions(_to_ego(np.broadcast_to(ego_start, (len(nearby), 3)), nearby),
-                                          _to_ego(np.broadcast_to(ego_end, (len(nearby), 3)), nearby))
+        clutter_seen, _ = sweep_positions(
+            _to_ego(np.broadcast_to(ego_start, (len(nearby), 3)), nearby),
+            _to_ego(np.broadcast_to(ego_end, (len(nearby), 3)), nearby),
+        )
         c_az, c_rg = sensor.polar_coordinates(clutter_seen)
         c_pw = clutter_power[close] * rng.lognormal(0.0, SCINTILLATION, len(c_rg))
         inside = (c_rg > 1.0) & (c_rg < sensor.max_range)
-        t_az, t_rg, t_pw = (np.concatenate([t_az, c_az[inside]]), np.concatenate([t_rg, c_rg[inside]]),
-                            np.concatenate([t_pw, c_pw[inside]]))
-        signal = sensor.accumulate(np.concatenate([echoes.azimuth, t_az]), np.concatenate([echoes.ranges, t_rg]),
-                                   np.concatenate([echoes.power, t_pw]),
-                                   np.concatenate([echoes.diffuse, np.zeros(len(t_az), bool)]))
+        t_az, t_rg, t_pw = (
+            np.concatenate([t_az, c_az[inside]]),
+            np.concatenate([t_rg, c_rg[inside]]),
+            np.concatenate([t_pw, c_pw[inside]]),
+        )
+        signal = sensor.accumulate(
+            np.concatenate([echoes.azimuth, t_az]),
+            np.concatenate([echoes.ranges, t_rg]),
+            np.concatenate([echoes.power, t_pw]),
+            np.concatenate([echoes.diffuse, np.zeros(len(t_az), bool)]),
+        )
         received = sensor.receive(signal, rng, difficulty, conditions)
         images.append(sensor.to_cartesian(received))
         polar_scans.append(to_radiate_polar(received.T, sensor.polar_conventions))
@@ -292,8 +326,9 @@ def run_simulation(
             & annotator_sees(lit, seen_count, strengths, sensor.config.shadow)
         )
         for k in np.flatnonzero(in_view):
-            truth[k, t] = annotation_box(ego_boxes[k], agents[k].class_name, looks[k], label_rng,
-                                         sensor.beam_sigma_rad, sensor.range_sigma_m)
+            truth[k, t] = annotation_box(
+                ego_boxes[k], agents[k].class_name, looks[k], label_rng, sensor.beam_sigma_rad, sensor.range_sigma_m
+            )
     if ambiguous:
         truth = ambiguous_labels(truth, label_rng)
     objects = [
@@ -301,6 +336,13 @@ def run_simulation(
         for k, agent in enumerate(agents)
         if np.isfinite(truth[k, :, 0]).any()
     ]
-    logger.info("simulated %s: %d frames, %d annotated objects of %d road users (%s, density %.2f)", name, num_frames,
-                len(objects), len(agents), conditions.weather, density)
+    logger.info(
+        "simulated %s: %d frames, %d annotated objects of %d road users (%s, density %.2f)",
+        name,
+        num_frames,
+        len(objects),
+        len(agents),
+        conditions.weather,
+        density,
+    )
     return SimulatedSequence(name, split, seed, resolution, images, stamps, poses, objects, polar_scans, conditions)

@@ -4,6 +4,7 @@ streets, parked vehicles (from the town's layout) and pedestrians on the pavemen
 Every agent carries its world boxes on the simulation's fine time grid (several samples per scan), so a scan can
 see each road user at the moment its beam passes it (rafd.sim.sequence).
 """
+
 from __future__ import annotations
 
 from dataclasses import dataclass
@@ -69,8 +70,16 @@ def _clear(s: np.ndarray, length: float, others: list[tuple[np.ndarray, float]])
     return all(np.all(np.abs(s - other) > (length + other_length) / 2.0 + 2.0) for other, other_length in others)
 
 
-def spawn_traffic(rng: np.random.Generator, city: City, route: Road, times: np.ndarray, ego_s: np.ndarray,
-                  ego_offset: float, view: float, density: float) -> list[Agent]:
+def spawn_traffic(
+    rng: np.random.Generator,
+    city: City,
+    route: Road,
+    times: np.ndarray,
+    ego_s: np.ndarray,
+    ego_offset: float,
+    view: float,
+    density: float,
+) -> list[Agent]:
     """Road users for a drive whose ego follows `route` at arc lengths ego_s [F] on the fine time grid `times` [F].
 
     density scales moving traffic: vehicles per lane per 45 m (0 = empty streets)."""
@@ -91,8 +100,10 @@ def spawn_traffic(rng: np.random.Generator, city: City, route: Road, times: np.n
                     class_name = _pick(rng, TRAFFIC_MIX)
                     width, length = _size(rng, class_name)
                     travelled = speed_profile(rng, rel_t, max_speed=rng.uniform(5.0, 14.0), stop_probability=0.05)
-                    start = rng.uniform(lo - (15.0 * duration if direction > 0 else 0.0),
-                                        hi + (15.0 * duration if direction < 0 else 0.0))
+                    start = rng.uniform(
+                        lo - (15.0 * duration if direction > 0 else 0.0),
+                        hi + (15.0 * duration if direction < 0 else 0.0),
+                    )
                     s = start + direction * travelled
                     if not _clear(s, length, lane):
                         continue

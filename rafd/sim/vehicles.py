@@ -12,6 +12,7 @@ width/length ambiguity afterwards): the body widened by the blur the sensor adds
 range and bearing (beam width across range, range spread along it) plus a loose margin, so a car's label is about
 2.6-3.0 m x 5 m where its body is 1.85 x 4.5 m.
 """
+
 from __future__ import annotations
 
 import math
@@ -23,8 +24,16 @@ from rafd.sim.scene import Scatterers
 
 POINTS_PER_M2 = 40.0
 # Per-class strength relative to a car (radar cross-section grows with size; two-wheelers and people are weak).
-CLASS_STRENGTH = {"car": 1.0, "van": 1.3, "truck": 1.8, "bus": 1.8, "motorbike": 0.45, "bicycle": 0.3,
-                  "pedestrian": 0.2, "group_of_pedestrians": 0.3}
+CLASS_STRENGTH = {
+    "car": 1.0,
+    "van": 1.3,
+    "truck": 1.8,
+    "bus": 1.8,
+    "motorbike": 0.45,
+    "bicycle": 0.3,
+    "pedestrian": 0.2,
+    "group_of_pedestrians": 0.3,
+}
 STRENGTH_RANGE = (0.4, 14.0)  # mean power per polar cell over the visible body, noise floor = 1 (log-uniform)
 SPREAD_RANGE = (0.25, 0.7)  # metres
 LABEL_SLACK = (0.05, 0.35)  # metres an annotator leaves on every side
@@ -46,8 +55,9 @@ def sample_look(rng: np.random.Generator, class_name: str, gain: float = 1.0) ->
     width_part, length_part = rng.uniform(0.5, 1.0), rng.uniform(0.4, 1.0)
     # placed on the body later (it depends on where the radar is); stored as sizes and a random along-shift
     shift = rng.uniform(-0.5, 0.5) * (1.0 - length_part)
-    return Look(strength, (width_part, 0.0, length_part, shift), float(rng.uniform(*SPREAD_RANGE)),
-                int(rng.poisson(1.5)))
+    return Look(
+        strength, (width_part, 0.0, length_part, shift), float(rng.uniform(*SPREAD_RANGE)), int(rng.poisson(1.5))
+    )
 
 
 def _visible_part(box: np.ndarray, look: Look) -> tuple[float, float, float, float]:
@@ -56,15 +66,16 @@ def _visible_part(box: np.ndarray, look: Look) -> tuple[float, float, float, flo
     c, s = math.cos(yaw), math.sin(yaw)
     towards = np.array([c * -x + s * -y, -s * -x + c * -y])  # direction to the radar in body axes
     width_part, _, length_part, shift = look.visible
-    w, l = width * width_part, length * length_part
+    w, ln = width * width_part, length * length_part
     u_centre = math.copysign((width - w) / 2.0, towards[0])  # the side the radar sees
-    v_room = (length - l) / 2.0
+    v_room = (length - ln) / 2.0
     v_centre = float(np.clip(math.copysign(v_room, towards[1]) * 0.5 + shift * length, -v_room, v_room))
-    return u_centre - w / 2.0, u_centre + w / 2.0, v_centre - l / 2.0, v_centre + l / 2.0
+    return u_centre - w / 2.0, u_centre + w / 2.0, v_centre - ln / 2.0, v_centre + ln / 2.0
 
 
-def diffuse_returns(box: np.ndarray, look: Look, rng: np.random.Generator, owner: int,
-                    azimuth_bin_rad: float, range_bin: float) -> Scatterers:
+def diffuse_returns(
+    box: np.ndarray, look: Look, rng: np.random.Generator, owner: int, azimuth_bin_rad: float, range_bin: float
+) -> Scatterers:
     """A road user's return as diffuse scatterers in the ego frame (its box [5] in the ego frame).
 
     Point powers are normalised by the polar cell area at the road user's range, so `look.strength` is the mean power
@@ -89,8 +100,9 @@ def diffuse_returns(box: np.ndarray, look: Look, rng: np.random.Generator, owner
     return Scatterers(xy, amplitude, np.zeros((n, 2)), np.ones(n, bool), np.full(n, owner), np.ones(n, bool))
 
 
-def annotation_box(box: np.ndarray, class_name: str, look: Look, rng: np.random.Generator,
-                   beam_sigma_rad: float, range_sigma_m: float) -> np.ndarray:
+def annotation_box(
+    box: np.ndarray, class_name: str, look: Look, rng: np.random.Generator, beam_sigma_rad: float, range_sigma_m: float
+) -> np.ndarray:
     """The box [5] an annotator draws around the road user's blurred return (ego frame, before the ambiguity)."""
     x, y, width, length, yaw = box
     distance = math.hypot(x, y)

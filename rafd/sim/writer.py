@@ -1,5 +1,6 @@
 """Write a simulated sequence in RADIATE's on-disk layout (+ our ego_poses.csv with the true poses; optionally the
 polar scans as Navtech_Polar/ + Navtech_Polar.txt, RADIATE's layout and bin size)."""
+
 from __future__ import annotations
 
 import json

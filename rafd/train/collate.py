@@ -1,23 +1,25 @@
-"""Window dicts from the dataset -> one batch of tensors (targets built per window by rafd.targets)."""
+"""Window dicts from the dataset -> one batch of tensors (targets built per window by rafd.data.targets)."""
+
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import dataclass, field
-from typing import Any, Sequence
+from typing import Any
 
 import numpy as np
 import torch
 from torch import Tensor
 
 from rafd.config import RaFDConfig
+from rafd.data.targets import build_targets
 from rafd.preprocess import to_model_input
-from rafd.targets import build_targets
 
 
 @dataclass
 class Batch:
     frames: Tensor  # [B, T, 1, H, W] float in [0, 1], oldest first
     poses: Tensor  # [B, T, 3] world poses (x, y, yaw)
-    targets: dict[str, Tensor]  # rafd.targets.build_targets keys, each with a leading batch dim
+    targets: dict[str, Tensor]  # rafd.data.targets.build_targets keys, each with a leading batch dim
     boxes: list[np.ndarray] = field(default_factory=list)  # per window [M, 5]: ALL GT boxes of the newest frame
     sequences: list[str] = field(default_factory=list)
     frame_numbers: list[int] = field(default_factory=list)  # newest frame's RADIATE number per window
@@ -25,7 +27,7 @@ class Batch:
     def __len__(self) -> int:
         return int(self.frames.shape[0])
 
-    def pin_memory(self) -> "Batch":
+    def pin_memory(self) -> Batch:
         """Page-locked copies (DataLoader(pin_memory=True) calls this), so .to(cuda, non_blocking=True) overlaps."""
         return Batch(
             frames=self.frames.pin_memory(),
@@ -36,7 +38,7 @@ class Batch:
             frame_numbers=self.frame_numbers,
         )
 
-    def to(self, device: torch.device) -> "Batch":
+    def to(self, device: torch.device) -> Batch:
         return Batch(
             frames=self.frames.to(device, non_blocking=True),
             poses=self.poses.to(device, non_blocking=True),

@@ -1,4 +1,5 @@
 """Opening window datasets for training/evaluation with clear errors (wraps rafd.data.RadarWindowDataset)."""
+
 from __future__ import annotations
 
 import logging
@@ -64,8 +65,9 @@ def open_windows(
     if not root.is_dir():
         raise DatasetError(f"data root {root} is not a directory")
     try:
-        dataset = RadarWindowDataset(root, split=split, cfg=cfg, augment=augment, cache=cache,
-                                     estimate_poses=estimate_poses, seed=seed)
+        dataset = RadarWindowDataset(
+            root, split=split, cfg=cfg, augment=augment, cache=cache, estimate_poses=estimate_poses, seed=seed
+        )
     except (MissingPosesError, CacheError) as error:
         raise DatasetError(str(error)) from error
     except (FileNotFoundError, ValueError) as error:

@@ -8,6 +8,7 @@
 - EpochSampler yields (epoch, index) keys: the dataset seeds each window's augmentation from them, so a window's
   content is independent of DataLoader workers and of where a run was resumed.
 """
+
 from __future__ import annotations
 
 import datetime
@@ -83,10 +84,17 @@ def init_distributed(device: str = "auto", timeout_minutes: float = DEFAULT_TIME
         torch.cuda.set_device(resolved)
     if world_size > 1 and not dist.is_initialized():
         backend = "nccl" if resolved.type == "cuda" else "gloo"
-        dist.init_process_group(backend=backend, rank=rank, world_size=world_size,
-                                timeout=datetime.timedelta(minutes=timeout_minutes))
-        log.info("rank %d/%d joined the %s process group on %s (timeout %.0f min)", rank, world_size, backend,
-                 resolved, timeout_minutes)
+        dist.init_process_group(
+            backend=backend, rank=rank, world_size=world_size, timeout=datetime.timedelta(minutes=timeout_minutes)
+        )
+        log.info(
+            "rank %d/%d joined the %s process group on %s (timeout %.0f min)",
+            rank,
+            world_size,
+            backend,
+            resolved,
+            timeout_minutes,
+        )
     return DistContext(rank, world_size, local_rank, local_world_size, resolved)
 
 
@@ -114,8 +122,9 @@ def wrap_model(model: nn.Module, ctx: DistContext) -> nn.Module:
         model = nn.SyncBatchNorm.convert_sync_batchnorm(model)
     device_ids = [ctx.device.index] if ctx.device.type == "cuda" else None
     # SyncBatchNorm keeps the running statistics equal on every rank; plain BN gets rank 0's each forward.
-    return nn.parallel.DistributedDataParallel(model, device_ids=device_ids, broadcast_buffers=not sync,
-                                               find_unused_parameters=False)
+    return nn.parallel.DistributedDataParallel(
+        model, device_ids=device_ids, broadcast_buffers=not sync, find_unused_parameters=False
+    )
 
 
 def unwrap_model(model: nn.Module) -> nn.Module:
@@ -132,8 +141,9 @@ class EpochSampler(DistributedSampler):
 
 def make_sampler(dataset: Dataset, ctx: DistContext, seed: int, shuffle: bool = True) -> EpochSampler:
     """Seeded per-epoch shuffling (set_epoch); the same code path with one or many processes."""
-    return EpochSampler(dataset, num_replicas=ctx.world_size, rank=ctx.rank, shuffle=shuffle, seed=seed,
-                        drop_last=False)
+    return EpochSampler(
+        dataset, num_replicas=ctx.world_size, rank=ctx.rank, shuffle=shuffle, seed=seed, drop_last=False
+    )
 
 
 def shard_indices(count: int, ctx: DistContext) -> list[int]:

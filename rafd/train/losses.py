@@ -1,4 +1,5 @@
 """RaFD training losses: CenterNet focal heatmap loss, index-matched L1 box terms, L1 flow (paper 2.5)."""
+
 from __future__ import annotations
 
 from dataclasses import dataclass
@@ -6,7 +7,6 @@ from dataclasses import dataclass
 import torch
 from torch import Tensor, nn
 from torch.nn import functional as F
-
 
 # The terms RaFDLoss returns, in a fixed order (the trainer stacks them into one tensor).
 LOSS_TERMS = ("total", "det", "heatmap", "offset", "size", "rotation", "flow")

@@ -5,10 +5,11 @@ and on GPUs, with float32 weights and optimizer state; the flow cost volume and 
 (rafd.model.flow), and the losses are computed in float32 (rafd.train.losses). fp16 needs a GradScaler and is offered
 on CUDA only (CPU autocast has no fp16 convolutions worth having).
 """
+
 from __future__ import annotations
 
 import contextlib
-from typing import ContextManager
+from contextlib import AbstractContextManager as ContextManager
 
 import torch
 

@@ -3,14 +3,14 @@
 `rafd-train --config NAME` starts from the recipe; any flag given on the command line overrides its field, and the
 checkpoint records the recipe's name and every resulting setting (rafd.train.trainer.Trainer.save).
 """
+
 from __future__ import annotations
 
+import dataclasses
 from dataclasses import dataclass
 
-import dataclasses
-
-from rafd.augment import AugmentConfig
 from rafd.config import InputConfig, RaFDConfig
+from rafd.data.augment import AugmentConfig
 from rafd.train.trainer import TrainConfig
 
 
@@ -20,7 +20,7 @@ class Recipe:
     description: str
     model: RaFDConfig
     train: TrainConfig
-    augment: AugmentConfig | None  # rafd.augment (None: no augmentation)
+    augment: AugmentConfig | None  # rafd.data.augment (None: no augmentation)
 
 
 def shipped_model_config() -> RaFDConfig:

@@ -11,6 +11,7 @@ for NaN/inf) every `log_every` optimizer steps and at the end of an epoch.
 Validation runs on every rank over its shard of the validation windows (rafd.train.distributed.shard_indices); the
 results are gathered and summarised identically on every rank, so no rank waits alone in a barrier.
 """
+
 from __future__ import annotations
 
 import contextlib
@@ -21,9 +22,10 @@ import math
 import os
 import random
 import time
+from collections.abc import Iterable, Iterator
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Iterable, Iterator
+from typing import Any
 
 import numpy as np
 import torch
@@ -105,14 +107,18 @@ class BatchPlan:
 def plan_batches(batch_size: int, world_size: int, micro_batch_size: int | None = None) -> BatchPlan:
     """Split a global batch over ranks and accumulation steps; ValueError when it cannot be split evenly."""
     if batch_size % world_size:
-        raise ValueError(f"the global batch of {batch_size} windows cannot be split evenly over {world_size} "
-                         f"processes: use a --batch-size that is a multiple of {world_size}")
+        raise ValueError(
+            f"the global batch of {batch_size} windows cannot be split evenly over {world_size} "
+            f"processes: use a --batch-size that is a multiple of {world_size}"
+        )
     per_rank = batch_size // world_size
     micro = per_rank if micro_batch_size is None else micro_batch_size
     if per_rank % micro:
         valid = [m for m in range(1, per_rank + 1) if per_rank % m == 0]
-        raise ValueError(f"{per_rank} windows per process per step (batch {batch_size} / {world_size} processes) "
-                         f"cannot be made of micro-batches of {micro}; use --micro-batch-size in {valid}")
+        raise ValueError(
+            f"{per_rank} windows per process per step (batch {batch_size} / {world_size} processes) "
+            f"cannot be made of micro-batches of {micro}; use --micro-batch-size in {valid}"
+        )
     return BatchPlan(micro, per_rank // micro)
 
 
@@ -198,8 +204,11 @@ class Trainer:
         self.val_set = val_set
         self.out = Path(out) if out is not None else None
         self.run_meta = dict(run_meta or {})  # recorded in the checkpoint (recipe, splits, augmentation, ...)
-        self.num_workers = default_workers(ctx.device, ctx.local_world_size) if train_cfg.num_workers is None \
+        self.num_workers = (
+            default_workers(ctx.device, ctx.local_world_size)
+            if train_cfg.num_workers is None
             else train_cfg.num_workers
+        )
         # The model is built under the run's seed: same seed -> same initial weights on every rank.
         seed_everything(train_cfg.seed)
         self.model = build_model(model_cfg).to(ctx.device)
@@ -269,8 +278,12 @@ class Trainer:
             sync = contextlib.nullcontext() if last or not self.ctx.enabled else self.ddp_model.no_sync()
             with sync:
                 with autocast(self.ctx.device, self.cfg.precision):
-                    outputs = self.ddp_model(batch.frames, batch.poses, gt_indices=batch.targets["centre_index"],
-                                             gt_mask=batch.targets["box_mask"])
+                    outputs = self.ddp_model(
+                        batch.frames,
+                        batch.poses,
+                        gt_indices=batch.targets["centre_index"],
+                        gt_mask=batch.targets["box_mask"],
+                    )
                 terms = self.loss(outputs, batch.targets)  # float32 whatever the autocast precision
                 self.scaler.scale(terms["total"] / len(group)).backward()
             terms_sum += torch.stack([terms[key].detach().float() for key in LOSS_TERMS])
@@ -300,8 +313,12 @@ class Trainer:
         interval_sum = torch.zeros_like(epoch_sum)
         interval, curve, windows = 0, [], 0
         start = time.perf_counter()
-        bar = tqdm(total=steps, desc=f"epoch {epoch + 1}/{self.cfg.epochs}",
-                   disable=not (self.cfg.progress and self.ctx.is_main), dynamic_ncols=True)
+        bar = tqdm(
+            total=steps,
+            desc=f"epoch {epoch + 1}/{self.cfg.epochs}",
+            disable=not (self.cfg.progress and self.ctx.is_main),
+            dynamic_ncols=True,
+        )
         for index, group in enumerate(self._groups(self.loader)):
             if index >= steps:
                 break
@@ -349,14 +366,21 @@ class Trainer:
 
     def validate(self) -> dict[str, float]:
         """mAP@0.3/0.5/0.7 and EPE on the validation set: each rank predicts its shard, all ranks summarise."""
+        from rafd.eval.predict import predict, summarise
         from rafd.train.datasets import WindowSubset
-        from rafd.train.predict import predict, summarise
 
         assert self.val_set is not None
         shard = shard_indices(len(self.val_set), self.ctx)  # type: ignore[arg-type]
-        results = predict(self.model, WindowSubset(self.val_set, shard), self.model_cfg, self.ctx.device,
-                          batch_size=self.plan.micro_batch_size, progress=False, precision=self.cfg.precision,
-                          num_workers=self.num_workers)
+        results = predict(
+            self.model,
+            WindowSubset(self.val_set, shard),
+            self.model_cfg,
+            self.ctx.device,
+            batch_size=self.plan.micro_batch_size,
+            progress=False,
+            precision=self.cfg.precision,
+            num_workers=self.num_workers,
+        )
         gathered = sorted(gather_objects(list(zip(shard, results)), self.ctx), key=lambda pair: pair[0])
         summary = summarise([result for _, result in gathered])
         return {f"val_{k}": v for k, v in summary.items() if isinstance(v, (int, float))}
@@ -376,7 +400,9 @@ class Trainer:
             "loss_config": dataclasses.asdict(self.loss_cfg),
             "world_size": self.ctx.world_size,
             "batch_plan": dataclasses.asdict(self.plan),
-            "metrics": {k: v for k, v in (self.history[-1] if self.history else {}).items() if isinstance(v, (int, float))},
+            "metrics": {
+                k: v for k, v in (self.history[-1] if self.history else {}).items() if isinstance(v, (int, float))
+            },
         }
         save_checkpoint(path, self.model, self.model_cfg, meta=meta)
         state = {
@@ -402,8 +428,10 @@ class Trainer:
         state, source_cfg, _meta = read_checkpoint(Path(path), map_location="cpu")
         for field in ("input_size", "resolution", "output_stride", "input", "class_names", "targets"):
             if getattr(source_cfg, field) != getattr(self.model_cfg, field):
-                raise ValueError(f"cannot initialise from {path}: its {field} {getattr(source_cfg, field)!r} differs "
-                                 f"from this run's {getattr(self.model_cfg, field)!r}")
+                raise ValueError(
+                    f"cannot initialise from {path}: its {field} {getattr(source_cfg, field)!r} differs "
+                    f"from this run's {getattr(self.model_cfg, field)!r}"
+                )
         target = self.model.state_dict()
         copied = {k: v for k, v in state.items() if k in target and target[k].shape == v.shape}
         report = {
@@ -415,9 +443,15 @@ class Trainer:
             raise ValueError(f"cannot initialise from {path}: no tensor of it fits this model")
         self.model.load_state_dict(copied, strict=False)
         self.run_meta["init"] = str(path)
-        log.info("initialised %d of %d tensors from %s (%d of its tensors skipped; %d fresh here, e.g. %s)",
-                 len(copied), len(target), path, len(report["skipped"]), len(report["fresh"]),
-                 ", ".join(sorted({k.split(".")[0] for k in report["fresh"]})) or "none")
+        log.info(
+            "initialised %d of %d tensors from %s (%d of its tensors skipped; %d fresh here, e.g. %s)",
+            len(copied),
+            len(target),
+            path,
+            len(report["skipped"]),
+            len(report["fresh"]),
+            ", ".join(sorted({k.split(".")[0] for k in report["fresh"]})) or "none",
+        )
         return report
 
     def resume(self, path: Path) -> None:
@@ -437,13 +471,19 @@ class Trainer:
         saved_freeze = sorted(state.get("freeze", []))
         if saved_freeze != sorted(self.cfg.freeze):
             # the optimizer state holds one entry per parameter that trained: another split cannot be restored
-            raise ValueError(f"cannot resume {path}: it was trained freezing {' '.join(saved_freeze) or 'nothing'}, "
-                             f"this run freezes {' '.join(sorted(self.cfg.freeze)) or 'nothing'}; resume with the same "
-                             "--freeze")
+            raise ValueError(
+                f"cannot resume {path}: it was trained freezing {' '.join(saved_freeze) or 'nothing'}, "
+                f"this run freezes {' '.join(sorted(self.cfg.freeze)) or 'nothing'}; resume with the same "
+                "--freeze"
+            )
         self.model.load_state_dict(model.state_dict())
         if int(state.get("world_size", self.ctx.world_size)) != self.ctx.world_size:
-            log.warning("resuming %s trained on %s processes on %d: the data order differs from an uninterrupted run",
-                        path, state["world_size"], self.ctx.world_size)
+            log.warning(
+                "resuming %s trained on %s processes on %d: the data order differs from an uninterrupted run",
+                path,
+                state["world_size"],
+                self.ctx.world_size,
+            )
         self.optimizer.load_state_dict(state["optimizer"])
         if "scaler" in state:
             self.scaler.load_state_dict(state["scaler"])

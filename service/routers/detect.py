@@ -4,6 +4,7 @@ The stream may be named outside the body (the `X-Stream-Id` header, or the path 
 can route on it without reading the body, and so that the frame's place in its stream's queue is taken before
 its body is read. Every id given (header, path, body) must be the same (else 422 `stream_id_mismatch`).
 """
+
 from __future__ import annotations
 
 from dataclasses import dataclass
@@ -23,8 +24,10 @@ _MULTIPART_SCHEMA = {
     "type": "object",
     "required": ["timestamp", "image"],
     "properties": {
-        "stream_id": {"type": "string", "description": "required unless the X-Stream-Id header or the path "
-                                                       "names the stream"},
+        "stream_id": {
+            "type": "string",
+            "description": "required unless the X-Stream-Id header or the path names the stream",
+        },
         "timestamp": {"type": "number"},
         "pose_x": {"type": "number"},
         "pose_y": {"type": "number"},
@@ -32,16 +35,38 @@ _MULTIPART_SCHEMA = {
         "image": {"type": "string", "format": "binary"},
     },
 }
-_REQUEST_BODY = {"requestBody": {"required": True, "content": {
-    "application/json": {"schema": DetectJson.model_json_schema(ref_template="#/components/schemas/{model}")},
-    "multipart/form-data": {"schema": _MULTIPART_SCHEMA},
-}}}
+_REQUEST_BODY = {
+    "requestBody": {
+        "required": True,
+        "content": {
+            "application/json": {"schema": DetectJson.model_json_schema(ref_template="#/components/schemas/{model}")},
+            "multipart/form-data": {"schema": _MULTIPART_SCHEMA},
+        },
+    }
+}
 ERROR_CODES = (
-    "empty_body", "invalid_json", "invalid_multipart", "unauthorized", "stream_forbidden", "body_timeout",
-    "timestamp_not_increasing", "pose_source_conflict", "stream_reset", "request_too_large",
-    "unsupported_media_type", "validation_error", "stream_id_mismatch", "invalid_image", "unsupported_image_size",
-    "unsupported_image_format", "stream_queue_full", "internal_error", "odometry_failed", "not_ready",
-    "overloaded", "odometry_unavailable",
+    "empty_body",
+    "invalid_json",
+    "invalid_multipart",
+    "unauthorized",
+    "stream_forbidden",
+    "body_timeout",
+    "timestamp_not_increasing",
+    "pose_source_conflict",
+    "stream_reset",
+    "request_too_large",
+    "unsupported_media_type",
+    "validation_error",
+    "stream_id_mismatch",
+    "invalid_image",
+    "unsupported_image_size",
+    "unsupported_image_format",
+    "stream_queue_full",
+    "internal_error",
+    "odometry_failed",
+    "not_ready",
+    "overloaded",
+    "odometry_unavailable",
 )
 _RESPONSES = {200: {"model": DetectResponse}, **error_responses(*ERROR_CODES)}
 
@@ -64,12 +89,19 @@ class DetectCall:
 async def detect_call(
     flow: bool = Query(True, description="false leaves the flow field out"),
     flow_format: Literal["list", "base64"] = Query(
-        "list", description="list: nested [2][Hf][Wf] metres rounded to 1 mm; "
-                            "base64: little-endian float16 bytes, row-major [2, Hf, Wf]"),
+        "list",
+        description="list: nested [2][Hf][Wf] metres rounded to 1 mm; "
+        "base64: little-endian float16 bytes, row-major [2, Hf, Wf]",
+    ),
     x_stream_id: str | None = Header(
-        default=None, alias="X-Stream-Id", min_length=1, max_length=128, pattern=STREAM_ID_PATTERN,
+        default=None,
+        alias="X-Stream-Id",
+        min_length=1,
+        max_length=128,
+        pattern=STREAM_ID_PATTERN,
         description="the stream, named outside the body (route on it; must equal the body's stream_id when both "
-                    "are given)"),
+        "are given)",
+    ),
     service: DetectService = Depends(get_service),
     caller: str | None = Depends(get_caller),
 ) -> DetectCall:
@@ -89,6 +121,8 @@ async def detect_on_stream(
 ) -> Response:
     """The same as POST /detect with the stream named in the path."""
     if call.header_stream_id is not None and call.header_stream_id != stream_id:
-        raise ApiError("stream_id_mismatch", f"the X-Stream-Id header {call.header_stream_id!r} differs from the "
-                                             f"path's stream id {stream_id!r}")
+        raise ApiError(
+            "stream_id_mismatch",
+            f"the X-Stream-Id header {call.header_stream_id!r} differs from the path's stream id {stream_id!r}",
+        )
     return await call.answer(request, stream_id)

@@ -2,6 +2,7 @@
 
 Both run on the event loop with no thread-pool dependency, so they answer while every executor is busy.
 """
+
 from __future__ import annotations
 
 from fastapi import APIRouter, Depends
@@ -9,15 +10,16 @@ from fastapi import APIRouter, Depends
 from service.dependencies import get_service
 from service.detector import DetectService
 from service.errors import error_responses
+from service.schemas import Liveness, Readiness
 
 router = APIRouter(prefix="/health", tags=["health"])
 
 
-@router.get("/live")
-async def live() -> dict[str, str]:
-    return {"status": "alive"}
+@router.get("/live", response_model=Liveness)
+async def live() -> Liveness:
+    return Liveness(status="alive")
 
 
-@router.get("/ready", responses=error_responses("not_ready"))
-async def ready(service: DetectService = Depends(get_service)) -> dict[str, str]:
-    return {"status": "ready", "model_version": service.runner.metadata.get("version", "unknown")}
+@router.get("/ready", response_model=Readiness, responses=error_responses("not_ready"))
+async def ready(service: DetectService = Depends(get_service)) -> Readiness:
+    return Readiness(status="ready", model_version=service.runner.metadata.get("version", "unknown"))

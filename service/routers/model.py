@@ -1,33 +1,33 @@
 """The served model: ONNX metadata, config and what the service accepts."""
-from __future__ import annotations
 
-from typing import Any
+from __future__ import annotations
 
 from fastapi import APIRouter, Depends
 
 from service.dependencies import get_service
 from service.detector import DetectService
 from service.images import POLAR_SHAPE, accepts_polar
+from service.schemas import ModelInfo, RuntimeOut
 
 router = APIRouter(tags=["model"])
 
 
-@router.get("/model")
-async def model_info(service: DetectService = Depends(get_service)) -> dict[str, Any]:
+@router.get("/model", response_model=ModelInfo)
+async def model_info(service: DetectService = Depends(get_service)) -> ModelInfo:
     cfg = service.config
-    return {
-        "metadata": dict(service.runner.metadata),
-        "config": cfg.to_dict(),
-        "input_size": cfg.input_size,
-        "num_frames": cfg.num_frames,
-        "feature_size": cfg.feature_size,
-        "cell_size_m": cfg.cell_size,
-        "resolution_m_per_px": cfg.resolution,
-        "class_names": list(cfg.class_names),
-        "accepted_image_sizes": list(service.accepted_sizes),
+    return ModelInfo(
+        metadata=dict(service.runner.metadata),
+        config=cfg.to_dict(),
+        input_size=cfg.input_size,
+        num_frames=cfg.num_frames,
+        feature_size=cfg.feature_size,
+        cell_size_m=cfg.cell_size,
+        resolution_m_per_px=cfg.resolution,
+        class_names=list(cfg.class_names),
+        accepted_image_sizes=list(service.accepted_sizes),
         # a Navtech_Polar scan [range rows, azimuth columns] is accepted where a full RADIATE scan is
-        "accepted_polar_shape": list(POLAR_SHAPE) if accepts_polar(cfg.input_size, cfg.resolution) else None,
-        "score_threshold": service.score_threshold,
+        accepted_polar_shape=list(POLAR_SHAPE) if accepts_polar(cfg.input_size, cfg.resolution) else None,
+        score_threshold=service.score_threshold,
         # how the graph runs: runtime, precision, threads per run, concurrent runs, start-up timings
-        "runtime": service.runner.describe() if hasattr(service.runner, "describe") else None,
-    }
+        runtime=RuntimeOut.model_validate(service.runner.describe()),
+    )

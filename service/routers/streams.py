@@ -1,4 +1,5 @@
 """Stream inspection and reset: GET /streams, DELETE /streams/{stream_id} (a caller sees and deletes its own)."""
+
 from __future__ import annotations
 
 import dataclasses
@@ -14,8 +15,9 @@ router = APIRouter(prefix="/streams", tags=["streams"])
 
 
 @router.get("", response_model=StreamsResponse, responses=error_responses("unauthorized", "not_ready"))
-async def list_streams(service: DetectService = Depends(get_service),
-                       caller: str | None = Depends(get_caller)) -> StreamsResponse:
+async def list_streams(
+    service: DetectService = Depends(get_service), caller: str | None = Depends(get_caller)
+) -> StreamsResponse:
     """The caller's live streams (every stream when the service runs without API keys), least recently used first."""
     infos = service.store.snapshot(owner=caller)
     return StreamsResponse(
@@ -26,8 +28,11 @@ async def list_streams(service: DetectService = Depends(get_service),
     )
 
 
-@router.delete("/{stream_id}", status_code=204, responses=error_responses(
-    "unauthorized", "stream_forbidden", "stream_not_found", "validation_error", "not_ready"))
+@router.delete(
+    "/{stream_id}",
+    status_code=204,
+    responses=error_responses("unauthorized", "stream_forbidden", "stream_not_found", "validation_error", "not_ready"),
+)
 async def delete_stream(
     stream_id: str = Path(min_length=1, max_length=128, pattern=STREAM_ID_PATTERN),
     service: DetectService = Depends(get_service),

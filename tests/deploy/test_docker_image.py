@@ -5,6 +5,7 @@ reachable, so it provides a stand-in python:3.11-slim and containers use --netwo
 engine's layer cache: seconds when nothing changed, about 4 minutes from scratch on this machine's vfs storage.
 RAFD_DOCKER_IMAGE names an image already built instead (then nothing is built).
 """
+
 from __future__ import annotations
 
 import base64
@@ -18,20 +19,29 @@ from collections.abc import Iterator
 from pathlib import Path
 
 import pytest
-from answers_testing import assert_same_answer, in_process_service
+
+from tests.utils.answers_testing import assert_same_answer, in_process_service
 
 REPO = Path(__file__).resolve().parents[2]
 PINNED = {"RAFD_RUNTIME": "onnxruntime", "RAFD_PRECISION": "fp32"}  # comparable answers on both sides
 FRAMES = 4  # real tiny_foggy scans per stream: a full window, flow from the second on
 
 if os.environ.get("RAFD_DOCKER_TESTS") != "1":
-    pytest.skip("Docker image tests are opt-in: set RAFD_DOCKER_TESTS=1 with a Docker engine running "
-                "(bash ../shared/tools/docker-engine.sh)", allow_module_level=True)
+    pytest.skip(
+        "Docker image tests are opt-in: set RAFD_DOCKER_TESTS=1 with a Docker engine running "
+        "(bash ../shared/tools/docker-engine.sh)",
+        allow_module_level=True,
+    )
 if shutil.which("docker") is None or subprocess.run(["docker", "info"], capture_output=True).returncode != 0:
-    pytest.skip("RAFD_DOCKER_TESTS=1 but no Docker engine answers `docker info` "
-                "(start one: bash ../shared/tools/docker-engine.sh)", allow_module_level=True)
+    pytest.skip(
+        "RAFD_DOCKER_TESTS=1 but no Docker engine answers `docker info` "
+        "(start one: bash ../shared/tools/docker-engine.sh)",
+        allow_module_level=True,
+    )
 
-from service.deploy.loopback import free_port, get  # noqa: E402
+from rafd.bench.server import free_port, http_get  # noqa: E402
+
+pytestmark = pytest.mark.docker
 
 
 def docker(*args: str, check: bool = True, timeout: float = 60.0) -> str:
@@ -58,8 +68,21 @@ class Container:
         self.name = f"rafd-test-{uuid.uuid4().hex[:8]}"
         env_args = [a for k, v in {**(env or {}), "RAFD_PORT": str(self.port)}.items() for a in ("-e", f"{k}={v}")]
         # The image's own command and HEALTHCHECK (both on RAFD_PORT), checked every second instead of 15 s.
-        docker("run", "-d", "--name", self.name, "--network", "host", "--health-interval", "1s",
-               "--health-start-period", "120s", *env_args, *run_args, image)
+        docker(
+            "run",
+            "-d",
+            "--name",
+            self.name,
+            "--network",
+            "host",
+            "--health-interval",
+            "1s",
+            "--health-start-period",
+            "120s",
+            *env_args,
+            *run_args,
+            image,
+        )
         self.url = f"http://127.0.0.1:{self.port}"
 
     def health(self) -> str:
@@ -96,8 +119,9 @@ def container(image: str) -> Iterator[Container]:
 def post(url: str, body: dict) -> dict:
     import urllib.request
 
-    request = urllib.request.Request(f"{url}/detect", data=json.dumps(body).encode(),
-                                     headers={"content-type": "application/json"}, method="POST")
+    request = urllib.request.Request(
+        f"{url}/detect", data=json.dumps(body).encode(), headers={"content-type": "application/json"}, method="POST"
+    )
     with urllib.request.urlopen(request, timeout=60) as response:
         return json.loads(response.read())
 
@@ -112,8 +136,12 @@ def test_image_becomes_healthy_and_runs_as_non_root(container: Container):
 def test_image_holds_no_torch(container: Container):
     found = container.exec("python", "-c", "import importlib.util as u; print(u.find_spec('torch'))")
     assert found == "None"
-    listing = container.exec("python", "-c", "import importlib.metadata as m; "
-                             "print(' '.join(sorted(d.metadata['Name'].lower() for d in m.distributions())))")
+    listing = container.exec(
+        "python",
+        "-c",
+        "import importlib.metadata as m; "
+        "print(' '.join(sorted(d.metadata['Name'].lower() for d in m.distributions())))",
+    )
     assert "torch" not in listing.split() and "onnxruntime" in listing.split()
 
 
@@ -122,8 +150,11 @@ def test_image_answers_detect_as_the_in_process_service(container: Container, ra
     scans = sorted((radiate_sample / "Navtech_Cartesian").glob("*.png"))[:FRAMES]
     with in_process_service(**{k.removeprefix("RAFD_").lower(): v for k, v in PINNED.items()}) as client:
         for t, path in enumerate(scans):
-            body = {"stream_id": "docker", "timestamp": 100.0 + t,
-                    "image": base64.b64encode(path.read_bytes()).decode("ascii")}
+            body = {
+                "stream_id": "docker",
+                "timestamp": 100.0 + t,
+                "image": base64.b64encode(path.read_bytes()).decode("ascii"),
+            }
             served = post(container.url, body)
             reference = client.post("/detect", json=body)
             assert reference.status_code == 200, reference.text
@@ -141,7 +172,7 @@ def test_image_threads_follow_cpus(image: str, cpus: int):
     limited = Container(image, "--cpus", str(cpus), env=PINNED)
     try:
         limited.wait_healthy()
-        status, body = get(f"{limited.url}/model")
+        status, body = http_get(f"{limited.url}/model")
         assert status == 200
         runtime = json.loads(body)["runtime"]
         assert runtime["threads"] == cpus and runtime["concurrent_runs"] == cpus, runtime

@@ -1,5 +1,6 @@
 """The shipped nginx.conf: what the loopback harness changes in it, and (where nginx is installed) that nginx
 accepts it."""
+
 from __future__ import annotations
 
 import subprocess
@@ -7,7 +8,7 @@ from pathlib import Path
 
 import pytest
 
-from service.deploy.loopback import NGINX_CONF, loopback_config, nginx_binary
+from tools.loopback import NGINX_CONF, loopback_config, nginx_binary
 
 
 def test_loopback_config_changes_only_addresses_and_temporary_paths(tmp_path: Path):
@@ -15,13 +16,17 @@ def test_loopback_config_changes_only_addresses_and_temporary_paths(tmp_path: Pa
     used = loopback_config([5001, 5002, 5003, 5004], 6000, tmp_path).splitlines()
     removed = [line.strip() for line in shipped if line not in used]
     added = [line.strip() for line in used if line not in shipped]
-    assert sorted(removed) == sorted(line.strip() for line in shipped if line.strip().startswith(("server rafd-", "listen ")))
+    assert sorted(removed) == sorted(
+        line.strip() for line in shipped if line.strip().startswith(("server rafd-", "listen "))
+    )
     assert len([line for line in removed if line.startswith("server rafd-")]) == 3  # the compose file's replicas
     assert [line for line in added if line.startswith("server ")] == [
-        f"server 127.0.0.1:{port} max_fails=1 fail_timeout=10s;" for port in (5001, 5002, 5003, 5004)]
+        f"server 127.0.0.1:{port} max_fails=1 fail_timeout=10s;" for port in (5001, 5002, 5003, 5004)
+    ]
     assert "listen 127.0.0.1:6000;" in added
-    assert all(line.startswith(("server 127.0.0.1:", "listen 127.0.0.1:")) or "_temp_path " in line
-               for line in added), added
+    assert all(
+        line.startswith(("server 127.0.0.1:", "listen 127.0.0.1:")) or "_temp_path " in line for line in added
+    ), added
 
 
 def test_shipped_config_hashes_consistently_on_the_stream():
@@ -34,8 +39,22 @@ def test_shipped_config_hashes_consistently_on_the_stream():
 def test_nginx_accepts_the_loopback_config(tmp_path: Path):
     conf = tmp_path / "nginx.conf"
     conf.write_text(loopback_config([5001, 5002, 5003], 6000, tmp_path))
-    done = subprocess.run([nginx_binary(), "-t", "-p", str(tmp_path), "-c", str(conf), "-e", "stderr",
-                           "-g", f"pid {tmp_path / 'nginx.pid'};"], capture_output=True, text=True)
+    done = subprocess.run(
+        [
+            nginx_binary(),
+            "-t",
+            "-p",
+            str(tmp_path),
+            "-c",
+            str(conf),
+            "-e",
+            "stderr",
+            "-g",
+            f"pid {tmp_path / 'nginx.pid'};",
+        ],
+        capture_output=True,
+        text=True,
+    )
     assert done.returncode == 0, done.stderr
 
 

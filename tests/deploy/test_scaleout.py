@@ -4,6 +4,7 @@ Every stream sticks to one replica; the answers equal a single process's; when a
 streams re-warm (each on one survivor, where it then sticks) while the other streams answer on unchanged.
 Real tiny_foggy scans with poses (no odometry: the test is about routing, and stays fast).
 """
+
 from __future__ import annotations
 
 import base64
@@ -15,14 +16,19 @@ from pathlib import Path
 from typing import Any
 
 import pytest
-from answers_testing import assert_same_answer, in_process_service
 from fastapi.testclient import TestClient
 
-from service.deploy.loopback import LoopbackCluster, get, nginx_binary
+from rafd.bench.server import http_get
+from tests.utils.answers_testing import assert_same_answer, in_process_service
+from tools.loopback import LoopbackCluster, nginx_binary
+
+pytestmark = pytest.mark.network
 
 if nginx_binary() is None:
-    pytest.skip("nginx is not installed (Debian: apt-get install nginx; .ci/run installs it where it may)",
-                allow_module_level=True)
+    pytest.skip(
+        "nginx is not installed (Debian: apt-get install nginx; .ci/run installs it where it may)",
+        allow_module_level=True,
+    )
 
 REPLICAS = 3
 # Pinned on the replicas and the single reference process alike, so their answers are comparable.
@@ -49,8 +55,11 @@ def reference() -> Iterator[TestClient]:
 def frame_body(scans: list[Path], stream_index: int, t: int) -> dict[str, Any]:
     """Frame t of stream k: scan (k + t) of the sample, driving 2 m forward per frame."""
     path = scans[(stream_index + t) % len(scans)]
-    return {"timestamp": 100.0 + t, "pose": {"x": 0.0, "y": 2.0 * t, "yaw": 0.0},
-            "image": base64.b64encode(path.read_bytes()).decode("ascii")}
+    return {
+        "timestamp": 100.0 + t,
+        "pose": {"x": 0.0, "y": 2.0 * t, "yaw": 0.0},
+        "image": base64.b64encode(path.read_bytes()).decode("ascii"),
+    }
 
 
 def via_nginx(url: str, stream: str, body: dict[str, Any], path_form: bool) -> tuple[dict[str, Any], str]:
@@ -77,13 +86,14 @@ def on_reference(client: TestClient, stream: str, body: dict[str, Any]) -> dict[
 
 def streams_on(cluster: LoopbackCluster, index: int) -> dict[str, int]:
     """{stream id: frames_seen} held by one replica (asked directly, not through nginx)."""
-    status, body = get(f"http://{cluster.replica_address(index)}/streams")
+    status, body = http_get(f"http://{cluster.replica_address(index)}/streams")
     assert status == 200
     return {row["stream_id"]: row["frames_seen"] for row in json.loads(body)["streams"]}
 
 
 def test_streams_stick_answer_as_one_process_and_only_a_killed_replicas_streams_rewarm(
-        cluster: LoopbackCluster, reference: TestClient, radiate_sample: Path):
+    cluster: LoopbackCluster, reference: TestClient, radiate_sample: Path
+):
     scans = sorted((radiate_sample / "Navtech_Cartesian").glob("*.png"))
     num_frames = reference.get("/model").json()["num_frames"]
     replicas = [cluster.replica_address(i) for i in range(REPLICAS)]
@@ -145,4 +155,3 @@ def test_streams_stick_answer_as_one_process_and_only_a_killed_replicas_streams_
             assert response.status == 204
     held = [streams_on(cluster, i) for i in range(REPLICAS) if i != victim]
     assert not any(moved[0] in h or stayed[0] in h for h in held)
-

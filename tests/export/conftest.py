@@ -1,4 +1,5 @@
 """Export test fixtures."""
+
 from __future__ import annotations
 
 import pytest

@@ -1,12 +1,13 @@
 """rafd-export: a verified export, and clear refusals (bad checkpoints, unwritable outputs, failed parity)."""
+
 from __future__ import annotations
 
 import pytest
 
 from export import verify
 from export.cli import main
-from export_testing import make_checkpoint, small_config
 from rafd.runtime import OnnxRunner
+from tests.utils.export_testing import make_checkpoint, small_config
 
 torch = pytest.importorskip("torch")
 
@@ -106,4 +107,3 @@ def test_old_opset_is_a_usage_error(checkpoint, tmp_path, capsys):
         main([str(checkpoint), str(tmp_path / "model.onnx"), "--opset", "16"])
     assert exit_info.value.code == 2
     assert "opset must be >= 17" in capsys.readouterr().err
-

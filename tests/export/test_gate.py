@@ -1,15 +1,22 @@
 """The accuracy gate: it passes an identical runtime, catches a degraded one check by check, runs on the shipped
 model, and rafd-export --gate records its verdict where the runtime selection reads it."""
+
 from __future__ import annotations
 
-import dataclasses
 import json
 
 import numpy as np
 import pytest
 
-from export.gate import (DEFAULT_SEED, GateOptions, GateThresholds, gate_metadata, gate_model, run_gate,
-                         simulated_sequences)
+from export.gate import (
+    DEFAULT_SEED,
+    GateOptions,
+    GateThresholds,
+    gate_metadata,
+    gate_model,
+    run_gate,
+    simulated_sequences,
+)
 from rafd.runtime import OnnxRunner, StepResult, supported_choices
 from rafd.runtime.runners import gate_passed
 
@@ -66,12 +73,15 @@ def test_identical_runtime_passes_with_zero_differences(shipped_onnx):
     assert 0.0 <= sim.reference_map[0.3] <= 100.0 and np.isfinite(sim.reference_epe)
 
 
-@pytest.mark.parametrize("damage,expected", [
-    ({"shift_m": 0.2}, {"matched centre shift p99 (m)"}),
-    ({"score_noise": 0.05}, {"matched score difference p99"}),
-    ({"flow_bias_m": 0.5}, {"|flow EPE difference| (m)"}),
-    ({"shift_m": 2.0}, {"changed detections (fraction)"}),  # farther than a cell: every detection changed
-])
+@pytest.mark.parametrize(
+    "damage,expected",
+    [
+        ({"shift_m": 0.2}, {"matched centre shift p99 (m)"}),
+        ({"score_noise": 0.05}, {"matched score difference p99"}),
+        ({"flow_bias_m": 0.5}, {"|flow EPE difference| (m)"}),
+        ({"shift_m": 2.0}, {"changed detections (fraction)"}),  # farther than a cell: every detection changed
+    ],
+)
 def test_degraded_runtime_fails_the_matching_check(shipped_onnx, damage, expected):
     reference = OnnxRunner(shipped_onnx, threads=1)
     report = run_gate(reference, Degraded(OnnxRunner(shipped_onnx, threads=1), **damage), _sources(reference.config))
@@ -88,7 +98,9 @@ def test_gate_runs_on_the_shipped_model_in_every_reduced_precision(shipped_onnx,
         assert report.candidate == "/".join(candidate) and report.reference == "onnxruntime/fp32"
         figures = report.figures()
         assert figures["simulated"]["frames"] == 16 - 3
-        assert {"reference_mAP@0.7", "candidate_mAP@0.7", "reference_epe_m", "candidate_epe_m"} <= set(figures["simulated"])
+        assert {"reference_mAP@0.7", "candidate_mAP@0.7", "reference_epe_m", "candidate_epe_m"} <= set(
+            figures["simulated"]
+        )
         if radiate_sample_or_none is not None:
             assert figures["radiate"]["frames"] > 0 and "reference_mAP@0.3" not in figures["radiate"]
         assert report.ok == all(ok for *_, ok in report.checks())
@@ -100,19 +112,27 @@ def test_gate_runs_on_the_shipped_model_in_every_reduced_precision(shipped_onnx,
 def test_thresholds_are_the_briefs(shipped_onnx):
     t = GateThresholds()
     assert (t.score_threshold, t.changed_fraction, t.centre_p99_m, t.score_p99, t.map_points, t.epe_m) == (
-        0.3, 0.02, 0.05, 0.02, 0.5, 0.01)
+        0.3,
+        0.02,
+        0.05,
+        0.02,
+        0.5,
+        0.01,
+    )
 
 
 def test_export_records_the_gate_verdict(tmp_path, capsys, monkeypatch):
     from export.cli import main
-    from export_testing import make_checkpoint, small_config
+    from tests.utils.export_testing import make_checkpoint, small_config
 
     monkeypatch.delenv("RAFD_RADIATE_SAMPLE", raising=False)  # simulated frames only: keeps the test short
     reduced = [c for c in supported_choices() if c[1] != "fp32"]
     checkpoint = make_checkpoint(tmp_path / "model.pt", small_config(4))
     output = tmp_path / "gated.onnx"
-    assert main([str(checkpoint), str(output), "--no-verify", "--gate", "--gate-sequences", "1",
-                 "--gate-frames", "8"]) == 0
+    assert (
+        main([str(checkpoint), str(output), "--no-verify", "--gate", "--gate-sequences", "1", "--gate-frames", "8"])
+        == 0
+    )
     out = capsys.readouterr().out
     metadata = OnnxRunner(output).metadata
     if not reduced:
@@ -126,7 +146,7 @@ def test_export_records_the_gate_verdict(tmp_path, capsys, monkeypatch):
 
 def test_gate_refuses_the_window_form(tmp_path):
     from export.onnx_export import ExportError, export_onnx
-    from export_testing import make_checkpoint, small_config
+    from tests.utils.export_testing import make_checkpoint, small_config
 
     checkpoint = make_checkpoint(tmp_path / "model.pt", small_config(2))
     with pytest.raises(ExportError, match="step form"):

@@ -1,11 +1,12 @@
 """The checkpoint's operating threshold (rafd-eval --calibrate) travels into the ONNX metadata; none, none there."""
+
 from __future__ import annotations
 
 import pytest
 
 from export.onnx_export import export_onnx
 from rafd.runtime import OnnxRunner
-from export_testing import make_checkpoint, small_config
+from tests.utils.export_testing import make_checkpoint, small_config
 
 torch = pytest.importorskip("torch")
 

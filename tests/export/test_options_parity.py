@@ -1,5 +1,6 @@
 """A model using the speed options (flow at stride 8, 4 x 4-cell enhancement windows) exports and streams through
 onnxruntime like PyTorch's padded windows, warm-up frames included, and its window form agrees too."""
+
 from __future__ import annotations
 
 import dataclasses
@@ -9,7 +10,7 @@ import pytest
 
 from export.verify import Report, random_sequence, verify_stream, verify_windows
 from rafd.runtime import OnnxRunner
-from export_testing import make_checkpoint, small_config
+from tests.utils.export_testing import make_checkpoint, small_config
 
 torch = pytest.importorskip("torch")
 
@@ -19,13 +20,17 @@ def test_options_model_matches_onnxruntime(tmp_path) -> None:
     from rafd.checkpoint import load_checkpoint
 
     base = small_config(4)
-    cfg = base.replace(flow=dataclasses.replace(base.flow, stride=8), enhance=dataclasses.replace(base.enhance, window=4))
+    cfg = base.replace(
+        flow=dataclasses.replace(base.flow, stride=8), enhance=dataclasses.replace(base.enhance, window=4)
+    )
     checkpoint = make_checkpoint(tmp_path / "options.pt", cfg)
     model, loaded, _ = load_checkpoint(checkpoint)
     assert loaded == cfg
     model = model.eval()
-    paths = {form: export_onnx(checkpoint, tmp_path / f"{form}.onnx", form=form, verify=False, log=lambda _: None).path
-             for form in ("step", "window")}
+    paths = {
+        form: export_onnx(checkpoint, tmp_path / f"{form}.onnx", form=form, verify=False, log=lambda _: None).path
+        for form in ("step", "window")
+    }
     step = OnnxRunner(paths["step"], threads=1)
     assert step.config == cfg
     frames, poses = random_sequence(cfg, 7, seed=8)

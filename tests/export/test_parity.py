@@ -1,4 +1,5 @@
 """onnxruntime (CPU) vs PyTorch for the exported step and window graphs, T = 1, 2, 4, random weights."""
+
 from __future__ import annotations
 
 import json
@@ -7,9 +8,9 @@ import numpy as np
 import pytest
 
 from export.onnx_export import file_sha256
-from export.verify import Report, random_sequence, radiate_sequence, torch_window, verify_stream, verify_windows
+from export.verify import Report, radiate_sequence, random_sequence, torch_window, verify_stream, verify_windows
 from rafd.runtime import METADATA_KEYS, OnnxRunner
-from export_testing import export_forms
+from tests.utils.export_testing import export_forms
 
 torch = pytest.importorskip("torch")
 
@@ -43,14 +44,24 @@ def test_graph_inputs_and_outputs_follow_the_contract(exported, runners):
     S, F, K = cfg.input_size, cfg.feature_size, cfg.head.num_queries
     C = int(runners["step"].metadata["feature_channels"])
     step = {i.name: i.shape for i in runners["step"].session.get_inputs()}
-    expected = {"frame": [1, 1, S, S], "poses": [1, T, 3], "past_features": [1, T - 1, C, F, F],
-                "past_flow_features": [1, C // 2, F, F]}
+    expected = {
+        "frame": [1, 1, S, S],
+        "poses": [1, T, 3],
+        "past_features": [1, T - 1, C, F, F],
+        "past_flow_features": [1, C // 2, F, F],
+    }
     if T == 4:
         expected["past_flows"] = [1, T - 2, 2, F, F]
     assert step == expected
     outputs = {o.name: o.shape for o in runners["step"].session.get_outputs()}
-    assert outputs == {"heatmap": [1, 1, F, F], "scores": [1, K], "boxes": [1, K, 5], "flow": [1, T - 1, 2, F, F],
-                       "features": [1, C, F, F], "flow_features": [1, C // 2, F, F]}
+    assert outputs == {
+        "heatmap": [1, 1, F, F],
+        "scores": [1, K],
+        "boxes": [1, K, 5],
+        "flow": [1, T - 1, 2, F, F],
+        "features": [1, C, F, F],
+        "flow_features": [1, C // 2, F, F],
+    }
     window = {i.name: i.shape for i in runners["window"].session.get_inputs()}
     assert window == {"frames": [1, T, 1, S, S], "poses": [1, T, 3]}
 
@@ -161,6 +172,7 @@ def test_shipped_onnx_matches_the_shipped_checkpoint(radiate_sample_or_none):
     report = Report()
     verify_stream(runner, model, *random_sequence(cfg, cfg.num_frames + 2, seed=7), report, "random")
     if radiate_sample_or_none is not None:
-        verify_stream(runner, model, *radiate_sequence(radiate_sample_or_none, cfg, cfg.num_frames + 2), report,
-                      "radiate")
+        verify_stream(
+            runner, model, *radiate_sequence(radiate_sample_or_none, cfg, cfg.num_frames + 2), report, "radiate"
+        )
     assert report.ok, "\n".join(report.lines())

@@ -19,7 +19,9 @@ def test_radiate_box_reproduces_sdk_polygon():
         position = rng.uniform([0, 0, 5, 5], [1100, 1100, 60, 90])
         rotation = rng.uniform(-360, 360)
         box = g.radiate_to_box(position, rotation)
-        np.testing.assert_allclose(g.box_polygons_pixels(box[None], 1152)[0], g.radiate_polygon(position, rotation), atol=1e-9)
+        np.testing.assert_allclose(
+            g.box_polygons_pixels(box[None], 1152)[0], g.radiate_polygon(position, rotation), atol=1e-9
+        )
         back_position, back_rotation = g.box_to_radiate(box)
         np.testing.assert_allclose(back_position, position, atol=1e-9)
         assert back_rotation == pytest.approx(rotation)

@@ -1,4 +1,5 @@
 """rafd.polar: RADIATE's polar conventions, the simulator's own polar -> Cartesian path, and RADIATE's images."""
+
 from __future__ import annotations
 
 from pathlib import Path
@@ -84,12 +85,15 @@ def test_resampling_onto_radiate_samples_keeps_the_scan():
     its own conventions (up to the radar's half-pixel position on RADIATE's grid and interpolation)."""
     rng = np.random.default_rng(5)
     smooth = cv2.GaussianBlur(rng.uniform(0, 255, (400, 1154)).astype(np.float32), (0, 0), 4.0)  # [A, R]
-    own = PolarConventions(azimuth_offset=0.5, range_offset=0.5, range_bin=RADIATE_RESOLUTION / 2, centre_offset=(0.0, 0.0))
+    own = PolarConventions(
+        azimuth_offset=0.5, range_offset=0.5, range_bin=RADIATE_RESOLUTION / 2, centre_offset=(0.0, 0.0)
+    )
     radiate = to_radiate_polar(smooth.T, own)
     assert radiate.shape == (576, 400) and radiate.dtype == np.uint8
     same_centre = PolarConventions(centre_offset=(0.0, 0.0))
-    mad, correlation = scan_agreement(polar_to_cartesian(radiate, 512, conventions=same_centre),
-                                      polar_to_cartesian(smooth.T, 512, conventions=own))
+    mad, correlation = scan_agreement(
+        polar_to_cartesian(radiate, 512, conventions=same_centre), polar_to_cartesian(smooth.T, 512, conventions=own)
+    )
     assert mad < 1.0 and correlation > 0.99
 
 
@@ -116,7 +120,9 @@ def test_conversion_comes_close_to_radiates_own_cartesian_images(radiate_polar_s
         reference = cv2.imread(str(radiate_sample / "Navtech_Cartesian" / f"{number:06d}.png"), cv2.IMREAD_GRAYSCALE)
         assert polar.shape == (576, 400)
         mad, correlation = scan_agreement(polar_to_cartesian(polar), reference)
-        nominal_mad, nominal_correlation = scan_agreement(polar_to_cartesian(polar, conventions=NOMINAL_POLAR), reference)
+        nominal_mad, nominal_correlation = scan_agreement(
+            polar_to_cartesian(polar, conventions=NOMINAL_POLAR), reference
+        )
         assert mad < 3.5 and correlation > 0.97, (number, mad, correlation)
         assert mad < nominal_mad - 1.0 and correlation > nominal_correlation + 0.02
         # Any other azimuth zero, direction or a mirrored image is far worse.

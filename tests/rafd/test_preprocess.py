@@ -1,4 +1,5 @@
 """rafd.preprocess: the one path from a scan to the model's input frame."""
+
 import numpy as np
 import pytest
 

@@ -5,8 +5,10 @@ simple functions of the window (features = average-pooled frame, pair flow = [ne
 previous features + x displacement], heatmap = weighted sums of features, flows and poses), so every step can be
 recomputed in numpy from the warm-up-padded window. Parity with the real model is tested in tests/export/.
 """
+
 from __future__ import annotations
 
+import dataclasses
 import json
 import subprocess
 import sys
@@ -41,29 +43,39 @@ def build_fake_step_graph(path, T: int, metadata: dict[str, str] | None = None) 
     """An ONNX step graph with the contract's interface (C = 1) and simple, checkable outputs."""
     w_feat, w_flow, w_pose = _weights(T)
     f32 = TensorProto.FLOAT
-    inputs = [helper.make_tensor_value_info("frame", f32, [1, 1, S, S]),
-              helper.make_tensor_value_info("poses", f32, [1, T, 3])]
-    inits = [numpy_helper.from_array(w_pose, "w_pose"),
-             numpy_helper.from_array(np.array([1, F * F], np.int64), "flat_shape"),
-             numpy_helper.from_array(np.array([0], np.int64), "zero"),
-             numpy_helper.from_array(np.array([K], np.int64), "k"),
-             numpy_helper.from_array(np.array([1], np.int64), "one"),
-             numpy_helper.from_array(np.array([-1], np.int64), "minus_one"),
-             numpy_helper.from_array(np.array([1, 1, 5], np.int64), "tile")]
-    nodes = [helper.make_node("AveragePool", ["frame"], ["features"], kernel_shape=[STRIDE, STRIDE],
-                              strides=[STRIDE, STRIDE]),
-             helper.make_node("Mul", ["poses", "w_pose"], ["pose_w"]),
-             helper.make_node("ReduceSum", ["pose_w"], ["pose_term"], keepdims=0)]
+    inputs = [
+        helper.make_tensor_value_info("frame", f32, [1, 1, S, S]),
+        helper.make_tensor_value_info("poses", f32, [1, T, 3]),
+    ]
+    inits = [
+        numpy_helper.from_array(w_pose, "w_pose"),
+        numpy_helper.from_array(np.array([1, F * F], np.int64), "flat_shape"),
+        numpy_helper.from_array(np.array([0], np.int64), "zero"),
+        numpy_helper.from_array(np.array([K], np.int64), "k"),
+        numpy_helper.from_array(np.array([1], np.int64), "one"),
+        numpy_helper.from_array(np.array([-1], np.int64), "minus_one"),
+        numpy_helper.from_array(np.array([1, 1, 5], np.int64), "tile"),
+    ]
+    nodes = [
+        helper.make_node(
+            "AveragePool", ["frame"], ["features"], kernel_shape=[STRIDE, STRIDE], strides=[STRIDE, STRIDE]
+        ),
+        helper.make_node("Mul", ["poses", "w_pose"], ["pose_w"]),
+        helper.make_node("ReduceSum", ["pose_w"], ["pose_term"], keepdims=0),
+    ]
     outputs = ["heatmap", "scores", "boxes"]
     if T == 1:
         nodes.append(helper.make_node("Add", ["features", "pose_term"], ["heatmap"]))
     else:
         inputs.append(helper.make_tensor_value_info("past_features", f32, [1, T - 1, 1, F, F]))
-        inits += [numpy_helper.from_array(w_feat, "w_feat"), numpy_helper.from_array(w_flow, "w_flow"),
-                  numpy_helper.from_array(np.array(T - 2, np.int64), "prev_index"),
-                  numpy_helper.from_array(np.array(T - 1, np.int64), "last_index"),
-                  numpy_helper.from_array(np.array([1, 1, 1, 1], np.int64), "four_d"),
-                  numpy_helper.from_array(np.array([1, 2], np.int64), "axes12")]
+        inits += [
+            numpy_helper.from_array(w_feat, "w_feat"),
+            numpy_helper.from_array(w_flow, "w_flow"),
+            numpy_helper.from_array(np.array(T - 2, np.int64), "prev_index"),
+            numpy_helper.from_array(np.array(T - 1, np.int64), "last_index"),
+            numpy_helper.from_array(np.array([1, 1, 1, 1], np.int64), "four_d"),
+            numpy_helper.from_array(np.array([1, 2], np.int64), "axes12"),
+        ]
         nodes += [
             helper.make_node("Gather", ["past_features", "prev_index"], ["prev"], axis=1),
             helper.make_node("Sub", ["features", "prev"], ["dfeat"]),
@@ -92,21 +104,41 @@ def build_fake_step_graph(path, T: int, metadata: dict[str, str] | None = None) 
             helper.make_node("Add", ["heat_sum", "pose_term"], ["heatmap"]),
         ]
         outputs += ["flow", "features"]
-    nodes += [helper.make_node("Reshape", ["heatmap", "flat_shape"], ["flat"]),
-              helper.make_node("Slice", ["flat", "zero", "k", "one"], ["first_k"]),
-              helper.make_node("Sigmoid", ["first_k"], ["scores"]),
-              helper.make_node("Unsqueeze", ["scores", "minus_one"], ["scores3"]),
-              helper.make_node("Tile", ["scores3", "tile"], ["boxes"])]
-    shapes = {"heatmap": [1, 1, F, F], "scores": [1, K], "boxes": [1, K, 5], "flow": [1, T - 1, 2, F, F],
-              "features": [1, 1, F, F]}
-    graph = helper.make_graph(nodes, "fake_step", inputs,
-                              [helper.make_tensor_value_info(n, f32, shapes[n]) for n in outputs], initializer=inits)
+    nodes += [
+        helper.make_node("Reshape", ["heatmap", "flat_shape"], ["flat"]),
+        helper.make_node("Slice", ["flat", "zero", "k", "one"], ["first_k"]),
+        helper.make_node("Sigmoid", ["first_k"], ["scores"]),
+        helper.make_node("Unsqueeze", ["scores", "minus_one"], ["scores3"]),
+        helper.make_node("Tile", ["scores3", "tile"], ["boxes"]),
+    ]
+    shapes = {
+        "heatmap": [1, 1, F, F],
+        "scores": [1, K],
+        "boxes": [1, K, 5],
+        "flow": [1, T - 1, 2, F, F],
+        "features": [1, 1, F, F],
+    }
+    graph = helper.make_graph(
+        nodes,
+        "fake_step",
+        inputs,
+        [helper.make_tensor_value_info(n, f32, shapes[n]) for n in outputs],
+        initializer=inits,
+    )
     model = helper.make_model(graph, opset_imports=[helper.make_opsetid("", 17)])
     model.ir_version = 8
     cfg = _config(T)
-    meta = {"config": cfg.to_json(), "input_size": str(S), "resolution": str(cfg.resolution), "num_frames": str(T),
-            "class_names": json.dumps(list(cfg.class_names)), "checkpoint_sha256": "0" * 64, "version": "test",
-            "form": "step", "feature_channels": "1"}
+    meta = {
+        "config": cfg.to_json(),
+        "input_size": str(S),
+        "resolution": str(cfg.resolution),
+        "num_frames": str(T),
+        "class_names": json.dumps(list(cfg.class_names)),
+        "checkpoint_sha256": "0" * 64,
+        "version": "test",
+        "form": "step",
+        "feature_channels": "1",
+    }
     for key, value in (meta if metadata is None else metadata).items():
         model.metadata_props.add(key=key, value=value)
     onnx.checker.check_model(model)
@@ -143,8 +175,10 @@ def runner(request, tmp_path_factory) -> OnnxRunner:
 
 
 def test_import_is_torch_free():
-    code = ("import sys, rafd.runtime; assert 'torch' not in sys.modules, 'torch imported'; "
-            "assert 'onnxruntime' not in sys.modules, 'onnxruntime imported at import time'")
+    code = (
+        "import sys, rafd.runtime; assert 'torch' not in sys.modules, 'torch imported'; "
+        "assert 'onnxruntime' not in sys.modules, 'onnxruntime imported at import time'"
+    )
     subprocess.run([sys.executable, "-c", code], check=True)
 
 
@@ -228,7 +262,7 @@ def test_step_is_pure(runner):
         np.testing.assert_array_equal(before, after)
         assert not after.flags.writeable
     assert new_a.frames_used == new_b.frames_used == min(4, runner.config.num_frames)
-    with pytest.raises(Exception):  # frozen dataclass
+    with pytest.raises(dataclasses.FrozenInstanceError):
         state.frames_used = 0  # type: ignore[misc]
 
 
@@ -243,8 +277,15 @@ def test_state_holds_padded_caches_and_counts_shared_arrays_once(runner):
     assert state.nbytes == expected
 
 
-@pytest.mark.parametrize("bad", [np.zeros((S, S), np.float64), np.zeros((S + 1, S), np.float32),
-                                 np.full((S, S), 1.5, np.float32), np.full((S, S), np.nan, np.float32)])
+@pytest.mark.parametrize(
+    "bad",
+    [
+        np.zeros((S, S), np.float64),
+        np.zeros((S + 1, S), np.float32),
+        np.full((S, S), 1.5, np.float32),
+        np.full((S, S), np.nan, np.float32),
+    ],
+)
 def test_bad_frames_are_refused(runner, bad):
     with pytest.raises(ValueError):
         runner.step(runner.new_state(), bad, np.zeros(3))

@@ -1,21 +1,23 @@
 """Service test fixtures: an app around the FakeRunner, entered as a context manager (runs the lifespan)."""
+
 from __future__ import annotations
 
 from collections.abc import Iterator
 
 import pytest
 from fastapi.testclient import TestClient
-from fake_runner import FakeRunner
-from service_testing import FakeOdometry, wait_ready
 
 from service.app import create_app
 from service.settings import Settings
+from tests.utils.fake_runner import FakeRunner
+from tests.utils.service_testing import FakeOdometry, wait_ready
 
 
 @pytest.fixture
 def settings() -> Settings:
-    return Settings(threads=1, max_streams=64, stream_ttl_s=300.0, max_request_bytes=4 * 1024 * 1024,
-                    score_threshold=0.3)
+    return Settings(
+        threads=1, max_streams=64, stream_ttl_s=300.0, max_request_bytes=4 * 1024 * 1024, score_threshold=0.3
+    )
 
 
 @pytest.fixture

@@ -1,18 +1,19 @@
 """Optional API keys: required everywhere but liveness/readiness when configured; streams belong to their key."""
+
 from __future__ import annotations
 
 import hmac
 
 import pytest
-from fake_runner import FakeRunner
 from fastapi.testclient import TestClient
-from service_testing import blob_frame, detect_json, wait_ready
 
 from service import auth
 from service.app import create_app
 from service.auth import ApiKeys, load_api_keys, parse_key
 from service.cli import main as serve_main
 from service.settings import Settings
+from tests.utils.fake_runner import FakeRunner
+from tests.utils.service_testing import blob_frame, detect_json, wait_ready
 
 FRAME = blob_frame(128, [(8, 8, 255)])
 ALICE, BOB = "alice-key-0123456789abcdef", "bob-key-0123456789abcdef01"
@@ -35,13 +36,27 @@ def test_without_keys_configured_everything_is_open(client):
     assert "securitySchemes" not in client.get("/openapi.json").json().get("components", {})
 
 
-@pytest.mark.parametrize("method,path", [
-    ("POST", "/detect"), ("POST", "/streams/x/detect"), ("GET", "/streams"), ("DELETE", "/streams/x"),
-    ("GET", "/model"), ("GET", "/metrics"), ("GET", "/openapi.json"), ("GET", "/docs"), ("GET", "/nope"),
-])
+@pytest.mark.parametrize(
+    "method,path",
+    [
+        ("POST", "/detect"),
+        ("POST", "/streams/x/detect"),
+        ("GET", "/streams"),
+        ("DELETE", "/streams/x"),
+        ("GET", "/model"),
+        ("GET", "/metrics"),
+        ("GET", "/openapi.json"),
+        ("GET", "/docs"),
+        ("GET", "/nope"),
+    ],
+)
 def test_every_route_but_the_probes_needs_a_valid_key(keyed, method, path):
-    for headers in ({}, {"X-API-Key": "wrong-key-0123456789abcdef"}, {"Authorization": f"Basic {ALICE}"},
-                    {"Authorization": "Bearer "}):
+    for headers in (
+        {},
+        {"X-API-Key": "wrong-key-0123456789abcdef"},
+        {"Authorization": f"Basic {ALICE}"},
+        {"Authorization": "Bearer "},
+    ):
         response = keyed.request(method, path, headers=headers, json=detect_json("x", 1.0, FRAME))
         assert response.status_code == 401, (headers, response.text)
         assert response.json()["error"]["code"] == "unauthorized"
@@ -58,8 +73,9 @@ def test_a_stream_belongs_to_the_key_that_created_it(keyed):
     assert keyed.post("/detect", json=detect_json("car", 1.0, FRAME, (0, 0, 0)), headers=A).status_code == 200
     taken = keyed.post("/detect", json=detect_json("car", 2.0, FRAME, (0, 0, 0)), headers=B)
     assert taken.status_code == 403 and taken.json()["error"]["code"] == "stream_forbidden"
-    assert keyed.post("/streams/car/detect", json=detect_json("car", 2.0, FRAME, (0, 0, 0)),
-                      headers=B).status_code == 403
+    assert (
+        keyed.post("/streams/car/detect", json=detect_json("car", 2.0, FRAME, (0, 0, 0)), headers=B).status_code == 403
+    )
     assert keyed.delete("/streams/car", headers=B).status_code == 403
     assert keyed.get("/streams", headers=B).json()["count"] == 0  # bob cannot even list it
     listed = keyed.get("/streams", headers=A).json()["streams"]

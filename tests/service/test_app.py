@@ -1,4 +1,5 @@
 """App-level behaviour: import without torch, readiness gating, model info, metrics, OpenAPI."""
+
 from __future__ import annotations
 
 import subprocess
@@ -8,19 +9,20 @@ import time
 from pathlib import Path
 
 import numpy as np
-from fake_runner import FakeRunner
 from fastapi.testclient import TestClient
-from service_testing import blob_frame, detect_json, wait_ready
 
 from service.app import create_app
 from service.settings import Settings
+from tests.utils.fake_runner import FakeRunner
+from tests.utils.service_testing import blob_frame, detect_json, wait_ready
 
 
 def test_service_imports_no_torch_and_loads_no_model():
     code = (
         "import sys, service.app, service.cli; from service.app import create_app; "
         "assert 'torch' not in sys.modules, 'torch imported'; "
-        "assert 'rafd.runtime' not in sys.modules and 'onnxruntime' not in sys.modules, 'model code imported at import'; "
+        "assert 'rafd.runtime' not in sys.modules and 'onnxruntime' not in sys.modules, "
+        "'model code imported at import'; "
         "print('ok')"
     )
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=60)
@@ -33,9 +35,9 @@ def test_a_whole_request_cycle_runs_with_torch_unimportable():
     code = f"""
 import sys
 sys.modules["torch"] = None  # any `import torch` now raises ImportError
-sys.path.insert(0, {str(Path(__file__).parent)!r})
-from fake_runner import FakeRunner
-from service_testing import FakeOdometry, blob_frame, detect_json, wait_ready
+sys.path.insert(0, {str(Path(__file__).resolve().parents[2])!r})  # the repository root: tests.utils
+from tests.utils.fake_runner import FakeRunner
+from tests.utils.service_testing import FakeOdometry, blob_frame, detect_json, wait_ready
 from fastapi.testclient import TestClient
 from service.app import create_app
 from service.settings import Settings
@@ -118,7 +120,10 @@ def test_metrics_count_requests_errors_and_streams(client):
 
 
 def test_two_apps_do_not_share_metrics(settings, runner):
-    with TestClient(create_app(settings, runner=runner)) as first, TestClient(create_app(settings, runner=FakeRunner())) as second:
+    with (
+        TestClient(create_app(settings, runner=runner)) as first,
+        TestClient(create_app(settings, runner=FakeRunner())) as second,
+    ):
         wait_ready(first)
         wait_ready(second)
         first.get("/health/live")

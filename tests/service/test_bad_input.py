@@ -3,6 +3,7 @@
 Issue 14 finding 8 (looser than documented) is reproduced here case by case: JSON type coercion, 1-bit PNGs,
 duplicate multipart fields, undocumented multipart faults.
 """
+
 from __future__ import annotations
 
 import base64
@@ -10,13 +11,13 @@ import json
 
 import numpy as np
 import pytest
-from fake_runner import FakeRunner
 from fastapi.testclient import TestClient
-from png_testing import chunk, grey_png, other_format_png, text_chunks
-from service_testing import b64png, blob_frame, detect_json, png, stream_state, wait_ready
 
 from service.app import create_app
 from service.settings import Settings
+from tests.utils.fake_runner import FakeRunner
+from tests.utils.png_testing import chunk, grey_png, other_format_png, text_chunks
+from tests.utils.service_testing import b64png, blob_frame, detect_json, png, stream_state, wait_ready
 
 FRAME = blob_frame(128, [(8, 8, 255)])
 GOOD_PNG = png(FRAME)
@@ -60,7 +61,15 @@ def raw_multipart(body: bytes, content_type: str = "multipart/form-data; boundar
 
 def multipart_part(name: str, value: bytes, filename: str | None = None) -> bytes:
     file = f'; filename="{filename}"' if filename else ""
-    return b"--XyZ\r\nContent-Disposition: form-data; name=\"" + name.encode() + b'"' + file.encode() + b"\r\n\r\n" + value + b"\r\n"
+    return (
+        b'--XyZ\r\nContent-Disposition: form-data; name="'
+        + name.encode()
+        + b'"'
+        + file.encode()
+        + b"\r\n\r\n"
+        + value
+        + b"\r\n"
+    )
 
 
 def flipped(data: bytes, index: int) -> bytes:
@@ -79,7 +88,11 @@ def split_idat_run() -> bytes:
 
 GOOD_BODY = json.dumps(body())
 CASES = {
-    "wrong content type": (415, "unsupported_media_type", {"content": GOOD_BODY.encode(), "headers": {"content-type": "text/plain"}}),
+    "wrong content type": (
+        415,
+        "unsupported_media_type",
+        {"content": GOOD_BODY.encode(), "headers": {"content-type": "text/plain"}},
+    ),
     "no content type": (415, "unsupported_media_type", {"content": GOOD_BODY.encode()}),
     "invalid json": (400, "invalid_json", raw_json('{"stream_id": "s", ')),
     "json not an object": (422, "validation_error", raw_json("[1, 2]")),
@@ -93,16 +106,32 @@ CASES = {
     "not base64": (422, "invalid_image", {"json": body(image="%%% not base64 %%%")}),
     "base64 not an image": (422, "invalid_image", {"json": body(image=base64.b64encode(b"hello radar").decode())}),
     "empty image": (422, "validation_error", {"json": body(image="")}),
-    "truncated png": (422, "invalid_image", {"json": body(image=base64.b64encode(GOOD_PNG[: len(GOOD_PNG) // 2]).decode())}),
-    "jpeg not png": (422, "invalid_image", {"json": body(image=base64.b64encode(b"\xff\xd8\xff\xe0" + bytes(64)).decode())}),
+    "truncated png": (
+        422,
+        "invalid_image",
+        {"json": body(image=base64.b64encode(GOOD_PNG[: len(GOOD_PNG) // 2]).decode())},
+    ),
+    "jpeg not png": (
+        422,
+        "invalid_image",
+        {"json": body(image=base64.b64encode(b"\xff\xd8\xff\xe0" + bytes(64)).decode())},
+    ),
     "wrong size": (422, "unsupported_image_size", {"json": body(image=b64png(np.zeros((64, 64), np.uint8)))}),
     "not square": (422, "unsupported_image_size", {"json": body(image=b64png(np.zeros((1152, 1000), np.uint8)))}),
     "colour image": (422, "unsupported_image_format", {"json": body(image=b64png(np.zeros((128, 128, 3), np.uint8)))}),
     "grey + alpha": (422, "unsupported_image_format", {"json": body(image=b64png(np.zeros((128, 128, 4), np.uint8)))}),
     "16-bit image": (422, "unsupported_image_format", {"json": body(image=b64png(np.zeros((128, 128), np.uint16)))}),
     "NaN pose literal": (400, "invalid_json", raw_json(GOOD_BODY.replace('"x": 1.0', '"x": NaN'))),
-    "Infinity timestamp literal": (400, "invalid_json", raw_json(GOOD_BODY.replace('"timestamp": 10.0', '"timestamp": Infinity'))),
-    "overflowing timestamp": (400, "invalid_json", raw_json(GOOD_BODY.replace('"timestamp": 10.0', '"timestamp": 1e400'))),
+    "Infinity timestamp literal": (
+        400,
+        "invalid_json",
+        raw_json(GOOD_BODY.replace('"timestamp": 10.0', '"timestamp": Infinity')),
+    ),
+    "overflowing timestamp": (
+        400,
+        "invalid_json",
+        raw_json(GOOD_BODY.replace('"timestamp": 10.0', '"timestamp": 1e400')),
+    ),
     "NaN as a string": (422, "validation_error", {"json": body(timestamp="NaN")}),
     "stream id too long": (422, "validation_error", {"json": body(stream_id="x" * 129)}),
     "stream id non-printable": (422, "validation_error", {"json": body(stream_id="car\x00one")}),
@@ -132,9 +161,21 @@ CASES = {
     "pose unknown key": (422, "validation_error", {"json": body(pose={"x": 1.0, "y": 2.0, "yaw": 0.1, "z": 0})}),
     "stream id a number": (422, "validation_error", {"json": body(stream_id=5)}),
     "image not a string": (422, "validation_error", {"json": body(image=[1, 2])}),
-    "duplicate json key": (422, "validation_error", raw_json(GOOD_BODY.replace('"timestamp": 10.0', '"timestamp": 10.0, "timestamp": 11.0'))),
-    "huge integer timestamp": (422, "validation_error", raw_json(GOOD_BODY.replace('"timestamp": 10.0', '"timestamp": 1' + "0" * 400))),
-    "overlong integer literal": (400, "invalid_json", raw_json(GOOD_BODY.replace('"timestamp": 10.0', '"timestamp": 1' + "0" * 5000))),
+    "duplicate json key": (
+        422,
+        "validation_error",
+        raw_json(GOOD_BODY.replace('"timestamp": 10.0', '"timestamp": 10.0, "timestamp": 11.0')),
+    ),
+    "huge integer timestamp": (
+        422,
+        "validation_error",
+        raw_json(GOOD_BODY.replace('"timestamp": 10.0', '"timestamp": 1' + "0" * 400)),
+    ),
+    "overlong integer literal": (
+        400,
+        "invalid_json",
+        raw_json(GOOD_BODY.replace('"timestamp": 10.0', '"timestamp": 1' + "0" * 5000)),
+    ),
     "deeply nested json": (400, "invalid_json", raw_json("[" * 100_000 + "]" * 100_000)),
     # finding 8: 8-bit greyscale PNG only, refused from the header
     "1-bit png": (422, "unsupported_image_format", {"json": body(image=b64(other_format_png(128, 128, 1, 0)))}),
@@ -143,20 +184,52 @@ CASES = {
     "base64 with line breaks": (422, "invalid_image", {"json": body(image=base64.encodebytes(GOOD_PNG).decode())}),
     "data url of another type": (422, "invalid_image", {"json": body(image="data:image/jpeg;base64," + b64(GOOD_PNG))}),
     # finding 1: chunk structure refused before decoding
-    "too many ancillary chunks": (422, "invalid_image", {"json": body(image=b64(grey_png(FRAME, before_idat=text_chunks(17, 100))))}),
-    "ancillary chunks too large": (422, "invalid_image", {"json": body(image=b64(grey_png(FRAME, before_idat=text_chunks(1, 70_000, compressed=False))))}),
-    "image data inflating past its header": (422, "invalid_image", {"json": body(image=b64(grey_png(FRAME, extra_compressed=1_000_000)))}),
-    "image data short of its header": (422, "invalid_image", {"json": body(image=b64(grey_png(FRAME[:100], declared=(128, 128))))}),
-    "chunk running past the end": (422, "invalid_image", {"json": body(image=b64(grey_png(FRAME)[:60] + grey_png(FRAME)[-12:]))}),
+    "too many ancillary chunks": (
+        422,
+        "invalid_image",
+        {"json": body(image=b64(grey_png(FRAME, before_idat=text_chunks(17, 100))))},
+    ),
+    "ancillary chunks too large": (
+        422,
+        "invalid_image",
+        {"json": body(image=b64(grey_png(FRAME, before_idat=text_chunks(1, 70_000, compressed=False))))},
+    ),
+    "image data inflating past its header": (
+        422,
+        "invalid_image",
+        {"json": body(image=b64(grey_png(FRAME, extra_compressed=1_000_000)))},
+    ),
+    "image data short of its header": (
+        422,
+        "invalid_image",
+        {"json": body(image=b64(grey_png(FRAME[:100], declared=(128, 128))))},
+    ),
+    "chunk running past the end": (
+        422,
+        "invalid_image",
+        {"json": body(image=b64(grey_png(FRAME)[:60] + grey_png(FRAME)[-12:]))},
+    ),
     "bytes after IEND": (422, "invalid_image", {"json": body(image=b64(grey_png(FRAME, trailing=b"x" * 10)))}),
-    "unknown critical chunk": (422, "invalid_image", {"json": body(image=b64(grey_png(FRAME, before_idat=chunk(b"ABCD", b"1"))))}),
+    "unknown critical chunk": (
+        422,
+        "invalid_image",
+        {"json": body(image=b64(grey_png(FRAME, before_idat=chunk(b"ABCD", b"1"))))},
+    ),
     "split IDAT run": (422, "invalid_image", {"json": body(image=b64(split_idat_run()))}),
     "bad IDAT crc": (422, "invalid_image", {"json": body(image=b64(flipped(GOOD_PNG, -13)))}),  # last IDAT's CRC
     "corrupt image data": (422, "invalid_image", {"json": body(image=b64(flipped(GOOD_PNG, -20)))}),  # its adler32
     # finding 8: duplicate multipart fields refused; multipart faults have documented codes
     "multipart duplicate field": (422, "validation_error", form({}, extra=[("timestamp", (None, "11.0"))])),
-    "multipart duplicate image": (422, "validation_error", form({}, extra=[("image", ("g.png", GOOD_PNG, "image/png"))])),
-    "multipart stream id as a file": (422, "validation_error", form({}, extra=[("pose_x", ("x.txt", b"1", "text/plain"))])),
+    "multipart duplicate image": (
+        422,
+        "validation_error",
+        form({}, extra=[("image", ("g.png", GOOD_PNG, "image/png"))]),
+    ),
+    "multipart stream id as a file": (
+        422,
+        "validation_error",
+        form({}, extra=[("pose_x", ("x.txt", b"1", "text/plain"))]),
+    ),
     "multipart timestamp with spaces": (422, "validation_error", form({"timestamp": " 10.5"})),
     "multipart timestamp underscores": (422, "validation_error", form({"timestamp": "1_000"})),
     "multipart timestamp true": (422, "validation_error", form({"timestamp": "true"})),
@@ -165,7 +238,11 @@ CASES = {
     "multipart no boundary": (400, "invalid_multipart", raw_multipart(b"--XyZ--\r\n", "multipart/form-data")),
     "multipart garbage": (400, "invalid_multipart", raw_multipart(b"this is not multipart at all")),
     "multipart no closing boundary": (400, "invalid_multipart", raw_multipart(multipart_part("stream_id", b"s"))),
-    "multipart part without name": (400, "invalid_multipart", raw_multipart(b"--XyZ\r\nContent-Disposition: form-data\r\n\r\nx\r\n--XyZ--\r\n")),
+    "multipart part without name": (
+        400,
+        "invalid_multipart",
+        raw_multipart(b"--XyZ\r\nContent-Disposition: form-data\r\n\r\nx\r\n--XyZ--\r\n"),
+    ),
     "multipart empty body": (400, "empty_body", raw_multipart(b"")),
     # the stream named outside the body must agree with the body
     "header stream id differs": (422, "stream_id_mismatch", {"json": body(), "headers": {"X-Stream-Id": "other"}}),
@@ -174,18 +251,40 @@ CASES = {
 }
 # The reason, for cases where the code alone could be right for the wrong reason.
 MESSAGES = {
-    "too many ancillary chunks": "ancillary chunks", "ancillary chunks too large": "ancillary chunks",
-    "image data inflating past its header": "inflates to more than", "image data short of its header": "truncated (",
-    "bytes after IEND": "after its IEND", "unknown critical chunk": "critical chunk", "split IDAT run": "consecutive",
-    "bad IDAT crc": "could not be decoded", "corrupt image data": "corrupt", "1-bit png": "1-bit greyscale", "palette png": "8-bit palette",
-    "4-bit grey png": "4-bit greyscale", "duplicate json key": "more than once", "multipart duplicate field": "more than once",
-    "multipart duplicate image": "more than once", "timestamp true": "valid number", "timestamp numeric string": "valid number",
-    "multipart timestamp true": "finite number", "no stream id anywhere": "X-Stream-Id",
+    "too many ancillary chunks": "ancillary chunks",
+    "ancillary chunks too large": "ancillary chunks",
+    "image data inflating past its header": "inflates to more than",
+    "image data short of its header": "truncated (",
+    "bytes after IEND": "after its IEND",
+    "unknown critical chunk": "critical chunk",
+    "split IDAT run": "consecutive",
+    "bad IDAT crc": "could not be decoded",
+    "corrupt image data": "corrupt",
+    "1-bit png": "1-bit greyscale",
+    "palette png": "8-bit palette",
+    "4-bit grey png": "4-bit greyscale",
+    "duplicate json key": "more than once",
+    "multipart duplicate field": "more than once",
+    "multipart duplicate image": "more than once",
+    "timestamp true": "valid number",
+    "timestamp numeric string": "valid number",
+    "multipart timestamp true": "finite number",
+    "no stream id anywhere": "X-Stream-Id",
 }
 PATH_CASES = {
     "path and body differ": (422, "stream_id_mismatch", "/streams/other/detect", {"json": body()}),
-    "path and header differ": (422, "stream_id_mismatch", "/streams/s/detect", {"json": body(stream_id=...), "headers": {"X-Stream-Id": "t"}}),
-    "older timestamp on the path form": (409, "timestamp_not_increasing", "/streams/s/detect", {"json": body(stream_id=..., timestamp=1.0)}),
+    "path and header differ": (
+        422,
+        "stream_id_mismatch",
+        "/streams/s/detect",
+        {"json": body(stream_id=...), "headers": {"X-Stream-Id": "t"}},
+    ),
+    "older timestamp on the path form": (
+        409,
+        "timestamp_not_increasing",
+        "/streams/s/detect",
+        {"json": body(stream_id=..., timestamp=1.0)},
+    ),
 }
 
 

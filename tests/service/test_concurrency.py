@@ -1,16 +1,17 @@
 """Concurrency: streams stay isolated under interleaved posts; one stream's frames run in timestamp order."""
+
 from __future__ import annotations
 
 import random
 from concurrent.futures import ThreadPoolExecutor
 
 import numpy as np
-from fake_runner import FakeRunner
 from fastapi.testclient import TestClient
-from service_testing import blob_frame, detect_json, stream_state, wait_ready
 
 from rafd.detections import decode_detections
 from service.app import create_app
+from tests.utils.fake_runner import FakeRunner
+from tests.utils.service_testing import blob_frame, detect_json, stream_state, wait_ready
 
 STREAMS = 20
 FRAMES_PER_STREAM = 5
@@ -21,8 +22,10 @@ def stream_frames(k: int) -> tuple[list[np.ndarray], list[tuple[float, float, fl
     rng = np.random.default_rng(k)
     frames, poses = [], []
     for t in range(FRAMES_PER_STREAM):
-        spots = [(int(r) // 4 * 4, int(c) // 4 * 4, int(v)) for r, c, v in
-                 zip(rng.integers(0, 124, 3), rng.integers(0, 124, 3), rng.integers(90, 256, 3))]
+        spots = [
+            (int(r) // 4 * 4, int(c) // 4 * 4, int(v))
+            for r, c, v in zip(rng.integers(0, 124, 3), rng.integers(0, 124, 3), rng.integers(90, 256, 3))
+        ]
         frames.append(blob_frame(128, spots))
         poses.append((float(k), float(t), 0.01 * k * t))
     return frames, poses
@@ -72,7 +75,9 @@ def test_concurrent_posts_to_one_stream_are_processed_in_timestamp_order(setting
     runner = FakeRunner(delay_s=0.002)
 
     def post(i: int):
-        frame = np.full((128, 128), 8 * i, np.uint8)  # frame i is uniform 8 * i: the fake's flow reveals its predecessor
+        frame = np.full(
+            (128, 128), 8 * i, np.uint8
+        )  # frame i is uniform 8 * i: the fake's flow reveals its predecessor
         return i, client.post("/detect", json=detect_json("one", float(i), frame, (float(i), 0.0, 0.0)))
 
     with TestClient(create_app(settings, runner=runner)) as client:
@@ -93,7 +98,7 @@ def test_concurrent_posts_to_one_stream_are_processed_in_timestamp_order(setting
             predecessor = i - answer["flow"]["values"][0][0][0] / 8.0  # flow x = 255 * (new - previous) / 255
             assert round(predecessor) == accepted[rank - 1], f"frame {i} was stepped after {predecessor}"
             assert answer["flow"]["pair"] == [float(accepted[rank - 1]), float(i)]
-    for i, response in responses.items():
+    for response in responses.values():
         if response.status_code == 409:
             assert response.json()["error"]["code"] == "timestamp_not_increasing"
     assert final["last_timestamp"] == float(count)

@@ -1,17 +1,18 @@
 """POST /detect happy paths: answers equal the runner's output, decoded; polygons, flow, warm-up, poses."""
+
 from __future__ import annotations
 
 import base64
 
 import numpy as np
 import pytest
-from fake_runner import FakeRunner
 from fastapi.testclient import TestClient
-from service_testing import blob_frame, detect_json, png, wait_ready
 
 from rafd.detections import decode_detections
 from rafd.geometry import box_polygons_pixels, compose_poses
 from service.app import create_app
+from tests.utils.fake_runner import FakeRunner
+from tests.utils.service_testing import blob_frame, detect_json, png, wait_ready, wait_until
 
 FRAMES = [blob_frame(128, [(8 + 4 * t, 16, 250), (64, 40 + 4 * t, 120), (100, 100, 90)]) for t in range(6)]
 POSES = [(1.0 * t, 0.5 * t, 0.05 * t) for t in range(6)]
@@ -48,8 +49,12 @@ def test_json_stream_warms_up_then_uses_full_window(client):
         assert answer["warming_up"] is (t < 3)
         assert answer["pose_source"] == "request"
         assert answer["pose"] == pytest.approx({"x": pose[0], "y": pose[1], "yaw": pose[2]})
-        assert answer["input"] == {"posted_size": 128, "model_size": 128, "crop_offset_px": 0,
-                                   "posted_format": "cartesian"}
+        assert answer["input"] == {
+            "posted_size": 128,
+            "model_size": 128,
+            "crop_offset_px": 0,
+            "posted_format": "cartesian",
+        }
         assert answer["model"]["version"] == "fake-1"
         stages = ("read_ms", "decode_ms", "wait_ms", "odometry_ms", "model_ms", "post_ms")
         assert set(answer["timing"]) == {*stages, "total_ms"}
@@ -71,8 +76,12 @@ def test_full_scan_is_centre_cropped_and_polygons_use_its_pixels(client):
     scan[0:50, 0:50] = 255  # outside the crop: must not matter
     from_scan = client.post("/detect", json=detect_json("scan", 1.0, scan, POSES[0])).json()
     from_crop = client.post("/detect", json=detect_json("crop", 1.0, crop, POSES[0])).json()
-    assert from_scan["input"] == {"posted_size": 1152, "model_size": 128, "crop_offset_px": 512,
-                                 "posted_format": "cartesian"}
+    assert from_scan["input"] == {
+        "posted_size": 1152,
+        "model_size": 128,
+        "crop_offset_px": 512,
+        "posted_format": "cartesian",
+    }
     assert [b["score"] for b in from_scan["boxes"]] == [b["score"] for b in from_crop["boxes"]]
     scan_polygons = np.array([b["polygon"] for b in from_scan["boxes"]])
     crop_polygons = np.array([b["polygon"] for b in from_crop["boxes"]])
@@ -86,8 +95,13 @@ def test_full_scan_is_centre_cropped_and_polygons_use_its_pixels(client):
 def test_multipart_gives_the_same_answer_as_json(client):
     for t in range(3):
         files = {"image": ("frame.png", png(FRAMES[t]), "image/png")}
-        data = {"stream_id": "form", "timestamp": str(10.0 + t), "pose_x": str(POSES[t][0]),
-                "pose_y": str(POSES[t][1]), "pose_yaw": str(POSES[t][2])}
+        data = {
+            "stream_id": "form",
+            "timestamp": str(10.0 + t),
+            "pose_x": str(POSES[t][0]),
+            "pose_y": str(POSES[t][1]),
+            "pose_yaw": str(POSES[t][2]),
+        }
         form = client.post("/detect", data=data, files=files)
         assert form.status_code == 200, form.text
         js = client.post("/detect", json=detect_json("json", 10.0 + t, FRAMES[t], POSES[t])).json()
@@ -136,7 +150,7 @@ def test_odometry_registers_the_centre_512_px_of_a_full_scan(client, odometry):
     assert client.post("/detect", json=detect_json("wide", 2.0, small)).status_code == 200
     previous, current, _ = odometry.calls[-1]
     half = small.shape[0] // 2
-    np.testing.assert_array_equal(previous, scans[1][576 - half:576 + half, 576 - half:576 + half])
+    np.testing.assert_array_equal(previous, scans[1][576 - half : 576 + half, 576 - half : 576 + half])
     np.testing.assert_array_equal(current, small)
 
 
@@ -145,8 +159,11 @@ def test_pose_mixing_rule(client, odometry):
     client.post("/detect", json=detect_json("gps", 1.0, FRAMES[0], (10.0, 20.0, 0.3)))
     gap = client.post("/detect", json=detect_json("gps", 2.0, FRAMES[1])).json()
     assert gap["pose_source"] == "odometry"
-    np.testing.assert_allclose([gap["pose"][k] for k in ("x", "y", "yaw")],
-                               compose_poses(np.array([10.0, 20.0, 0.3]), odometry.motion), atol=1e-6)
+    np.testing.assert_allclose(
+        [gap["pose"][k] for k in ("x", "y", "yaw")],
+        compose_poses(np.array([10.0, 20.0, 0.3]), odometry.motion),
+        atol=1e-6,
+    )
     back = client.post("/detect", json=detect_json("gps", 3.0, FRAMES[2], (11.0, 21.0, 0.4)))
     assert back.status_code == 200 and back.json()["pose_source"] == "request"
     # Started without poses: a request pose would live in another world frame -> 409, nothing changes.
@@ -170,8 +187,8 @@ def test_score_threshold_setting_filters_boxes(settings):
 
 
 def test_real_odometry_on_the_radiate_sample(radiate_sample, settings):
-    """With no odometry injected the service uses rafd.odometry (when that module is present)."""
-    pytest.importorskip("rafd.odometry")
+    """With no odometry injected the service uses rafd.data.odometry (when that module is present)."""
+    pytest.importorskip("rafd.data.odometry")
     scans = sorted((radiate_sample / "Navtech_Cartesian").glob("*.png"))[:3]
     with TestClient(create_app(settings, runner=FakeRunner())) as client:
         wait_ready(client)
@@ -207,8 +224,9 @@ def test_a_model_failure_answers_500_and_changes_no_stream(settings):
         assert failed.status_code == 500 and failed.json()["error"]["code"] == "internal_error"
         assert client.post("/detect", json=detect_json("new", 1.0, broken, POSES[0])).status_code == 500
         after = client.get("/streams").json()["streams"]
-        assert [{k: v for k, v in s.items() if k != "idle_s"} for s in after] == \
-            [{k: v for k, v in s.items() if k != "idle_s"} for s in before]  # "new" was not created either
+        assert [{k: v for k, v in s.items() if k != "idle_s"} for s in after] == [
+            {k: v for k, v in s.items() if k != "idle_s"} for s in before
+        ]  # "new" was not created either
         retry = client.post("/detect", json=detect_json("ok", 2.0, FRAMES[1], POSES[1])).json()
         assert retry["frames_used"] == 2  # the failed frame never entered the buffer
 
@@ -221,25 +239,41 @@ def test_the_stream_can_be_named_in_a_header_or_the_path(client):
         anonymous = {k: v for k, v in body.items() if k != "stream_id"}
         by_header = client.post("/detect", json=anonymous, headers={"X-Stream-Id": "header"}).json()
         by_path = client.post("/streams/path/detect", json=anonymous).json()
-        both = client.post("/streams/both/detect", json=body | {"stream_id": "both"},
-                           headers={"X-Stream-Id": "both"}).json()
+        both = client.post(
+            "/streams/both/detect", json=body | {"stream_id": "both"}, headers={"X-Stream-Id": "both"}
+        ).json()
         files = {"image": ("frame.png", png(FRAMES[t]), "image/png")}
-        form = client.post("/streams/form/detect", files=files, data={
-            "timestamp": str(10.0 + t), "pose_x": str(POSES[t][0]), "pose_y": str(POSES[t][1]),
-            "pose_yaw": str(POSES[t][2])}).json()
+        form = client.post(
+            "/streams/form/detect",
+            files=files,
+            data={
+                "timestamp": str(10.0 + t),
+                "pose_x": str(POSES[t][0]),
+                "pose_y": str(POSES[t][1]),
+                "pose_yaw": str(POSES[t][2]),
+            },
+        ).json()
         for answer, name in ((by_header, "header"), (by_path, "path"), (both, "both"), (form, "form")):
             assert answer["stream_id"] == name
             for key in ("boxes", "flow", "frames_used", "pose"):
                 assert answer[key] == by_body[key], (name, key)
-    assert {s["stream_id"] for s in client.get("/streams").json()["streams"]} == {"body", "header", "path", "both",
-                                                                                  "form"}
+    assert {s["stream_id"] for s in client.get("/streams").json()["streams"]} == {
+        "body",
+        "header",
+        "path",
+        "both",
+        "form",
+    }
 
 
-@pytest.mark.parametrize("metadata, setting, expected", [
-    ({}, None, 0.3),  # a model without an operating threshold: 0.3
-    ({"operating_threshold": "0.55"}, None, 0.55),  # the model's own
-    ({"operating_threshold": "0.55"}, 0.2, 0.2),  # RAFD_SCORE_THRESHOLD wins
-])
+@pytest.mark.parametrize(
+    "metadata, setting, expected",
+    [
+        ({}, None, 0.3),  # a model without an operating threshold: 0.3
+        ({"operating_threshold": "0.55"}, None, 0.55),  # the model's own
+        ({"operating_threshold": "0.55"}, 0.2, 0.2),  # RAFD_SCORE_THRESHOLD wins
+    ],
+)
 def test_score_threshold_is_the_models_operating_threshold_unless_set(settings, metadata, setting, expected):
     settings.score_threshold = setting
     runner = FakeRunner()
@@ -254,13 +288,15 @@ def test_score_threshold_is_the_models_operating_threshold_unless_set(settings, 
 
 @pytest.mark.parametrize("value", ["high", "1.5"])
 def test_a_bad_operating_threshold_in_the_model_is_an_error_at_start_up(value):
-    from service.detector import score_threshold_of
+    """The model does not load (readiness says why) rather than answering at a threshold nobody chose."""
     from service.settings import Settings
 
     runner = FakeRunner()
     runner.metadata["operating_threshold"] = value
-    with pytest.raises(ValueError, match="operating_threshold"):
-        score_threshold_of(Settings(threads=1), runner)
+    with TestClient(create_app(Settings(threads=1), runner=runner)) as client:
+        wait_until(lambda: "failed to load" in client.get("/health/ready").text, message="the load to fail")
+        ready = client.get("/health/ready")
+    assert ready.status_code == 503 and "operating_threshold" in ready.json()["error"]["message"]
 
 
 def test_flow_list_is_written_as_the_same_text_as_nested_lists():
@@ -272,4 +308,5 @@ def test_flow_list_is_written_as_the_same_text_as_nested_lists():
     flow = np.concatenate([rng.normal(0, 2, 2 * 64 * 64 - 6), [-0.0001, 0.0004999, 3.0, -250.1234, 1e-9, 0.0005]])
     values = np.round(flow.reshape(2, 64, 64).astype(np.float32).astype(np.float64), 3)
     assert orjson.dumps({"values": values}, option=orjson.OPT_SERIALIZE_NUMPY) == orjson.dumps(
-        {"values": values.tolist()})
+        {"values": values.tolist()}
+    )

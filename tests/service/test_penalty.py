@@ -1,15 +1,15 @@
 """A client that keeps sending refused images gets its refusals slowly; valid requests and other clients never."""
+
 from __future__ import annotations
 
-import pytest
-from fake_runner import FakeRunner
 from fastapi.testclient import TestClient
-from service_testing import detect_json, wait_ready
 
 import service.errors
 from service.app import create_app
 from service.penalty import MAX_CLIENTS, RefusalPenalty
 from service.settings import Settings
+from tests.utils.fake_runner import FakeRunner
+from tests.utils.service_testing import detect_json, wait_ready
 
 FRAME_SIZE = 128
 

@@ -3,6 +3,7 @@
 The service's one decode (service/images.py) converts a [576, 400] polar PNG with
 rafd.preprocess.polar_to_cartesian to RADIATE's 1152 px scan; from there it is the Cartesian path.
 """
+
 from __future__ import annotations
 
 import base64
@@ -14,14 +15,14 @@ from typing import Any
 import cv2
 import numpy as np
 import pytest
-from fake_runner import FakeRunner
 from fastapi.testclient import TestClient
-from service_testing import FakeOdometry, b64png, png, wait_ready
 
 from rafd.preprocess import polar_to_cartesian
 from service.app import create_app
 from service.images import POLAR_SHAPE
 from service.settings import Settings
+from tests.utils.fake_runner import FakeRunner
+from tests.utils.service_testing import FakeOdometry, b64png, png, wait_ready
 
 POSES = [(0.0, 0.0, 0.0), (0.4, 1.5, 0.02)]
 
@@ -45,13 +46,24 @@ def comparable(answer: dict[str, Any]) -> dict[str, Any]:
 def post(client: TestClient, stream: str, t: int, image: bytes, multipart: bool = False) -> dict[str, Any]:
     x, y, yaw = POSES[t]
     if multipart:
-        data = {"stream_id": stream, "timestamp": str(10.0 + t), "pose_x": str(x), "pose_y": str(y),
-                "pose_yaw": str(yaw)}
+        data = {
+            "stream_id": stream,
+            "timestamp": str(10.0 + t),
+            "pose_x": str(x),
+            "pose_y": str(y),
+            "pose_yaw": str(yaw),
+        }
         response = client.post("/detect", data=data, files={"image": ("scan.png", image, "image/png")})
     else:
-        response = client.post("/detect", json={"stream_id": stream, "timestamp": 10.0 + t,
-                                                "pose": {"x": x, "y": y, "yaw": yaw},
-                                                "image": base64.b64encode(image).decode("ascii")})
+        response = client.post(
+            "/detect",
+            json={
+                "stream_id": stream,
+                "timestamp": 10.0 + t,
+                "pose": {"x": x, "y": y, "yaw": yaw},
+                "image": base64.b64encode(image).decode("ascii"),
+            },
+        )
     assert response.status_code == 200, response.text
     return response.json()
 
@@ -78,8 +90,9 @@ def test_polar_scan_differs_from_a_transposed_reading(client):
 
 
 def test_transposed_polar_scan_is_refused_naming_the_layout(client):
-    response = client.post("/detect", json={"stream_id": "t", "timestamp": 1.0,
-                                            "image": b64png(np.zeros(POLAR_SHAPE[::-1], np.uint8))})
+    response = client.post(
+        "/detect", json={"stream_id": "t", "timestamp": 1.0, "image": b64png(np.zeros(POLAR_SHAPE[::-1], np.uint8))}
+    )
     assert response.status_code == 422
     error = response.json()["error"]
     assert error["code"] == "unsupported_image_size"
@@ -103,6 +116,7 @@ def test_polar_scan_is_refused_where_a_full_radiate_scan_is(settings):
 
 # --- the real polar scans of tiny_foggy, on the shipped model -------------------------------------------------
 
+
 @pytest.fixture(scope="module")
 def shipped_client() -> Iterator[TestClient]:
     from rafd.assets import default_onnx
@@ -123,12 +137,16 @@ def test_real_polar_scans_answer_as_their_cartesian_conversion(shipped_client, r
         polar = cv2.imread(str(path), cv2.IMREAD_GRAYSCALE)
         assert polar.shape == POLAR_SHAPE
         body = {"timestamp": 10.0 + t}
-        from_polar = shipped_client.post("/detect", json={**body, "stream_id": "real-polar",
-                                                          "image": b64png(polar)}).json()
-        raw = shipped_client.post("/detect", json={**body, "stream_id": "real-polar-file",
-                                                   "image": base64.b64encode(path.read_bytes()).decode("ascii")}).json()
-        from_cartesian = shipped_client.post("/detect", json={**body, "stream_id": "real-cartesian",
-                                                              "image": b64png(polar_to_cartesian(polar))}).json()
+        from_polar = shipped_client.post(
+            "/detect", json={**body, "stream_id": "real-polar", "image": b64png(polar)}
+        ).json()
+        raw = shipped_client.post(
+            "/detect",
+            json={**body, "stream_id": "real-polar-file", "image": base64.b64encode(path.read_bytes()).decode("ascii")},
+        ).json()
+        from_cartesian = shipped_client.post(
+            "/detect", json={**body, "stream_id": "real-cartesian", "image": b64png(polar_to_cartesian(polar))}
+        ).json()
         assert from_polar["input"]["posted_format"] == raw["input"]["posted_format"] == "polar"
         assert from_polar["pose_source"] == "odometry"
         assert comparable(from_polar) == comparable(from_cartesian) == comparable(raw)

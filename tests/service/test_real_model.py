@@ -3,6 +3,7 @@
 Offline reference: the shipped checkpoint's model.forward on the same padded window (warm-up rule of
 rafd.runtime.window_from_history) built from the same crops and the poses the service reports using.
 """
+
 from __future__ import annotations
 
 from collections.abc import Iterator
@@ -13,9 +14,9 @@ import httpx
 import numpy as np
 import pytest
 from fastapi.testclient import TestClient
-from service_testing import b64png, serve_in_thread, wait_ready
 
 from rafd.geometry import centre_crop
+from tests.utils.service_testing import b64png, serve_in_thread, wait_ready
 
 torch = pytest.importorskip("torch", reason="the offline PyTorch reference needs the train extra")
 
@@ -87,8 +88,9 @@ def test_tiny_foggy_stream_matches_offline_pytorch(client, shipped, radiate_samp
     crops, poses = [], []
     for k, path in enumerate(paths):
         scan = cv2.imread(str(path), cv2.IMREAD_GRAYSCALE)
-        answer = client.post("/detect", json={"stream_id": "foggy", "timestamp": 100.0 + 0.25 * k,
-                                              "image": b64png(scan)})
+        answer = client.post(
+            "/detect", json={"stream_id": "foggy", "timestamp": 100.0 + 0.25 * k, "image": b64png(scan)}
+        )
         assert answer.status_code == 200, answer.text
         body = answer.json()
         assert body["pose_source"] == "odometry" and body["frames_used"] == min(k + 1, model.num_frames)
@@ -110,8 +112,12 @@ def test_simulated_stream_over_real_uvicorn_matches_offline_pytorch(shipped):
     with serve_in_thread(app) as url, httpx.Client(base_url=url, timeout=30.0) as http:
         wait_ready(http, timeout=60.0)
         for k, (image, pose) in enumerate(zip(sequence.images, sequence.poses)):
-            body = {"stream_id": "sim", "timestamp": 10.0 + k, "image": b64png(image),
-                    "pose": {"x": float(pose[0]), "y": float(pose[1]), "yaw": float(pose[2])}}
+            body = {
+                "stream_id": "sim",
+                "timestamp": 10.0 + k,
+                "image": b64png(image),
+                "pose": {"x": float(pose[0]), "y": float(pose[1]), "yaw": float(pose[2])},
+            }
             answer = http.post("/detect", json=body)
             assert answer.status_code == 200, answer.text
             crops.append(image)

@@ -1,15 +1,16 @@
 """The runtime and precision settings: validated, applied when the model loads, and reported in /model and in
 every /detect answer's `model` field."""
+
 from __future__ import annotations
 
 import numpy as np
 import pytest
 from fastapi.testclient import TestClient
 from pydantic import ValidationError
-from service_testing import detect_json, wait_ready
 
 from service.app import create_app
 from service.settings import Settings
+from tests.utils.service_testing import detect_json, wait_ready
 
 
 def test_runtime_and_precision_from_the_environment(monkeypatch):
@@ -27,8 +28,9 @@ def test_concurrent_runs_default_to_one_per_cpu(monkeypatch):
     assert Settings().concurrent_runs == 1
 
 
-@pytest.mark.parametrize("name,value", [("RAFD_RUNTIME", "tensorrt"), ("RAFD_PRECISION", "int8"),
-                                        ("RAFD_CONCURRENT_RUNS", "0")])
+@pytest.mark.parametrize(
+    "name,value", [("RAFD_RUNTIME", "tensorrt"), ("RAFD_PRECISION", "int8"), ("RAFD_CONCURRENT_RUNS", "0")]
+)
 def test_unknown_runtime_or_precision_is_refused(monkeypatch, name, value):
     monkeypatch.setenv(name, value)
     with pytest.raises(ValidationError, match=name.removeprefix("RAFD_").lower()):

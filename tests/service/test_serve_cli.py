@@ -1,4 +1,5 @@
 """rafd-serve: argument handling up to the uvicorn call (which is replaced by a recorder)."""
+
 from __future__ import annotations
 
 import sys
@@ -8,6 +9,8 @@ import pytest
 import uvicorn
 
 from service.cli import main
+
+pytestmark = pytest.mark.network
 
 
 @pytest.fixture
@@ -21,7 +24,7 @@ def test_serves_the_given_model_on_the_given_address(tmp_path, recorded):
     model = tmp_path / "model.onnx"
     model.write_bytes(b"onnx")
     assert main(["--model", str(model), "--host", "0.0.0.0", "--port", "9001", "--threads", "2"]) == 0
-    (app, options), = recorded
+    ((app, options),) = recorded
     assert options["host"] == "0.0.0.0" and options["port"] == 9001
     assert app.state.settings.model_path == model and app.state.settings.threads == 2
 

@@ -1,12 +1,16 @@
 """A real uvicorn server on loopback serving the FakeRunner app: frames over HTTP, then a clean shutdown."""
+
 from __future__ import annotations
 
 import httpx
-from fake_runner import FakeRunner
-from service_testing import blob_frame, detect_json, png, serve_in_thread, wait_ready
+import pytest
 
 from service.app import create_app
 from service.settings import Settings
+from tests.utils.fake_runner import FakeRunner
+from tests.utils.service_testing import blob_frame, detect_json, png, serve_in_thread, wait_ready
+
+pytestmark = pytest.mark.network
 
 
 def test_real_server_streams_frames_and_enforces_the_limit_on_chunked_bodies():
@@ -20,11 +24,15 @@ def test_real_server_streams_frames_and_enforces_the_limit_on_chunked_bodies():
             assert answer.status_code == 200, answer.text
             assert answer.json()["frames_used"] == min(t + 1, 4)
         files = {"image": ("f.png", png(blob_frame(128, [])), "image/png")}
-        form = http.post("/detect", data={"stream_id": "road", "timestamp": "60", "pose_x": "5", "pose_y": "0",
-                                          "pose_yaw": "0"}, files=files)
+        form = http.post(
+            "/detect",
+            data={"stream_id": "road", "timestamp": "60", "pose_x": "5", "pose_y": "0", "pose_yaw": "0"},
+            files=files,
+        )
         assert form.status_code == 200 and form.json()["warming_up"] is False
-        chunked = http.post("/detect", content=(b"x" * 10_000 for _ in range(20)),
-                            headers={"content-type": "application/json"})
+        chunked = http.post(
+            "/detect", content=(b"x" * 10_000 for _ in range(20)), headers={"content-type": "application/json"}
+        )
         assert "content-length" not in chunked.request.headers
         assert chunked.status_code == 413 and chunked.json()["error"]["code"] == "request_too_large"
         streams = http.get("/streams").json()

@@ -1,4 +1,5 @@
 """Settings: RAFD_* environment, CPU count from the affinity mask and the cgroup quota."""
+
 from __future__ import annotations
 
 import os
@@ -21,8 +22,10 @@ def test_environment_variables_with_the_rafd_prefix(monkeypatch, tmp_path):
     assert s.model_path == tmp_path / "m.onnx"
 
 
-@pytest.mark.parametrize("name,value", [("RAFD_MAX_STREAMS", "0"), ("RAFD_SCORE_THRESHOLD", "1.5"),
-                                        ("RAFD_THREADS", "zero"), ("RAFD_STREAM_TTL_S", "-1")])
+@pytest.mark.parametrize(
+    "name,value",
+    [("RAFD_MAX_STREAMS", "0"), ("RAFD_SCORE_THRESHOLD", "1.5"), ("RAFD_THREADS", "zero"), ("RAFD_STREAM_TTL_S", "-1")],
+)
 def test_invalid_environment_is_an_error_naming_the_field(monkeypatch, name, value):
     monkeypatch.setenv(name, value)
     with pytest.raises(ValidationError, match=name.removeprefix("RAFD_").lower()):

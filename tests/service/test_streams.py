@@ -1,16 +1,17 @@
 """The per-stream store: TTL expiry and LRU cap (with an injected clock), delete/reset, GET /streams."""
+
 from __future__ import annotations
 
 import asyncio
 
 import pytest
-from fake_runner import FakeRunner
 from fastapi.testclient import TestClient
-from service_testing import blob_frame, detect_json, wait_ready
 
 from service.app import create_app
 from service.settings import Settings
 from service.streams import StreamStore
+from tests.utils.fake_runner import FakeRunner
+from tests.utils.service_testing import blob_frame, detect_json, wait_ready
 
 FRAME = blob_frame(128, [(8, 8, 255)])
 
@@ -130,7 +131,7 @@ def clocked():
 
 def test_endpoints_list_streams_and_count_ttl_and_lru_evictions(clocked):
     client, clock = clocked
-    for i, name in enumerate(["a", "b", "c", "d"]):  # d evicts a (LRU)
+    for name in ["a", "b", "c", "d"]:  # d evicts a (LRU)
         assert client.post("/detect", json=detect_json(name, 1.0, FRAME, (0, 0, 0))).status_code == 200
         clock.now += 10.0
     body = client.get("/streams").json()

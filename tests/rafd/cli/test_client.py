@@ -1,4 +1,5 @@
 """rafd-client against a real uvicorn server running the service with the FakeRunner."""
+
 from __future__ import annotations
 
 import json
@@ -65,8 +66,12 @@ def test_client_streams_a_sequence_and_writes_drawings_and_video(sequence, servi
 
 def test_client_without_poses_lets_the_service_use_odometry(sequence, service_url, tmp_path):
     out = tmp_path / "odo"
-    assert main([str(sequence), "--url", service_url, "--no-pose", "--limit", "2", "--stream-id", "odo",
-                 "--out", str(out)]) == 0
+    assert (
+        main(
+            [str(sequence), "--url", service_url, "--no-pose", "--limit", "2", "--stream-id", "odo", "--out", str(out)]
+        )
+        == 0
+    )
     answers = [json.loads(line) for line in (out / "answers.jsonl").read_text().splitlines()]
     assert [a["pose_source"] for a in answers] == ["odometry", "odometry"]
     assert [a["stream_id"] for a in answers] == ["odo", "odo"]
@@ -103,15 +108,12 @@ def test_client_on_a_simulated_sequence_sends_its_ego_poses(service_url, tmp_pat
 
 
 def test_client_sends_its_api_key_to_a_keyed_service(sequence, tmp_path, capsys, monkeypatch):
-    import sys
-
-    sys.path.insert(0, str(Path(__file__).resolve().parents[2] / "service"))  # the service tests' helpers
     import httpx
-    from fake_runner import FakeRunner
-    from service_testing import FakeOdometry, serve_in_thread, wait_ready
 
     from service.app import create_app
     from service.settings import Settings
+    from tests.utils.fake_runner import FakeRunner
+    from tests.utils.service_testing import FakeOdometry, serve_in_thread, wait_ready
 
     key = "client-test-key-0123456789"
     settings = Settings(threads=1, api_keys=[f"fleet:{key}"])
@@ -124,4 +126,7 @@ def test_client_sends_its_api_key_to_a_keyed_service(sequence, tmp_path, capsys,
         assert main([str(sequence), "--url", url, "--limit", "2", "--api-key", key, "--out", str(tmp_path / "a")]) == 0
         assert len((tmp_path / "a" / "answers.jsonl").read_text().splitlines()) == 2
         monkeypatch.setenv("RAFD_API_KEY", key)  # the environment's key when --api-key is not given
-        assert main([str(sequence), "--url", url, "--limit", "1", "--stream-id", "again", "--out", str(tmp_path / "b")]) == 0
+        assert (
+            main([str(sequence), "--url", url, "--limit", "1", "--stream-id", "again", "--out", str(tmp_path / "b")])
+            == 0
+        )

@@ -1,24 +1,22 @@
 """rafd-client --mcap: the log read back with the mcap reader holds every topic in Foxglove's schemas, one message
 per frame, and the service's own answer (boxes, poses, flow, ground truth), on a loopback rafd-serve."""
+
 from __future__ import annotations
 
 import json
 import math
 import shutil
-import sys
 from pathlib import Path
 
 import cv2
 import numpy as np
 import pytest
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[2] / "service"))  # the service tests' FakeRunner and helpers
-from service_testing import serve_in_thread, wait_ready  # noqa: E402
-
 from rafd.cli.client import main  # noqa: E402
 from rafd.data import read_sequence  # noqa: E402
 from service.app import create_app  # noqa: E402
 from service.settings import Settings  # noqa: E402
+from tests.utils.service_testing import serve_in_thread, wait_ready  # noqa: E402
 
 pytest.importorskip("foxglove", reason="MCAP logs need the logs extra (foxglove-sdk)")
 from mcap.reader import make_reader  # noqa: E402
@@ -79,7 +77,7 @@ def check_log_against_answers(path: Path, answers: list[dict], folder: Path, lab
     stamps = [f.timestamp_ns for f in sequence.frames][:frames]
     for topic, logged in messages.items():
         times = [t for t, _ in logged]
-        assert times == (stamps[frames - len(times):] if topic == "/radar/flow" else stamps)  # the scans' own times
+        assert times == (stamps[frames - len(times) :] if topic == "/radar/flow" else stamps)  # the scans' own times
     assert metadata["rafd-client"]["frames"] == str(frames)
     for k, answer in enumerate(answers):
         _, update = messages["/radar/detections"][k]
@@ -97,7 +95,9 @@ def check_log_against_answers(path: Path, answers: list[dict], folder: Path, lab
             np.testing.assert_allclose(outline, box["polygon"], atol=1e-9)
         _, transform = messages["/tf"][k]
         assert (transform.parent_frame_id, transform.child_frame_id) == ("world", "radar")
-        assert (transform.translation.x, transform.translation.y) == pytest.approx((answer["pose"]["x"], answer["pose"]["y"]))
+        assert (transform.translation.x, transform.translation.y) == pytest.approx(
+            (answer["pose"]["x"], answer["pose"]["y"])
+        )
         assert yaw_of(transform.rotation) == pytest.approx(answer["pose"]["yaw"], abs=1e-9)
         _, image = messages["/radar/scan"][k]
         scan = sequence.frames[k].load()
@@ -113,7 +113,9 @@ def check_log_against_answers(path: Path, answers: list[dict], folder: Path, lab
             objects = sequence.frames[k].objects
             assert len(truth.entities) == len(objects)
             for entity, obj in zip(truth.entities, objects):
-                assert (entity.cubes[0].pose.position.x, entity.cubes[0].size.y) == pytest.approx((obj.box[0], obj.box[3]))
+                assert (entity.cubes[0].pose.position.x, entity.cubes[0].size.y) == pytest.approx(
+                    (obj.box[0], obj.box[3])
+                )
     return messages
 
 
@@ -131,8 +133,9 @@ def test_mcap_log_holds_the_services_answers(simulated: Path, service_url: str, 
     arrows = update.entities[0].arrows
     assert len(arrows) == moving > 0
     lengths = sorted(a.shaft_length + a.head_length for a in arrows)
-    np.testing.assert_allclose(lengths, sorted(np.hypot(values[0], values[1])[np.hypot(values[0], values[1]) > 0.05]),
-                               atol=1e-9)
+    np.testing.assert_allclose(
+        lengths, sorted(np.hypot(values[0], values[1])[np.hypot(values[0], values[1]) > 0.05]), atol=1e-9
+    )
 
 
 def test_polar_only_folder_is_posted_polar_and_logged_converted(simulated: Path, service_url: str, tmp_path: Path):
@@ -147,8 +150,9 @@ def test_polar_only_folder_is_posted_polar_and_logged_converted(simulated: Path,
     check_log_against_answers(log, answers, polar, labelled=True)
 
 
-def test_unlabelled_folder_logs_no_ground_truth_and_bad_paths_fail(simulated: Path, service_url: str, tmp_path: Path,
-                                                                  capsys: pytest.CaptureFixture):
+def test_unlabelled_folder_logs_no_ground_truth_and_bad_paths_fail(
+    simulated: Path, service_url: str, tmp_path: Path, capsys: pytest.CaptureFixture
+):
     bare = Path(shutil.copytree(simulated, tmp_path / "bare"))
     shutil.rmtree(bare / "annotations")
     log = tmp_path / "bare.mcap"

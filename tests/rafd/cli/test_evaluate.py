@@ -1,4 +1,5 @@
 """rafd-eval: metrics JSON (overall + per sequence) and plots; clear errors on bad input."""
+
 from __future__ import annotations
 
 import json
@@ -13,9 +14,26 @@ from rafd.cli.evaluate import main
 
 def test_writes_metrics_json_and_plots(trained_checkpoint: Path, sim_root: Path, tmp_path: Path) -> None:
     out_json, plots, detections = tmp_path / "metrics.json", tmp_path / "plots", tmp_path / "dets.npz"
-    code = main([str(trained_checkpoint), "--data", str(sim_root), "--split", "train", "--json", str(out_json),
-                 "--plots", str(plots), "--examples", "2", "--device", "cpu", "--no-progress",
-                 "--detections", str(detections)])
+    code = main(
+        [
+            str(trained_checkpoint),
+            "--data",
+            str(sim_root),
+            "--split",
+            "train",
+            "--json",
+            str(out_json),
+            "--plots",
+            str(plots),
+            "--examples",
+            "2",
+            "--device",
+            "cpu",
+            "--no-progress",
+            "--detections",
+            str(detections),
+        ]
+    )
     assert code == 0
     report = json.loads(out_json.read_text())
     overall = report["overall"]
@@ -26,8 +44,8 @@ def test_writes_metrics_json_and_plots(trained_checkpoint: Path, sim_root: Path,
     assert sum(s["frames"] for s in report["per_sequence"].values()) == overall["frames"] > 0
     # the simulated drives' meta.json name their weather: the figures are pooled per condition too
     assert report["per_condition"] and sum(c["frames"] for c in report["per_condition"].values()) == overall["frames"]
-    # the saved detections give back the same figures (what rafd-benchmark compare starts from)
-    from rafd.compare import _Scored, load_detections
+    # the saved detections give back the same figures (what rafd-bench-accuracy compare starts from)
+    from rafd.eval.compare import _Scored, load_detections
 
     frames = load_detections(detections)
     assert len(frames) == overall["frames"] and report["detections"] == str(detections)
@@ -42,8 +60,9 @@ def test_writes_metrics_json_and_plots(trained_checkpoint: Path, sim_root: Path,
     assert image is not None and image.ndim == 3
 
 
-def test_bad_split_and_missing_checkpoint_fail_clearly(trained_checkpoint: Path, sim_root: Path, tmp_path: Path,
-                                                      capsys: pytest.CaptureFixture[str]) -> None:
+def test_bad_split_and_missing_checkpoint_fail_clearly(
+    trained_checkpoint: Path, sim_root: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
     assert main([str(trained_checkpoint), "--data", str(sim_root), "--split", "nope", "--device", "cpu"]) != 0
     assert "nope" in capsys.readouterr().err
     assert main([str(tmp_path / "none.pt"), "--data", str(sim_root), "--split", "train"]) != 0
@@ -51,7 +70,8 @@ def test_bad_split_and_missing_checkpoint_fail_clearly(trained_checkpoint: Path,
 
 
 def test_calibrate_writes_the_operating_threshold_into_a_copy_of_the_checkpoint(
-        trained_checkpoint: Path, sim_root: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    trained_checkpoint: Path, sim_root: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
     import shutil
 
     import numpy as np
@@ -61,8 +81,24 @@ def test_calibrate_writes_the_operating_threshold_into_a_copy_of_the_checkpoint(
     checkpoint = Path(shutil.copy(trained_checkpoint, tmp_path / "model.pt"))
     before, cfg_before, _ = read_checkpoint(checkpoint)
     out_json = tmp_path / "metrics.json"
-    code = main([str(checkpoint), "--data", str(sim_root), "--split", "train", "--calibrate", "2",
-                 "--json", str(out_json), "--device", "cpu", "--no-progress", "--max-windows", "6"])
+    code = main(
+        [
+            str(checkpoint),
+            "--data",
+            str(sim_root),
+            "--split",
+            "train",
+            "--calibrate",
+            "2",
+            "--json",
+            str(out_json),
+            "--device",
+            "cpu",
+            "--no-progress",
+            "--max-windows",
+            "6",
+        ]
+    )
     assert code == 0, capsys.readouterr().err
     after, cfg_after, meta = read_checkpoint(checkpoint)
     threshold = meta["operating_threshold"]
@@ -72,19 +108,38 @@ def test_calibrate_writes_the_operating_threshold_into_a_copy_of_the_checkpoint(
     # the chosen threshold is the one the report scores at, and it keeps within the budget
     assert overall["score_threshold"] == threshold and overall["fp_per_frame_at_threshold"] <= 2.0
     # a later evaluation uses it by default
-    assert main([str(checkpoint), "--data", str(sim_root), "--split", "train", "--json", str(out_json),
-                 "--device", "cpu", "--no-progress", "--max-windows", "6"]) == 0
+    assert (
+        main(
+            [
+                str(checkpoint),
+                "--data",
+                str(sim_root),
+                "--split",
+                "train",
+                "--json",
+                str(out_json),
+                "--device",
+                "cpu",
+                "--no-progress",
+                "--max-windows",
+                "6",
+            ]
+        )
+        == 0
+    )
     assert json.loads(out_json.read_text())["overall"]["score_threshold"] == threshold
 
 
-def test_calibrate_refuses_a_budget_that_is_not_positive(trained_checkpoint: Path, sim_root: Path,
-                                                         capsys: pytest.CaptureFixture[str]) -> None:
+def test_calibrate_refuses_a_budget_that_is_not_positive(
+    trained_checkpoint: Path, sim_root: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
     assert main([str(trained_checkpoint), "--data", str(sim_root), "--split", "train", "--calibrate", "0"]) == 2
     assert "--calibrate" in capsys.readouterr().err
 
 
-def test_like_frames_scores_only_the_frames_a_longer_model_scores(trained_checkpoint: Path, sim_root: Path,
-                                                                  tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+def test_like_frames_scores_only_the_frames_a_longer_model_scores(
+    trained_checkpoint: Path, sim_root: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
     """The 2-frame model scores 4 of each 5-frame drive's frames; --like-frames 4 keeps the 2 a 4-frame model scores."""
     base = [str(trained_checkpoint), "--data", str(sim_root), "--split", "train", "--device", "cpu", "--no-progress"]
     assert main(base + ["--json", str(tmp_path / "all.json")]) == 0
@@ -99,7 +154,8 @@ def test_like_frames_scores_only_the_frames_a_longer_model_scores(trained_checkp
 
 
 def test_past_as_newest_is_reported_and_refuses_what_it_cannot_ablate(
-        trained_checkpoint: Path, sim_root: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    trained_checkpoint: Path, sim_root: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
     base = [str(trained_checkpoint), "--data", str(sim_root), "--split", "train", "--device", "cpu", "--no-progress"]
     assert main(base + ["--past-as-newest", "--json", str(tmp_path / "still.json")]) == 0
     report = json.loads((tmp_path / "still.json").read_text())

@@ -1,5 +1,6 @@
 """rafd-eval --mcap: one Foxglove/MCAP log per sequence holding each window's newest frame, the model's boxes and
 flow and the protocol's ground truth, read back with the mcap reader."""
+
 from __future__ import annotations
 
 import json
@@ -30,12 +31,32 @@ def read_log(path: Path) -> tuple[dict[str, str], dict[str, int], dict[str, list
 
 def test_eval_writes_one_log_per_sequence(trained_checkpoint: Path, sim_root: Path, tmp_path: Path) -> None:
     logs, report = tmp_path / "logs", tmp_path / "metrics.json"
-    assert main([str(trained_checkpoint), "--data", str(sim_root), "--split", "train", "--mcap", str(logs),
-                 "--json", str(report), "--device", "cpu", "--no-progress"]) == 0
+    assert (
+        main(
+            [
+                str(trained_checkpoint),
+                "--data",
+                str(sim_root),
+                "--split",
+                "train",
+                "--mcap",
+                str(logs),
+                "--json",
+                str(report),
+                "--device",
+                "cpu",
+                "--no-progress",
+            ]
+        )
+        == 0
+    )
     assert sorted(p.name for p in logs.glob("*.mcap")) == ["sim_12_0.mcap", "sim_12_1.mcap"]
     frames = json.loads(report.read_text())["per_sequence"]["sim_12_0"]["frames"]
     schemas, counts, messages = read_log(logs / "sim_12_0.mcap")
-    assert schemas["/radar/scan"] == "foxglove.CompressedImage" and schemas["/radar/ground_truth"] == "foxglove.SceneUpdate"
+    assert (
+        schemas["/radar/scan"] == "foxglove.CompressedImage"
+        and schemas["/radar/ground_truth"] == "foxglove.SceneUpdate"
+    )
     assert schemas["/radar/flow"] == "foxglove.SceneUpdate" and schemas["/tf"] == "foxglove.FrameTransform"
     assert set(counts.values()) == {frames} and len(counts) == 8  # every topic, every window, flow included
     times = [t for t, _ in messages["/radar/scan"]]
@@ -44,9 +65,9 @@ def test_eval_writes_one_log_per_sequence(trained_checkpoint: Path, sim_root: Pa
 
 def test_logged_boxes_are_the_models_predictions(trained_checkpoint: Path, sim_root: Path, tmp_path: Path) -> None:
     from rafd.checkpoint import load_checkpoint
-    from rafd.mcap_eval import write_evaluation_logs
+    from rafd.eval.mcap import write_evaluation_logs
+    from rafd.eval.predict import predict
     from rafd.train.datasets import open_windows
-    from rafd.train.predict import predict
 
     model, cfg, _ = load_checkpoint(trained_checkpoint, map_location="cpu")
     dataset = open_windows(sim_root, "train", cfg)
@@ -58,9 +79,12 @@ def test_logged_boxes_are_the_models_predictions(trained_checkpoint: Path, sim_r
     assert len(update.entities) == len(first.predictions) > 0
     cube = next(e for e in update.entities if e.id == "pred-0").cubes[0]
     x, y, width, length, yaw, _ = first.predictions[0]
-    assert (cube.pose.position.x, cube.pose.position.y, cube.size.x, cube.size.y) == pytest.approx((x, y, width, length))
-    assert math.remainder(2 * math.atan2(cube.pose.orientation.z, cube.pose.orientation.w) - yaw, 2 * math.pi) \
-        == pytest.approx(0.0, abs=1e-6)
+    assert (cube.pose.position.x, cube.pose.position.y, cube.size.x, cube.size.y) == pytest.approx(
+        (x, y, width, length)
+    )
+    assert math.remainder(
+        2 * math.atan2(cube.pose.orientation.z, cube.pose.orientation.w) - yaw, 2 * math.pi
+    ) == pytest.approx(0.0, abs=1e-6)
     truths = 0
     for path in paths:  # the protocol's ground truth, frame by frame
         ordered = sorted((r for r in results if r.sequence == path.stem), key=lambda r: r.frame)
@@ -74,7 +98,8 @@ def test_logged_boxes_are_the_models_predictions(trained_checkpoint: Path, sim_r
     assert len(flow.entities[0].arrows) == moving
 
 
-def test_mcap_without_the_logs_extra_or_checkpoint_fails_clearly(sim_root: Path, tmp_path: Path,
-                                                                 capsys: pytest.CaptureFixture[str]) -> None:
+def test_mcap_without_the_logs_extra_or_checkpoint_fails_clearly(
+    sim_root: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
     assert main([str(tmp_path / "none.pt"), "--data", str(sim_root), "--split", "train", "--mcap", str(tmp_path)]) == 2
     assert "none.pt" in capsys.readouterr().err

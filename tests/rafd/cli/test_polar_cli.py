@@ -1,4 +1,5 @@
 """rafd-polar: the conventions fit recovers known offsets; the comparison and conversion on the real sample."""
+
 from __future__ import annotations
 
 from pathlib import Path

@@ -1,4 +1,5 @@
 """rafd-simulate CLI: success path, preview, and error exits."""
+
 from __future__ import annotations
 
 from pathlib import Path
@@ -10,9 +11,28 @@ from rafd.cli.simulate import main
 
 
 def test_writes_sequences(tmp_path: Path, capsys: pytest.CaptureFixture) -> None:
-    assert main([str(tmp_path / "out"), "--sequences", "2", "--frames", "2", "--seed", "5", "--size", "128", "--split", "test"]) == 0
+    assert (
+        main(
+            [
+                str(tmp_path / "out"),
+                "--sequences",
+                "2",
+                "--frames",
+                "2",
+                "--seed",
+                "5",
+                "--size",
+                "128",
+                "--split",
+                "test",
+            ]
+        )
+        == 0
+    )
     for k in range(2):
-        image = cv2.imread(str(tmp_path / "out" / f"sim_5_{k}" / "Navtech_Cartesian" / "000002.png"), cv2.IMREAD_UNCHANGED)
+        image = cv2.imread(
+            str(tmp_path / "out" / f"sim_5_{k}" / "Navtech_Cartesian" / "000002.png"), cv2.IMREAD_UNCHANGED
+        )
         assert image.shape == (128, 128) and image.dtype.name == "uint8"
     assert "sim_5_1" in capsys.readouterr().out
 
@@ -52,7 +72,9 @@ def test_out_dir_not_writable(tmp_path: Path, capsys: pytest.CaptureFixture) -> 
     assert "OUT_DIR" in capsys.readouterr().err
 
 
-def test_missing_out_dir_and_preview_without_sample(tmp_path: Path, capsys: pytest.CaptureFixture, monkeypatch: pytest.MonkeyPatch) -> None:
+def test_missing_out_dir_and_preview_without_sample(
+    tmp_path: Path, capsys: pytest.CaptureFixture, monkeypatch: pytest.MonkeyPatch
+) -> None:
     assert main([]) == 2
     monkeypatch.delenv("RAFD_RADIATE_SAMPLE", raising=False)
     assert main(["--preview", str(tmp_path / "p.png")]) == 2
@@ -71,6 +93,7 @@ def test_preview_side_by_side(tmp_path: Path, radiate_sample: Path) -> None:
     assert picture[:, 776:].mean() > 5  # ... but with its image
 
 
+@pytest.mark.slow
 def test_realism_table_from_the_command_line(tmp_path: Path, radiate_sample: Path, capsys) -> None:
     import json
 
@@ -78,8 +101,21 @@ def test_realism_table_from_the_command_line(tmp_path: Path, radiate_sample: Pat
 
     simulate_dataset(tmp_path / "sim", sequences=2, frames=2, seed=4, size=1152)
     out = tmp_path / "realism.json"
-    assert main(["--realism", str(radiate_sample), "--realism-sim", str(tmp_path / "sim"), "--json", str(out),
-                 "--realism-steps", "20"]) == 0
+    assert (
+        main(
+            [
+                "--realism",
+                str(radiate_sample),
+                "--realism-sim",
+                str(tmp_path / "sim"),
+                "--json",
+                str(out),
+                "--realism-steps",
+                "20",
+            ]
+        )
+        == 0
+    )
     printed = capsys.readouterr().out
     assert "18 real scans, 4 simulated scans" in printed and "patch classifier" in printed
     rows = json.loads(out.read_text())

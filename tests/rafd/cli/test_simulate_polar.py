@@ -1,4 +1,5 @@
 """rafd-simulate --polar writes RADIATE's Navtech_Polar beside the Cartesian scans; without it, nothing polar."""
+
 from __future__ import annotations
 
 from pathlib import Path

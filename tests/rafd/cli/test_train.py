@@ -1,4 +1,5 @@
 """rafd-train: a tiny run writes its files; bad data roots and splits fail with a clear message."""
+
 from __future__ import annotations
 
 import json
@@ -25,9 +26,28 @@ def test_ablation_flags_reach_the_model_config(sim_root: Path, tmp_path: Path) -
 
     out = tmp_path / "ablation.pt"
     argv = [
-        "--data", str(sim_root), "--split", "train", "--frames", "2", "--input-size", "64", "--out", str(out),
-        "--epochs", "1", "--batch-size", "2", "--max-steps-per-epoch", "1", "--device", "cpu", "--no-progress",
-        "--no-enhancement", "--no-flow-guidance", "--no-flow-supervision",
+        "--data",
+        str(sim_root),
+        "--split",
+        "train",
+        "--frames",
+        "2",
+        "--input-size",
+        "64",
+        "--out",
+        str(out),
+        "--epochs",
+        "1",
+        "--batch-size",
+        "2",
+        "--max-steps-per-epoch",
+        "1",
+        "--device",
+        "cpu",
+        "--no-progress",
+        "--no-enhancement",
+        "--no-flow-guidance",
+        "--no-flow-supervision",
     ]
     assert main(argv) == 0
     _, cfg, meta = load_checkpoint(out, map_location="cpu")
@@ -43,26 +63,60 @@ def test_missing_data_root_fails_clearly(tmp_path: Path, capsys: pytest.CaptureF
     assert not (tmp_path / "m.pt").exists()
 
 
-def test_split_without_sequences_fails_clearly(sim_root: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+def test_split_without_sequences_fails_clearly(
+    sim_root: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
     assert main(["--data", str(sim_root), "--split", "no_such_split", "--out", str(tmp_path / "m.pt")]) != 0
     err = capsys.readouterr().err
     assert "no_such_split" in err
 
 
-def test_missing_resume_checkpoint_fails_clearly(sim_root: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
-    argv = ["--data", str(sim_root), "--split", "train", "--out", str(tmp_path / "m.pt"), "--resume", str(tmp_path / "x.pt")]
+def test_missing_resume_checkpoint_fails_clearly(
+    sim_root: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    argv = [
+        "--data",
+        str(sim_root),
+        "--split",
+        "train",
+        "--out",
+        str(tmp_path / "m.pt"),
+        "--resume",
+        str(tmp_path / "x.pt"),
+    ]
     assert main(argv) != 0
     assert "x.pt" in capsys.readouterr().err
 
 
-def test_init_and_resume_together_are_refused(sim_root: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+def test_init_and_resume_together_are_refused(
+    sim_root: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
     some = tmp_path / "some.pt"
     some.write_bytes(b"x")
-    argv = ["--data", str(sim_root), "--split", "train", "--out", str(tmp_path / "m.pt"), "--init", str(some),
-            "--resume", str(some)]
+    argv = [
+        "--data",
+        str(sim_root),
+        "--split",
+        "train",
+        "--out",
+        str(tmp_path / "m.pt"),
+        "--init",
+        str(some),
+        "--resume",
+        str(some),
+    ]
     assert main(argv) != 0
     assert "--init" in capsys.readouterr().err
-    argv = ["--data", str(sim_root), "--split", "train", "--out", str(tmp_path / "m.pt"), "--init", str(tmp_path / "no.pt")]
+    argv = [
+        "--data",
+        str(sim_root),
+        "--split",
+        "train",
+        "--out",
+        str(tmp_path / "m.pt"),
+        "--init",
+        str(tmp_path / "no.pt"),
+    ]
     assert main(argv) != 0
     assert "no.pt" in capsys.readouterr().err
 
@@ -71,9 +125,32 @@ def test_propagation_norm_flag_reaches_the_model_config(sim_root: Path, tmp_path
     from rafd.checkpoint import load_checkpoint
 
     out = tmp_path / "post.pt"
-    argv = ["--data", str(sim_root), "--split", "train", "--config", "default", "--frames", "2", "--input-size", "64",
-            "--out", str(out), "--epochs", "1", "--batch-size", "2", "--max-steps-per-epoch", "1", "--device", "cpu",
-            "--no-progress", "--no-augment", "--propagation-norm", "post"]
+    argv = [
+        "--data",
+        str(sim_root),
+        "--split",
+        "train",
+        "--config",
+        "default",
+        "--frames",
+        "2",
+        "--input-size",
+        "64",
+        "--out",
+        str(out),
+        "--epochs",
+        "1",
+        "--batch-size",
+        "2",
+        "--max-steps-per-epoch",
+        "1",
+        "--device",
+        "cpu",
+        "--no-progress",
+        "--no-augment",
+        "--propagation-norm",
+        "post",
+    ]
     assert main(argv) == 0
     _, cfg, _ = load_checkpoint(out, map_location="cpu")
     assert cfg.propagation.norm == "post"

@@ -1,4 +1,5 @@
 """Simulated sequences shared by the DATA tests (small and quick: a few hundred ms each)."""
+
 from __future__ import annotations
 
 import shutil
@@ -13,8 +14,9 @@ from rafd.sim.writer import write_sequence
 
 @pytest.fixture(scope="session")
 def sim_truth_and_folder(tmp_path_factory: pytest.TempPathFactory) -> tuple[SimulatedSequence, Path]:
-    """(in-memory simulation, its RADIATE-format folder): a busy drive (seed 31: 7 road users, all moving), 10 frames of 384 px, split train_good_weather. Exact labels
-    (yaw along each road user's travel): the flow test reads body orientations from them."""
+    """(in-memory simulation, its RADIATE-format folder): a busy drive (seed 31: 7 road users, all moving), 10 frames
+    of 384 px, split train_good_weather. Exact labels (yaw along each road user's travel): the flow test reads body
+    orientations from them."""
     truth = run_simulation(31, 10, "train_good_weather", 384, Difficulty(), name="sim_31_0", ambiguous=False)
     return truth, write_sequence(truth, tmp_path_factory.mktemp("data_sim") / "sim_31_0")
 

@@ -1,4 +1,5 @@
 """RadarWindowDataset: discovery, split filter, prepared poses and scan cache, windows, crop protocol, augmentation."""
+
 from __future__ import annotations
 
 import json
@@ -9,9 +10,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from rafd.augment import Augmentation
 from rafd.config import RaFDConfig
 from rafd.data import RadarWindowDataset, find_sequences, load_image, read_sequence
+from rafd.data.augment import Augmentation
 from rafd.geometry import centre_crop
 from rafd.sim import simulate_sequence
 
@@ -68,7 +69,8 @@ def test_window_content_follows_the_protocol(root: Path, sim_truth_and_folder) -
             expected = sorted(
                 (o.id, o.class_name)
                 for o in truth.objects
-                if np.isfinite(o.boxes[k, 0]) and np.all(np.abs(o.boxes[k, :2]) < HALF)
+                if np.isfinite(o.boxes[k, 0])
+                and np.all(np.abs(o.boxes[k, :2]) < HALF)
                 and o.class_name not in ("pedestrian", "group_of_pedestrians")
             )
             assert sorted(zip(window["ids"][t].tolist(), window["classes"][t])) == expected
@@ -131,8 +133,9 @@ def test_only_the_selected_splits_are_read(root: Path, tmp_path: Path) -> None:
         RadarWindowDataset(tmp_path / "mixed", split="test", cfg=CFG)
 
 
-def test_missing_poses_are_an_error_naming_rafd_odometry_unless_estimation_is_asked(root: Path, tmp_path: Path,
-                                                                                 caplog) -> None:
+def test_missing_poses_are_an_error_naming_rafd_odometry_unless_estimation_is_asked(
+    root: Path, tmp_path: Path, caplog
+) -> None:
     from rafd.data.dataset import MissingPosesError
 
     folder = Path(shutil.copytree(root / "other" / "sim_test", tmp_path / "noposes" / "seq"))
@@ -196,8 +199,9 @@ def test_polar_only_folders_give_the_windows_of_their_cartesian_twin(tmp_path: P
     from rafd.cli.odometry import main as odometry_main
     from rafd.cli.prepare import main as prepare_main
 
-    twin = simulate_sequence(tmp_path / "twin" / "seq", seed=4, num_frames=6, split="test", size=1152, polar=True,
-                             poses=False)
+    twin = simulate_sequence(
+        tmp_path / "twin" / "seq", seed=4, num_frames=6, split="test", size=1152, polar=True, poses=False
+    )
     polar_only = Path(shutil.copytree(twin, tmp_path / "polar" / "seq"))
     shutil.rmtree(polar_only / "Navtech_Cartesian")
     (polar_only / "Navtech_Cartesian.txt").unlink()

@@ -8,6 +8,7 @@ Two figures (run with -s to print them):
   (objects turn, so points off the centre move slightly differently from the centre): the price of the
   paper's constant-displacement region, small against the motion itself.
 """
+
 from __future__ import annotations
 
 import math
@@ -16,8 +17,8 @@ import numpy as np
 
 from rafd.config import RaFDConfig
 from rafd.data import RadarWindowDataset
+from rafd.data.targets import build_targets, flow_radius
 from rafd.geometry import feature_cell_centres
-from rafd.targets import build_targets, flow_radius
 
 CFG = RaFDConfig.tiny(input_size=256)  # 64 x 64 cells of 0.694 m (+-22 m), 4 frames
 
@@ -57,7 +58,9 @@ def test_pseudo_gt_flow_matches_the_simulated_motion(sim_truth_and_folder) -> No
             for object_id, row, col, region in regions:
                 if object_id not in ids_prev:
                     continue
-                alone = region & ~np.any([r for o, _, _, r in regions if o != object_id] or [np.zeros_like(region)], axis=0)
+                alone = region & ~np.any(
+                    [r for o, _, _, r in regions if o != object_id] or [np.zeros_like(region)], axis=0
+                )
                 if not alone[row, col]:
                     continue  # shares its centre cell's region with another object
                 obj = by_id[object_id]
@@ -83,7 +86,8 @@ def test_pseudo_gt_flow_matches_the_simulated_motion(sim_truth_and_folder) -> No
         f"\npseudo-GT flow vs simulated motion: {len(motions)} matched objects ({len(moving)} moving, mean motion "
         f"{moving.mean():.3f} m per frame pair); "
         f"centre EPE mean {centre_errors.mean():.2e} max {centre_errors.max():.2e} m; "
-        f"region EPE ({len(region_errors)} cells) mean {region_errors.mean():.2e} p95 {np.percentile(region_errors, 95):.2e} "
+        f"region EPE ({len(region_errors)} cells) mean {region_errors.mean():.2e} "
+        f"p95 {np.percentile(region_errors, 95):.2e} "
         f"max {region_errors.max():.2e} m"
     )
     assert len(moving) >= 10 and moving.mean() > 0.5  # moving traffic, not a trivial scene

@@ -1,4 +1,5 @@
 """ego_poses.csv: exact round trip, documented header, clear errors."""
+
 from __future__ import annotations
 
 from pathlib import Path
@@ -53,7 +54,12 @@ def test_reader_errors_name_the_file(tmp_path: Path, text: str, message: str) ->
 
 
 def test_string_timestamps_are_written_verbatim(tmp_path: Path) -> None:
-    path = write_ego_poses(tmp_path / "p.csv", [1, 2], ["1574859771.744660272", "1574859771.977525228"], np.zeros((2, 3)))
-    assert [line.split(",")[1] for line in path.read_text().splitlines()[1:]] == ["1574859771.744660272", "1574859771.977525228"]
+    path = write_ego_poses(
+        tmp_path / "p.csv", [1, 2], ["1574859771.744660272", "1574859771.977525228"], np.zeros((2, 3))
+    )
+    assert [line.split(",")[1] for line in path.read_text().splitlines()[1:]] == [
+        "1574859771.744660272",
+        "1574859771.977525228",
+    ]
     with pytest.raises(ValueError):
         write_ego_poses(tmp_path / "q.csv", [1], ["soon"], np.zeros((1, 3)))

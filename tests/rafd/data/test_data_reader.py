@@ -1,4 +1,5 @@
 """rafd.data.read_sequence on the real tiny_foggy sample and on simulated folders, including bad data."""
+
 from __future__ import annotations
 
 import json
@@ -59,11 +60,20 @@ def test_tiny_foggy_every_polygon_equals_the_sdk_construction(foggy, radiate_sam
         for obj in frame.objects:
             class_name, annotation = expected[obj.id]
             assert obj.class_name == class_name
-            np.testing.assert_allclose(obj.polygon, _sdk_polygon(annotation["position"], annotation["rotation"]), rtol=0, atol=1e-6)
-            # The metre box reproduces the same corners (DESIGN.md section 2's mapping).
+            np.testing.assert_allclose(
+                obj.polygon, _sdk_polygon(annotation["position"], annotation["rotation"]), rtol=0, atol=1e-6
+            )
+            # The metre box reproduces the same corners (the mapping in docs/data.md, "Box convention").
             x0, y0, w, h = annotation["position"]
             np.testing.assert_allclose(
-                obj.box, [(x0 + w / 2 - 576) * RES, (576 - (y0 + h / 2)) * RES, w * RES, h * RES, math.radians(annotation["rotation"])],
+                obj.box,
+                [
+                    (x0 + w / 2 - 576) * RES,
+                    (576 - (y0 + h / 2)) * RES,
+                    w * RES,
+                    h * RES,
+                    math.radians(annotation["rotation"]),
+                ],
                 atol=1e-9,
             )
             np.testing.assert_allclose(metres_to_pixels(box_corners(obj.box[None])[0], 1152), obj.polygon, atol=1e-6)
@@ -103,7 +113,9 @@ def test_small_simulated_scan_reads_back_with_its_own_image_size(sim_truth_and_f
         assert {o.id for o in frame.objects} == set(expected)
         for obj in frame.objects:
             np.testing.assert_allclose(obj.box, expected[obj.id], atol=1e-9)
-            np.testing.assert_allclose(obj.polygon, metres_to_pixels(box_corners(expected[obj.id][None])[0], 384), atol=1e-6)
+            np.testing.assert_allclose(
+                obj.polygon, metres_to_pixels(box_corners(expected[obj.id][None])[0], 384), atol=1e-6
+            )
 
 
 # ---------------------------------------------------------------- bad data names the file
@@ -130,7 +142,7 @@ def test_truncated_png_fails_on_load_naming_the_file(sim_copy: Path) -> None:
         load_image(sim_copy / "nothere.png")
 
 
-@pytest.mark.parametrize("text", ["[{\"id\": 1, \"class_name\": \"car\", \"bboxes\": [", "{\"not\": \"a list\"}"])
+@pytest.mark.parametrize("text", ['[{"id": 1, "class_name": "car", "bboxes": [', '{"not": "a list"}'])
 def test_malformed_annotations_json(sim_copy: Path, text: str) -> None:
     (sim_copy / "annotations" / "annotations.json").write_text(text)
     with pytest.raises(ValueError, match="annotations.json"):
@@ -147,7 +159,7 @@ def test_malformed_annotation_entry(sim_copy: Path) -> None:
 
 
 def test_malformed_meta_json(sim_copy: Path) -> None:
-    (sim_copy / "meta.json").write_text("{\"set\": \"test\",")
+    (sim_copy / "meta.json").write_text('{"set": "test",')
     with pytest.raises(ValueError, match="meta.json"):
         read_sequence(sim_copy)
 
@@ -195,9 +207,24 @@ def test_a_short_nanosecond_field_does_not_break_the_order_of_a_valid_sequence(s
     # RADIATE's logger dropped leading zeros of the nanosecond field: 54000000 ns was printed '54000000' and means
     # 0.054 s. Read as a decimal (float()), frame 2 would be 0.49 s late and frame 4 (5 ns) 0.5 s late.
     path = sim_copy / "Navtech_Cartesian.txt"
-    lines = [f"Frame: {k:06d} Time: {1574859770 + k}.{ns}" for k, ns in
-             zip(range(1, 11), ["900000000", "54000000", "954000000", "5", "100000000",
-                                "200000000", "300000000", "400000000", "500000000", "600000000"])]
+    lines = [
+        f"Frame: {k:06d} Time: {1574859770 + k}.{ns}"
+        for k, ns in zip(
+            range(1, 11),
+            [
+                "900000000",
+                "54000000",
+                "954000000",
+                "5",
+                "100000000",
+                "200000000",
+                "300000000",
+                "400000000",
+                "500000000",
+                "600000000",
+            ],
+        )
+    ]
     path.write_text("\n".join(lines) + "\n")
     (sim_copy / "ego_poses.csv").unlink()
     sequence = read_sequence(sim_copy, estimate_poses=False)
@@ -207,7 +234,9 @@ def test_a_short_nanosecond_field_does_not_break_the_order_of_a_valid_sequence(s
     assert list_frames(sim_copy).timestamp_texts[1] == "1574859772.054000000"
 
 
-@pytest.mark.parametrize("bad", ["Frame: 000003 Tim: 12.5", "Frame: 000003 Time: 1.0", "Frame: 000003 Time: 12.1234567890"])
+@pytest.mark.parametrize(
+    "bad", ["Frame: 000003 Tim: 12.5", "Frame: 000003 Time: 1.0", "Frame: 000003 Time: 12.1234567890"]
+)
 def test_malformed_or_unordered_timestamps(sim_copy: Path, bad: str) -> None:
     path = sim_copy / "Navtech_Cartesian.txt"
     lines = path.read_text().splitlines()
@@ -256,7 +285,13 @@ def test_skipped_annotations_are_counted_in_the_log(sim_copy: Path, caplog: pyte
 def test_annotations_longer_than_the_frames_and_missing_meta(sim_copy: Path, caplog: pytest.LogCaptureFixture) -> None:
     path = sim_copy / "annotations" / "annotations.json"
     entries = json.loads(path.read_text())
-    entries.append({"id": 777, "class_name": "bus", "bboxes": [[]] * 2 + [{"position": [100, 100, 10, 40], "rotation": 30.0}] + [[]] * 50})
+    entries.append(
+        {
+            "id": 777,
+            "class_name": "bus",
+            "bboxes": [[]] * 2 + [{"position": [100, 100, 10, 40], "rotation": 30.0}] + [[]] * 50,
+        }
+    )
     path.write_text(json.dumps(entries))
     (sim_copy / "meta.json").unlink()
     with caplog.at_level(logging.WARNING, logger="rafd.data.reader"):
@@ -265,11 +300,14 @@ def test_annotations_longer_than_the_frames_and_missing_meta(sim_copy: Path, cap
     assert [f.number for f in sequence.frames if any(o.id == 777 for o in f.objects)] == [3]
 
 
-@pytest.mark.parametrize(("meta", "condition"), [
-    ({"type": "simulated", "weather": "rain"}, "rain"),  # the simulator: its weather, not its type
-    ({"type": "night"}, "night"),  # RADIATE: the recording condition is the type
-    ({"type": "simulated", "weather": None}, None),  # a simulated drive without weather names none
-    ({}, None),
-])
+@pytest.mark.parametrize(
+    ("meta", "condition"),
+    [
+        ({"type": "simulated", "weather": "rain"}, "rain"),  # the simulator: its weather, not its type
+        ({"type": "night"}, "night"),  # RADIATE: the recording condition is the type
+        ({"type": "simulated", "weather": None}, None),  # a simulated drive without weather names none
+        ({}, None),
+    ],
+)
 def test_the_recording_condition_comes_from_meta_json(meta: dict, condition: str | None) -> None:
     assert meta_condition(meta) == condition

@@ -1,4 +1,5 @@
 """Polar-only sequence folders (Navtech_Polar/ + Navtech_Polar.txt): read, converted on load, found, refused."""
+
 from __future__ import annotations
 
 import json
@@ -67,8 +68,9 @@ def test_polar_only_simulated_folder_reads_like_its_cartesian_twin(simulated, po
         # The same scene as the simulator's own Cartesian scan: the written polar keeps RADIATE's 17 cm range bins
         # (every other 9 cm bin of the simulator), so fine speckle differs (measured: MAD 4.0, correlation 0.93
         # with the radar at the simulator's centre; RADIATE's half-pixel offset alone takes it to about 0.8).
-        mad, correlation = scan_agreement(polar_to_cartesian(truth.polar_scans[index], 256, conventions=same_centre),
-                                          truth.images[index])
+        mad, correlation = scan_agreement(
+            polar_to_cartesian(truth.polar_scans[index], 256, conventions=same_centre), truth.images[index]
+        )
         assert mad < 6.0 and correlation > 0.9
         assert [o.id for o in p.objects] == [o.id for o in c.objects]
         for a, b in zip(p.objects, c.objects):
@@ -86,10 +88,12 @@ def test_real_polar_scans_read_as_radiates_cartesian_frames(radiate_polar_sample
         assert mad < 3.5 and correlation > 0.97
     # Odometry on the converted scans agrees with odometry on RADIATE's own Cartesian scans.
     assert sequence.pose_source == "odometry"
-    from rafd.odometry import estimate_relative_pose
+    from rafd.data.odometry import estimate_relative_pose
 
-    reference_step = estimate_relative_pose(*(cv2.imread(str(radiate_sample / "Navtech_Cartesian" / f"{n:06d}.png"),
-                                                         cv2.IMREAD_GRAYSCALE) for n in (1, 2)), 0.173611)
+    reference_step = estimate_relative_pose(
+        *(cv2.imread(str(radiate_sample / "Navtech_Cartesian" / f"{n:06d}.png"), cv2.IMREAD_GRAYSCALE) for n in (1, 2)),
+        0.173611,
+    )
     assert np.hypot(*(sequence.poses[1, :2] - reference_step[:2])) < 0.2
     assert abs(sequence.poses[1, 2] - reference_step[2]) < np.deg2rad(0.5)
 

@@ -1,4 +1,5 @@
 """Small configs for the model tests: every module runs, each test takes a second or two on a CPU."""
+
 from __future__ import annotations
 
 import pytest

@@ -1,4 +1,5 @@
 """Ego-motion alignment: relative_pose_torch twins rafd.geometry, align_to_current resamples correctly."""
+
 from __future__ import annotations
 
 import numpy as np

@@ -1,4 +1,5 @@
 """Checkpoints: exact round trip, clear CheckpointError for every kind of bad file."""
+
 from __future__ import annotations
 
 import json

@@ -1,4 +1,5 @@
 """Deformable sampling = bilinear lookup; flow-guided reference points move against the flow."""
+
 from __future__ import annotations
 
 import math
@@ -30,7 +31,9 @@ def bilinear(value: torch.Tensor, x: float, y: float) -> torch.Tensor:
 
 def test_deformable_sample_is_a_weighted_bilinear_lookup() -> None:
     value = torch.randn(1, 3, 5, 7, dtype=torch.float64)
-    points = torch.tensor([[[[0.1, -0.3], [-0.95, 0.9], [0.99, 0.2]], [[0.0, 0.0], [0.5, 0.5], [-1.2, 0.0]]]], dtype=torch.float64)
+    points = torch.tensor(
+        [[[[0.1, -0.3], [-0.95, 0.9], [0.99, 0.2]], [[0.0, 0.0], [0.5, 0.5], [-1.2, 0.0]]]], dtype=torch.float64
+    )
     weights = torch.tensor([[[0.2, 0.3, 0.5], [0.6, 0.1, 0.3]]], dtype=torch.float64)
     got = deformable_sample(value, points, weights)  # [1, 2, 3]
     for q in range(2):
@@ -45,7 +48,9 @@ def identity_propagation(flow_guided: bool = True) -> FlowGuidedPropagation:
         attention.sampling_offsets.bias.zero_()  # every point at the reference
         attention.value_proj.weight.copy_(torch.eye(4)[:, :, None, None])
         attention.output_proj.weight.copy_(torch.eye(4))
-    return FlowGuidedPropagation([DeformableLayer(attention, 4, 2)], cell_centres(FEATURES, SIZE, RES), HALF, flow_guided)
+    return FlowGuidedPropagation(
+        [DeformableLayer(attention, 4, 2)], cell_centres(FEATURES, SIZE, RES), HALF, flow_guided
+    )
 
 
 def test_zero_flow_and_identity_pose_sample_at_the_own_cell() -> None:

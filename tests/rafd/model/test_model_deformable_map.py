@@ -1,11 +1,18 @@
 """The propagation's channel-major path (every map cell a query: Linear as 1x1 conv, LayerNorm over channels,
 points-major sampling with the weighting fused) computes exactly the token-major DeformableLayer."""
+
 from __future__ import annotations
 
 import torch
 
-from rafd.model.deformable import (DeformableAttention, DeformableLayer, deformable_sample,
-                                   deformable_sample_points_major, layer_norm_on_map, linear_on_map)
+from rafd.model.deformable import (
+    DeformableAttention,
+    DeformableLayer,
+    deformable_sample,
+    deformable_sample_points_major,
+    layer_norm_on_map,
+    linear_on_map,
+)
 
 
 def test_points_major_sampling_equals_the_token_major_one() -> None:
@@ -13,7 +20,9 @@ def test_points_major_sampling_equals_the_token_major_one() -> None:
     locations = torch.rand(2, 7, 4, 2, dtype=torch.float64) * 2.4 - 1.2  # [B, Q, P, 2], some outside the map
     weights = torch.rand(2, 7, 4, dtype=torch.float64).softmax(-1)  # [B, Q, P]
     token_major = deformable_sample(value, locations, weights)  # [B, Q, C]
-    points_major = deformable_sample_points_major(value, locations.transpose(1, 2), weights.transpose(1, 2))  # [B, C, Q]
+    points_major = deformable_sample_points_major(
+        value, locations.transpose(1, 2), weights.transpose(1, 2)
+    )  # [B, C, Q]
     torch.testing.assert_close(points_major, token_major.transpose(1, 2), atol=1e-12, rtol=0)
 
 

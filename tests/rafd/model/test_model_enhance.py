@@ -1,4 +1,5 @@
 """Window / shifted-window attention against an independent masked global attention."""
+
 from __future__ import annotations
 
 import math

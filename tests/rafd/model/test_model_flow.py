@@ -1,4 +1,5 @@
 """Cost-volume flow: zero for identical features, one cell for a known shift; the full branch runs."""
+
 from __future__ import annotations
 
 import torch
@@ -25,9 +26,9 @@ def test_known_shift_gives_the_displacement_in_metres() -> None:
     previous = codes.reshape(FEATURES, FEATURES, N)
     # content moved one cell right: current cell (i, j) shows what previous cell (i, j - 1) showed
     current = torch.roll(previous, shifts=1, dims=1)
-    flow = flow_from_correlation(
-        global_correlation(current.reshape(1, N, N), previous.reshape(1, N, N)), grid
-    ).reshape(FEATURES, FEATURES, 2)
+    flow = flow_from_correlation(global_correlation(current.reshape(1, N, N), previous.reshape(1, N, N)), grid).reshape(
+        FEATURES, FEATURES, 2
+    )
     inner = flow[:, 1:]  # column 0 wrapped around
     torch.testing.assert_close(inner[..., 0], torch.full_like(inner[..., 0], CELL), atol=1e-4, rtol=0)
     torch.testing.assert_close(inner[..., 1], torch.zeros_like(inner[..., 1]), atol=1e-4, rtol=0)

@@ -1,4 +1,5 @@
 """Every parameter takes part in the training graph (also required by DDP without find_unused_parameters)."""
+
 from __future__ import annotations
 
 import pytest
@@ -21,7 +22,9 @@ def test_gradients_reach_every_parameter(make_config, make_inputs, num_frames: i
     gt_indices = torch.randint(0, cfg.feature_size**2, (2, k))
     gt_mask = (torch.arange(k) < 3).float().expand(2, -1)
     out = model(frames, poses, gt_indices=gt_indices, gt_mask=gt_mask)
-    loss = out["heatmap"].sigmoid().mean() + sum(out[n].square().mean() for n in ("pred_offset", "pred_log_size", "pred_rotation"))
+    loss = out["heatmap"].sigmoid().mean() + sum(
+        out[n].square().mean() for n in ("pred_offset", "pred_log_size", "pred_rotation")
+    )
     if num_frames > 1:
         loss = loss + out["flow"].abs().mean()
     loss.backward()

@@ -1,4 +1,5 @@
 """rafd.model.normalise: the gain-robust first module, its ONNX export, and configs that predate it."""
+
 from __future__ import annotations
 
 import json
@@ -8,6 +9,7 @@ import torch
 
 from rafd.config import RaFDConfig
 from rafd.model import build_model
+
 
 def test_local_contrast_cancels_gain_and_gamma_and_keeps_local_structure() -> None:
     from rafd.model.normalise import LocalContrast
@@ -32,8 +34,15 @@ def test_local_contrast_exports_and_matches_onnxruntime(tmp_path) -> None:
 
     module = LocalContrast(47).eval()
     frames = torch.rand(1, 1, 96, 96)
-    torch.onnx.export(module, (frames,), str(tmp_path / "n.onnx"), dynamo=False, opset_version=17,
-                      input_names=["x"], output_names=["y"])
+    torch.onnx.export(
+        module,
+        (frames,),
+        str(tmp_path / "n.onnx"),
+        dynamo=False,
+        opset_version=17,
+        input_names=["x"],
+        output_names=["y"],
+    )
     session = ort.InferenceSession(str(tmp_path / "n.onnx"), providers=["CPUExecutionProvider"])
     np.testing.assert_allclose(session.run(None, {"x": frames.numpy()})[0], module(frames).numpy(), atol=2e-4)
 
@@ -56,8 +65,15 @@ def test_local_contrast_survives_a_runtime_that_computes_it_in_bf16(tmp_path) ->
     grey[..., 30:34, :] = 160  # a wall
     frames = (grey.clamp(0, 255).round() / 255).float()
     module = LocalContrast(47).eval()
-    torch.onnx.export(module, (frames,), str(tmp_path / "n.onnx"), dynamo=False, opset_version=17,
-                      input_names=["x"], output_names=["y"])
+    torch.onnx.export(
+        module,
+        (frames,),
+        str(tmp_path / "n.onnx"),
+        dynamo=False,
+        opset_version=17,
+        input_names=["x"],
+        output_names=["y"],
+    )
     compiled = ov.Core().compile_model(str(tmp_path / "n.onnx"), "CPU", {"INFERENCE_PRECISION_HINT": "bf16"})
     assert compiled.get_property("INFERENCE_PRECISION_HINT").get_type_name() == "bf16"
     error = np.abs(compiled({"x": frames.numpy()})[0] - module(frames).numpy())

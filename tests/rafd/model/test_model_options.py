@@ -1,5 +1,6 @@
 """Speed options that change the mathematics (flow.stride, enhance.window): defaults are the paper's network,
 the options build, train (every parameter gets a gradient), stream exactly like the window, and keep geometry."""
+
 from __future__ import annotations
 
 import dataclasses
@@ -18,8 +19,9 @@ from rafd.model.enhance import shifted_window_mask, window_attention
 def options_config(make_config, num_frames: int = 4, stride: int = 8, window: int = 4) -> RaFDConfig:
     """The 64 px test network (16 x 16 cells) with the flow at stride 8 (8 x 8 matching cells) and 4 x 4 windows."""
     cfg = make_config(num_frames)
-    return cfg.replace(flow=dataclasses.replace(cfg.flow, stride=stride),
-                       enhance=dataclasses.replace(cfg.enhance, window=window))
+    return cfg.replace(
+        flow=dataclasses.replace(cfg.flow, stride=stride), enhance=dataclasses.replace(cfg.enhance, window=window)
+    )
 
 
 def test_defaults_are_the_paper_network(make_config, make_inputs) -> None:
@@ -70,11 +72,17 @@ def test_gradients_reach_every_parameter_with_the_options(make_config, make_inpu
             parameter.add_(torch.randn_like(parameter) * 0.05)
     frames, poses = make_inputs(cfg, 2)
     out = model(frames, poses)
-    loss = out["heatmap"].sigmoid().mean() + out["flow"].abs().mean() + sum(
-        out[n].square().mean() for n in ("pred_offset", "pred_log_size", "pred_rotation"))
+    loss = (
+        out["heatmap"].sigmoid().mean()
+        + out["flow"].abs().mean()
+        + sum(out[n].square().mean() for n in ("pred_offset", "pred_log_size", "pred_rotation"))
+    )
     loss.backward()
-    bad = [n for n, p in model.named_parameters() if p.grad is None or not torch.isfinite(p.grad).all()
-           or p.grad.abs().sum() == 0]
+    bad = [
+        n
+        for n, p in model.named_parameters()
+        if p.grad is None or not torch.isfinite(p.grad).all() or p.grad.abs().sum() == 0
+    ]
     assert not bad, bad
 
 
@@ -85,8 +93,13 @@ def test_streaming_equals_the_window_with_the_options(make_config, make_inputs) 
     with torch.no_grad():
         window = model(frames, poses)
         features = torch.stack([model.encode_frame(frames[:, t]) for t in range(4)], dim=1)
-        flows = torch.stack([model.pair_flow(features[:, t - 1], features[:, t],
-                                             relative_pose_torch(poses[:, t - 1], poses[:, t])) for t in range(1, 4)], 1)
+        flows = torch.stack(
+            [
+                model.pair_flow(features[:, t - 1], features[:, t], relative_pose_torch(poses[:, t - 1], poses[:, t]))
+                for t in range(1, 4)
+            ],
+            1,
+        )
         streamed = model.detect(features, flows, poses)
     torch.testing.assert_close(flows, window["flow"], atol=1e-5, rtol=1e-5)
     assert torch.equal(streamed["query_indices"], window["query_indices"])
@@ -109,8 +122,9 @@ def _masked_global_attention(q, k, v, size, window, shift):
     """Global attention where tokens see each other only inside the same (shifted, non-wrapping) window."""
     rows = torch.arange(size[0]).repeat_interleave(size[1])
     cols = torch.arange(size[1]).repeat(size[0])
-    group = (torch.div(rows - shift[0], window[0], rounding_mode="floor") * 1000
-             + torch.div(cols - shift[1], window[1], rounding_mode="floor"))
+    group = torch.div(rows - shift[0], window[0], rounding_mode="floor") * 1000 + torch.div(
+        cols - shift[1], window[1], rounding_mode="floor"
+    )
     scores = q @ k.transpose(1, 2) / math.sqrt(q.shape[-1])
     return scores.masked_fill(group[:, None] != group[None, :], float("-inf")).softmax(-1) @ v
 
@@ -126,15 +140,18 @@ def test_small_windows_match_masked_global_attention(shifted: bool) -> None:
     torch.testing.assert_close(got, _masked_global_attention(q, k, v, size, window, shift), atol=1e-10, rtol=1e-10)
 
 
-@pytest.mark.parametrize("change", [
-    {"flow": {"stride": 6}},  # not a multiple of output_stride
-    {"flow": {"stride": 24}},  # does not divide input_size 64
-    {"enhance": {"window": 3}},  # odd: no half-window shift
-    {"enhance": {"window": 6}},  # does not tile 16 cells
-])
+@pytest.mark.parametrize(
+    "change",
+    [
+        {"flow": {"stride": 6}},  # not a multiple of output_stride
+        {"flow": {"stride": 24}},  # does not divide input_size 64
+        {"enhance": {"window": 3}},  # odd: no half-window shift
+        {"enhance": {"window": 6}},  # does not tile 16 cells
+    ],
+)
 def test_bad_options_are_refused(make_config, change) -> None:
     cfg = make_config(4)
-    (part, values), = change.items()
+    ((part, values),) = change.items()
     with pytest.raises(ValueError):
         cfg.replace(**{part: dataclasses.replace(getattr(cfg, part), **values)})
 

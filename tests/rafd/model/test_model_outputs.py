@@ -1,4 +1,5 @@
 """Output contract of RaFD.forward: keys, shapes, dtypes, value ranges."""
+
 from __future__ import annotations
 
 import math

@@ -1,4 +1,5 @@
 """The paper-size network runs; the tiny one exports to ONNX (opset 17, static) and matches onnxruntime."""
+
 from __future__ import annotations
 
 import time
@@ -48,8 +49,15 @@ def test_onnx_export_matches_torch(make_config, make_inputs, tmp_path: Path) -> 
     path = tmp_path / "window.onnx"
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
-        torch.onnx.export(wrapper, (frames, poses), str(path), opset_version=17, dynamo=False,
-                          input_names=["frames", "poses"], output_names=["heatmap", "flow", "boxes", "scores"])
+        torch.onnx.export(
+            wrapper,
+            (frames, poses),
+            str(path),
+            opset_version=17,
+            dynamo=False,
+            input_names=["frames", "poses"],
+            output_names=["heatmap", "flow", "boxes", "scores"],
+        )
     graph = onnx.load(str(path))
     ops = {node.op_type for node in graph.graph.node}
     assert "GridSample" in ops and not ops & {"NonZero", "Loop", "If", "Compress"}, ops

@@ -1,4 +1,5 @@
 """encode_frame / pair_flow / detect compose to forward: a stream that caches them equals the window."""
+
 from __future__ import annotations
 
 import pytest
@@ -29,7 +30,9 @@ def test_streaming_steps_equal_forward(make_config, make_inputs, num_frames: int
         if num_frames > 1:
             flows = torch.stack(
                 [
-                    model.pair_flow(features[:, t - 1], features[:, t], relative_pose_torch(poses[:, t - 1], poses[:, t]))
+                    model.pair_flow(
+                        features[:, t - 1], features[:, t], relative_pose_torch(poses[:, t - 1], poses[:, t])
+                    )
                     for t in range(1, num_frames)
                 ],
                 dim=1,
@@ -51,7 +54,10 @@ def test_sliding_window_reuses_cached_features(make_config, make_inputs) -> None
     poses = torch.cat([poses_a, poses_a[:, -1:] + torch.tensor([0.1, 1.4, 0.02])], dim=1)  # [1, 5, 3]
     with torch.no_grad():
         cache = [model.encode_frame(frames[:, t]) for t in range(4)]
-        pair = [model.pair_flow(cache[t - 1], cache[t], relative_pose_torch(poses[:, t - 1], poses[:, t])) for t in range(1, 4)]
+        pair = [
+            model.pair_flow(cache[t - 1], cache[t], relative_pose_torch(poses[:, t - 1], poses[:, t]))
+            for t in range(1, 4)
+        ]
         newest = model.encode_frame(frames[:, 4])
         pair.append(model.pair_flow(cache[3], newest, relative_pose_torch(poses[:, 3], poses[:, 4])))
         streamed = model.detect(torch.stack(cache[1:] + [newest], 1), torch.stack(pair[1:], 1), poses[:, 1:])

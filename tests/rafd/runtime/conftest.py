@@ -1,4 +1,5 @@
 """Runtime tests run on the shipped model (any shipped model: nothing here depends on its outputs)."""
+
 from __future__ import annotations
 
 from pathlib import Path

@@ -1,5 +1,6 @@
 """Concurrent runs: a run alone takes the all-threads backend, overlapping runs the shared-out one, never more than
 concurrent_runs at once; results do not depend on which backend ran them."""
+
 from __future__ import annotations
 
 import threading
@@ -19,11 +20,21 @@ class RecordingBackend:
 
     def __init__(self, name: str, threads: int, concurrent_runs: int, log: list, counter: dict) -> None:
         cfg = RaFDConfig.tiny(input_size=16, num_frames=2)
-        self.name, self.threads, self.concurrent_runs, self.log, self.counter = name, threads, concurrent_runs, log, counter
+        self.name, self.threads, self.concurrent_runs, self.log, self.counter = (
+            name,
+            threads,
+            concurrent_runs,
+            log,
+            counter,
+        )
         self.metadata = {"config": cfg.to_json(), "form": "step"}
         f = cfg.feature_size
-        self.input_shapes = {"frame": (1, 1, 16, 16), "poses": (1, 2, 3), "past_features": (1, 1, 4, f, f),
-                             "past_flow_features": (1, 2, f, f)}
+        self.input_shapes = {
+            "frame": (1, 1, 16, 16),
+            "poses": (1, 2, 3),
+            "past_features": (1, 1, 4, f, f),
+            "past_flow_features": (1, 2, f, f),
+        }
         self.output_names = ("heatmap", "scores", "boxes", "flow", "features", "flow_features")
 
     def run(self, feeds):

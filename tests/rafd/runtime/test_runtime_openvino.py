@@ -1,5 +1,6 @@
 """The OpenVINO backend behind the one runner interface: same graph contract and metadata as onnxruntime, fp32
 results equal to onnxruntime's, bf16 really in effect, thread-safe concurrent runs."""
+
 from __future__ import annotations
 
 import concurrent.futures
@@ -34,8 +35,14 @@ def test_backends_share_the_interface_and_metadata(shipped_onnx):
     assert ov.metadata == ort.metadata and ov.config == ort.config and ov.form == ort.form
     assert ov.backend.input_shapes == ort.backend.input_shapes
     assert ov.backend.output_names == ort.backend.output_names
-    assert ov.describe() == {"runtime": "openvino", "precision": "fp32", "threads": 1, "concurrent_runs": 1,
-                             "threads_per_concurrent_run": 1, "selection_ms_per_run": {}}
+    assert ov.describe() == {
+        "runtime": "openvino",
+        "precision": "fp32",
+        "threads": 1,
+        "concurrent_runs": 1,
+        "threads_per_concurrent_run": 1,
+        "selection_ms_per_run": {},
+    }
 
 
 def test_openvino_fp32_streams_like_onnxruntime(shipped_onnx):
@@ -53,8 +60,9 @@ def test_bf16_is_really_bf16_and_close(shipped_onnx):
     ort, bf16 = OnnxRunner(shipped_onnx, threads=1), OpenVinoRunner(shipped_onnx, "bf16", threads=1)
     assert bf16.precision == "bf16"
     frames, poses = _sequence(ort.config, 5, seed=1)
-    differences = [np.abs(a.heatmap - b.heatmap).max() for a, b in
-                   zip(_stream(ort, frames, poses), _stream(bf16, frames, poses))]
+    differences = [
+        np.abs(a.heatmap - b.heatmap).max() for a, b in zip(_stream(ort, frames, poses), _stream(bf16, frames, poses))
+    ]
     # bf16 keeps 8 significant bits: the logits move, but stay in the same range (the accuracy gate judges more)
     assert 1e-4 < max(differences) < 5.0, differences
 
@@ -71,8 +79,10 @@ def test_bf16_refused_where_the_cpu_lacks_it(shipped_onnx, monkeypatch):
 def test_concurrent_runs_give_the_serial_results(shipped_onnx):
     runner = OpenVinoRunner(shipped_onnx, "fp32", threads=1, concurrent_runs=2)
     rng = np.random.default_rng(3)
-    feeds = [{name: rng.random(shape, dtype=np.float32) for name, shape in runner.backend.input_shapes.items()}
-             for _ in range(6)]
+    feeds = [
+        {name: rng.random(shape, dtype=np.float32) for name, shape in runner.backend.input_shapes.items()}
+        for _ in range(6)
+    ]
     serial = [runner.run(f) for f in feeds]
     with concurrent.futures.ThreadPoolExecutor(4) as pool:
         parallel = list(pool.map(runner.run, feeds))

@@ -1,5 +1,6 @@
 """create_runner: explicit choices, refusals, and "auto" (fastest measured choice; reduced precision only with a
 passed accuracy gate)."""
+
 from __future__ import annotations
 
 import pytest
@@ -23,9 +24,14 @@ def test_explicit_choices(shipped_onnx):
     assert runner.describe()["runtime"] == "onnxruntime"
 
 
-@pytest.mark.parametrize("runtime,precision,message", [
-    ("onnxruntime", "bf16", "fp32 only"), ("tensorrt", "auto", "runtime must be"), ("auto", "int8", "precision must be"),
-])
+@pytest.mark.parametrize(
+    "runtime,precision,message",
+    [
+        ("onnxruntime", "bf16", "fp32 only"),
+        ("tensorrt", "auto", "runtime must be"),
+        ("auto", "int8", "precision must be"),
+    ],
+)
 def test_impossible_choices_are_refused(shipped_onnx, runtime, precision, message):
     with pytest.raises(ValueError, match=message):
         create_runner(shipped_onnx, runtime, precision, threads=1)

@@ -1,4 +1,5 @@
 """Which road users the simulated annotator boxes: the unshadowed ones, and shadowed ones the scan still shows."""
+
 from __future__ import annotations
 
 import math
@@ -25,8 +26,10 @@ def test_a_car_behind_another_is_boxed_when_its_shadowed_return_shows() -> None:
     azimuth_bin = 2.0 * math.pi / sensor.config.azimuths
     near, far = np.array([0.0, 10.0, 1.9, 4.5, 0.0]), np.array([0.0, 17.0, 1.9, 4.5, 0.0])  # one behind the other
     look = Look(strength=2.0, visible=(1.0, 0.0, 1.0, 0.0), spread=0.3, glints=0)
-    parts = [diffuse_returns(box, look, rng, owner, azimuth_bin, sensor.config.range_bin)
-             for owner, box in enumerate((near, far))]
+    parts = [
+        diffuse_returns(box, look, rng, owner, azimuth_bin, sensor.config.range_bin)
+        for owner, box in enumerate((near, far))
+    ]
     echoes = sensor.illuminate(Scatterers.concat(parts))
     lit, seen = visible_beams(echoes, 2, sensor.config.azimuths)
     assert lit[0] == seen[0] > 0 and lit[1] == 0 < seen[1]  # the far car is wholly in the near one's shadow
@@ -34,6 +37,9 @@ def test_a_car_behind_another_is_boxed_when_its_shadowed_return_shows() -> None:
     # rendered faint, at the sensor's shadow (0.25) of its power; above 0.25 because the near car's far side is
     # in its own shadow too
     assert 0.1 < shadowed < 0.5
-    strong, faint = 4.0 * MIN_SHADOWED_STRENGTH / sensor.config.shadow, 0.5 * MIN_SHADOWED_STRENGTH / sensor.config.shadow
+    strong, faint = (
+        4.0 * MIN_SHADOWED_STRENGTH / sensor.config.shadow,
+        0.5 * MIN_SHADOWED_STRENGTH / sensor.config.shadow,
+    )
     assert annotator_sees(lit, seen, np.array([0.1, strong]), sensor.config.shadow).tolist() == [True, True]
     assert annotator_sees(lit, seen, np.array([0.1, faint]), sensor.config.shadow).tolist() == [True, False]

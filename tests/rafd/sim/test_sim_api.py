@@ -1,4 +1,5 @@
 """simulate_sequence / simulate_dataset: determinism, RADIATE format, ground truth round trip, dynamics."""
+
 from __future__ import annotations
 
 import csv
@@ -103,7 +104,9 @@ def test_objects_enter_and_leave_with_realistic_classes(simulated) -> None:
     sequence, _ = simulated
     present = np.array([np.isfinite(o.boxes[:, 0]) for o in sequence.objects])  # [N, T]
     assert present.all(0).sum() < len(sequence.objects)
-    assert np.any(~present[:, 0] & present[:, -1]) or np.any(present[:, 0] & ~present[:, -1])  # someone enters or leaves
+    assert np.any(~present[:, 0] & present[:, -1]) or np.any(
+        present[:, 0] & ~present[:, -1]
+    )  # someone enters or leaves
     sizes = {o.class_name: np.nanmax(o.boxes[:, 2:4]) for o in sequence.objects}  # the long side, however labelled
     assert set(sizes) <= {"car", "van", "truck", "bus", "motorbike", "bicycle", "pedestrian", "group_of_pedestrians"}
     if "car" in sizes:
@@ -125,7 +128,9 @@ def test_traffic_mix_moving_parked_oncoming() -> None:
     speeds = np.array([np.hypot(*np.diff(a.boxes[:, :2], axis=0).T).max() / 0.25 for a in agents])
     moving = speeds > 0.5
     assert np.any(~moving) and np.any(moving)  # parked and driving
-    headings = {round(float(np.cos(a.boxes[0, 4])), 0) for a, m in zip(agents, moving) if m and a.class_name != "pedestrian"}
+    headings = {
+        round(float(np.cos(a.boxes[0, 4])), 0) for a, m in zip(agents, moving) if m and a.class_name != "pedestrian"
+    }
     assert {1.0, -1.0} <= headings  # both ways along the ego's street
     assert speeds.max() <= 15.0 + 1e-6
     assert len({a.id for a in agents}) == len(agents)

@@ -1,4 +1,5 @@
 """The DATA reader reads a simulated sequence unchanged (skips until rafd.data.read_sequence exists)."""
+
 from __future__ import annotations
 
 from pathlib import Path

@@ -1,4 +1,5 @@
 """The label-free realism measures on images whose answers are known, and what simulated vehicles look like."""
+
 from __future__ import annotations
 
 import math
@@ -53,6 +54,7 @@ def test_azimuth_striping_sees_bright_beams() -> None:
     assert azimuth_striping([striped]) > 3 * azimuth_striping([plain])
 
 
+@pytest.mark.slow
 def test_the_patch_classifier_tells_different_textures_apart_and_not_identical_ones() -> None:
     rng = np.random.default_rng(2)
     same = [rng.integers(0, 80, (SIZE, SIZE)).astype(np.uint8) for _ in range(4)]
@@ -124,14 +126,17 @@ def test_vehicles_are_faint_unsaturated_blobs_inside_wider_labels(town) -> None:
     assert 15 < np.median(means) < 70 and np.median(peaks) < 180 and np.mean(np.array(peaks) >= 250) < 0.2
     contrast = np.array(means) / np.array(rings)
     assert 1.05 < np.median(contrast) < 3.0 and contrast.min() < 1.3  # some barely stand out
-    assert 2.3 < np.median(widths) < 3.6  # the annotators' wide boxes (simulated: ~3.4 m within 30 m, beam blur included)
+    assert (
+        2.3 < np.median(widths) < 3.6
+    )  # the annotators' wide boxes (simulated: ~3.4 m within 30 m, beam blur included)
 
 
 def test_drives_vary_from_empty_streets_to_busy_ones_and_in_weather() -> None:
     """Vehicles in the protocol's 44 m crop: from none to about ten, drive by drive; clear, foggy and rainy drives."""
     drives = [run_simulation(seed, 1, "test", 256, Difficulty(), name="c") for seed in range(24)]
-    vehicles = [sum(1 for o in d.objects if np.isfinite(o.boxes[0, 0]) and "pedestrian" not in o.class_name)
-                for d in drives]
+    vehicles = [
+        sum(1 for o in d.objects if np.isfinite(o.boxes[0, 0]) and "pedestrian" not in o.class_name) for d in drives
+    ]
     assert min(vehicles) == 0 and max(vehicles) >= 5
     assert {d.conditions.weather for d in drives} == {"clear", "fog", "rain"}
     gains = [d.conditions.gain for d in drives]

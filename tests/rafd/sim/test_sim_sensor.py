@@ -1,4 +1,5 @@
 """Navtech sensor model: geometry of the polar->Cartesian warp, occlusion, noise floor, transient returns."""
+
 from __future__ import annotations
 
 import numpy as np
@@ -22,7 +23,11 @@ def test_point_target_lands_on_its_pixel() -> None:
     quiet = Difficulty(clutter=0.0, ghosts=0.0, noise=0.0)
     for xy in [(10.0, 20.0), (-25.0, -5.0), (3.0, -30.0)]:
         echoes = sensor.illuminate(_points(xy, 400.0))
-        image = sensor.to_cartesian(sensor.receive(sensor.accumulate(echoes.azimuth, echoes.ranges, echoes.power), np.random.default_rng(0), quiet))
+        image = sensor.to_cartesian(
+            sensor.receive(
+                sensor.accumulate(echoes.azimuth, echoes.ranges, echoes.power), np.random.default_rng(0), quiet
+            )
+        )
         v, u = np.unravel_index(np.argmax(image), image.shape)
         expected = metres_to_pixels(np.array(xy), 512)
         assert np.hypot(u + 0.5 - expected[0], v + 0.5 - expected[1]) < 2.5, (xy, (u, v), expected)
@@ -30,24 +35,38 @@ def test_point_target_lands_on_its_pixel() -> None:
 
 def test_occluder_shadows_what_is_behind_it() -> None:
     sensor = NavtechSensor(512)
-    echoes = sensor.illuminate(Scatterers.concat([_points((0.0, 10.0), 50.0, occluder=True), _points((0.0, 20.0), 50.0), _points((10.0, 0.0), 50.0)]))
+    echoes = sensor.illuminate(
+        Scatterers.concat(
+            [_points((0.0, 10.0), 50.0, occluder=True), _points((0.0, 20.0), 50.0), _points((10.0, 0.0), 50.0)]
+        )
+    )
     assert echoes.lit.tolist() == [True, False, True]
     assert echoes.power[1] < 0.5 * echoes.power[2]
 
 
 def test_back_faces_are_invisible() -> None:
     sensor = NavtechSensor(256)
-    facing = Scatterers(np.array([[0.0, 10.0], [0.0, 12.0]]), np.ones(2), np.array([[0.0, -1.0], [0.0, 1.0]]), np.zeros(2, bool), np.zeros(2, int))
+    facing = Scatterers(
+        np.array([[0.0, 10.0], [0.0, 12.0]]),
+        np.ones(2),
+        np.array([[0.0, -1.0], [0.0, 1.0]]),
+        np.zeros(2, bool),
+        np.zeros(2, int),
+    )
     assert len(sensor.illuminate(facing).ranges) == 1
 
 
 def test_noise_floor_and_disc() -> None:
     sensor = NavtechSensor(1152)
-    image = sensor.to_cartesian(sensor.receive(np.zeros((400, sensor.num_bins)), np.random.default_rng(1), Difficulty()))
+    image = sensor.to_cartesian(
+        sensor.receive(np.zeros((400, sensor.num_bins)), np.random.default_rng(1), Difficulty())
+    )
     assert image[0, 0] == 0 and image[-1, -1] == 0  # outside the 100 m disc
     ring = image[576, 700:1000]
     assert 5 < np.median(ring) < 40 and ring.std() > 3  # speckled floor, not constant
-    louder = sensor.to_cartesian(sensor.receive(np.zeros((400, sensor.num_bins)), np.random.default_rng(1), Difficulty(noise=4.0)))
+    louder = sensor.to_cartesian(
+        sensor.receive(np.zeros((400, sensor.num_bins)), np.random.default_rng(1), Difficulty(noise=4.0))
+    )
     assert np.median(louder[576, 700:1000]) > 1.5 * np.median(ring)
 
 

@@ -1,5 +1,6 @@
 """Two CPU processes (gloo) with torchrun's environment: lock-step training, global batch = ranks x accumulation,
 sharded validation equal to one process's, and torchrun driving rafd-train end to end."""
+
 from __future__ import annotations
 
 import dataclasses
@@ -16,11 +17,12 @@ import torch.multiprocessing as mp
 from rafd.config import RaFDConfig
 from rafd.train.datasets import open_windows
 from rafd.train.distributed import DistContext, cleanup_distributed, init_distributed, shard_indices, wrap_model
-from rafd.train.trainer import Trainer, TrainConfig, plan_batches
+from rafd.train.trainer import TrainConfig, Trainer, plan_batches
 
 # One optimizer step over a global batch of 4 windows, micro-batches of 1 (BatchNorm sees the same batches).
-STEP = dict(epochs=1, batch_size=4, micro_batch_size=1, seed=5, device="cpu", progress=False, max_steps_per_epoch=1,
-            val_every=1)
+STEP = dict(
+    epochs=1, batch_size=4, micro_batch_size=1, seed=5, device="cpu", progress=False, max_steps_per_epoch=1, val_every=1
+)
 
 
 def _free_port() -> int:
@@ -42,8 +44,14 @@ def _run(root: str, cfg_json: str, out: Path, ctx: DistContext, tag: str) -> Non
 
 def _worker(rank: int, world_size: int, port: int, root: str, cfg_json: str, out: str) -> None:
     # The variables torchrun sets for each process.
-    os.environ.update(MASTER_ADDR="127.0.0.1", MASTER_PORT=str(port), RANK=str(rank), WORLD_SIZE=str(world_size),
-                      LOCAL_RANK=str(rank), LOCAL_WORLD_SIZE=str(world_size))
+    os.environ.update(
+        MASTER_ADDR="127.0.0.1",
+        MASTER_PORT=str(port),
+        RANK=str(rank),
+        WORLD_SIZE=str(world_size),
+        LOCAL_RANK=str(rank),
+        LOCAL_WORLD_SIZE=str(world_size),
+    )
     torch.set_num_threads(1)
     ctx = init_distributed("cpu", timeout_minutes=5)
     try:
@@ -57,8 +65,13 @@ def runs(tiny_root: Path, tiny_cfg: RaFDConfig, tmp_path_factory: pytest.TempPat
     out = tmp_path_factory.mktemp("ddp")
     # Reference weights for validation: a few steps of training, so the detections are not trivial.
     cfg = RaFDConfig.from_json(tiny_cfg.to_json())
-    reference = Trainer(cfg, TrainConfig(**{**STEP, "max_steps_per_epoch": 4, "lr": 3e-3}),
-                        open_windows(tiny_root, "train", cfg), None, DistContext())
+    reference = Trainer(
+        cfg,
+        TrainConfig(**{**STEP, "max_steps_per_epoch": 4, "lr": 3e-3}),
+        open_windows(tiny_root, "train", cfg),
+        None,
+        DistContext(),
+    )
     reference.fit()
     torch.save(reference.model.state_dict(), out / "reference.pt")
     mp.spawn(_worker, args=(2, _free_port(), str(tiny_root), tiny_cfg.to_json(), str(out)), nprocs=2, join=True)
@@ -66,9 +79,11 @@ def runs(tiny_root: Path, tiny_cfg: RaFDConfig, tmp_path_factory: pytest.TempPat
     return out
 
 
+@pytest.mark.slow
 def test_two_ranks_with_accumulation_equal_one_process_with_the_same_global_batch(runs: Path) -> None:
-    rank0, rank1, single = (torch.load(runs / f"{t}.pt", weights_only=True)["params"]
-                            for t in ("ddp_rank0", "ddp_rank1", "single_rank0"))
+    rank0, rank1, single = (
+        torch.load(runs / f"{t}.pt", weights_only=True)["params"] for t in ("ddp_rank0", "ddp_rank1", "single_rank0")
+    )
     for name in rank0:
         assert torch.equal(rank0[name], rank1[name]), f"{name} differs between ranks"
         # 2 ranks x 2 micro-batches and 1 rank x 4 micro-batches average the same 4 windows' gradients
@@ -77,8 +92,9 @@ def test_two_ranks_with_accumulation_equal_one_process_with_the_same_global_batc
 
 
 def test_sharded_validation_equals_single_process_validation(runs: Path) -> None:
-    rank0, rank1, single = (torch.load(runs / f"{t}.pt", weights_only=True)["val"]
-                            for t in ("ddp_rank0", "ddp_rank1", "single_rank0"))
+    rank0, rank1, single = (
+        torch.load(runs / f"{t}.pt", weights_only=True)["val"] for t in ("ddp_rank0", "ddp_rank1", "single_rank0")
+    )
     assert rank0 == rank1 and set(rank0) >= {"val_mAP@0.5", "val_epe_all", "val_frames"}
     assert rank0["val_frames"] == single["val_frames"] and single["val_mAP@0.3"] > 0
     for key in rank0:
@@ -90,8 +106,9 @@ def test_shards_cover_every_window_once() -> None:
     assert sorted(i for shard in shards for i in shard) == list(range(11))
 
 
-@pytest.mark.parametrize("batch, world, micro, expected", [(8, 8, None, (1, 1)), (8, 1, None, (8, 1)),
-                                                           (8, 2, 1, (1, 4)), (8, 1, 2, (2, 4))])
+@pytest.mark.parametrize(
+    "batch, world, micro, expected", [(8, 8, None, (1, 1)), (8, 1, None, (8, 1)), (8, 2, 1, (1, 4)), (8, 1, 2, (2, 4))]
+)
 def test_global_batch_plans(batch, world, micro, expected) -> None:
     plan = plan_batches(batch, world, micro)
     assert (plan.micro_batch_size, plan.accumulation) == expected
@@ -121,8 +138,9 @@ def test_sync_batchnorm_only_under_ddp_on_cuda_and_checkpoints_keep_their_keys(t
     assert wrap_model(model, DistContext()) is model  # one process: no wrapper
 
 
-@pytest.mark.parametrize("variant", [dict(num_frames=1), dict(num_frames=2), dict(num_frames=4),
-                                     "no_guidance", "no_enhancement"])
+@pytest.mark.parametrize(
+    "variant", [dict(num_frames=1), dict(num_frames=2), dict(num_frames=4), "no_guidance", "no_enhancement"]
+)
 def test_every_parameter_gets_a_gradient_so_ddp_needs_no_unused_parameter_search(tiny_cfg: RaFDConfig, variant) -> None:
     from rafd import build_model
     from rafd.train.collate import Collator
@@ -139,9 +157,14 @@ def test_every_parameter_gets_a_gradient_so_ddp_needs_no_unused_parameter_search
     poses = torch.zeros(2, cfg.num_frames, 3)
     import numpy as np
 
-    window = {"frames": (frames[0, :, 0].numpy() * 255).astype(np.uint8), "poses": np.zeros((cfg.num_frames, 3)),
-              "boxes": [np.array([[1.0, 2.0, 1.8, 4.5, 0.2]])] * cfg.num_frames,
-              "ids": [np.array([1])] * cfg.num_frames, "sequence": "s", "frame": 1}
+    window = {
+        "frames": (frames[0, :, 0].numpy() * 255).astype(np.uint8),
+        "poses": np.zeros((cfg.num_frames, 3)),
+        "boxes": [np.array([[1.0, 2.0, 1.8, 4.5, 0.2]])] * cfg.num_frames,
+        "ids": [np.array([1])] * cfg.num_frames,
+        "sequence": "s",
+        "frame": 1,
+    }
     targets = Collator(cfg)([window, window]).targets
     for flow_weight in (1.0, 0.0):  # the "without flow supervision" ablation too
         model.zero_grad()
@@ -151,14 +174,46 @@ def test_every_parameter_gets_a_gradient_so_ddp_needs_no_unused_parameter_search
         assert not missing, f"{variant}, flow weight {flow_weight}: no gradient for {missing}"
 
 
+@pytest.mark.slow
 def test_rafd_train_runs_under_torchrun_with_bf16(tiny_root: Path, tmp_path: Path) -> None:
     torchrun = Path(sys.executable).with_name("torchrun")
     out = tmp_path / "ddp.pt"
     command = [
-        str(torchrun), "--standalone", "--nproc_per_node", "2", "-m", "rafd.cli.train",
-        "--data", str(tiny_root), "--split", "train", "--config", "tiny", "--frames", "2", "--input-size", "64",
-        "--out", str(out), "--epochs", "1", "--batch-size", "2", "--max-steps-per-epoch", "2", "--precision", "bf16",
-        "--device", "cpu", "--threads", "1", "--no-progress", "--val-split", "train", "--max-val-windows", "3",
+        str(torchrun),
+        "--standalone",
+        "--nproc_per_node",
+        "2",
+        "-m",
+        "rafd.cli.train",
+        "--data",
+        str(tiny_root),
+        "--split",
+        "train",
+        "--config",
+        "tiny",
+        "--frames",
+        "2",
+        "--input-size",
+        "64",
+        "--out",
+        str(out),
+        "--epochs",
+        "1",
+        "--batch-size",
+        "2",
+        "--max-steps-per-epoch",
+        "2",
+        "--precision",
+        "bf16",
+        "--device",
+        "cpu",
+        "--threads",
+        "1",
+        "--no-progress",
+        "--val-split",
+        "train",
+        "--max-val-windows",
+        "3",
     ]
     done = subprocess.run(command, capture_output=True, text=True, timeout=300)
     assert done.returncode == 0, done.stderr[-3000:]

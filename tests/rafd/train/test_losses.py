@@ -1,4 +1,5 @@
 """Loss terms checked by hand on tiny tensors."""
+
 from __future__ import annotations
 
 import math
@@ -24,11 +25,13 @@ def test_focal_loss_normalises_by_number_of_objects() -> None:
     logits = torch.tensor([[2.0, -1.0, 0.5, -3.0]]).reshape(1, 1, 2, 2)
     target = torch.tensor([[1.0, 0.0, 1.0, 0.3]]).reshape(1, 1, 2, 2)
     p = torch.sigmoid(logits).flatten().tolist()
-    pos = [-(1 - p[0]) ** 2 * math.log(p[0]), -(1 - p[2]) ** 2 * math.log(p[2])]
+    pos = [-((1 - p[0]) ** 2) * math.log(p[0]), -((1 - p[2]) ** 2) * math.log(p[2])]
     neg = [-(1.0**4) * p[1] ** 2 * math.log(1 - p[1]), -((1 - 0.3) ** 4) * p[3] ** 2 * math.log(1 - p[3])]
     assert focal_loss(logits, target).item() == pytest.approx((sum(pos) + sum(neg)) / 2, rel=1e-5)
     # Confident and right -> small; confident and wrong -> large.
-    assert focal_loss(torch.tensor([8.0, -8.0]).reshape(1, 1, 1, 2), torch.tensor([1.0, 0.0]).reshape(1, 1, 1, 2)) < 1e-3
+    assert (
+        focal_loss(torch.tensor([8.0, -8.0]).reshape(1, 1, 1, 2), torch.tensor([1.0, 0.0]).reshape(1, 1, 1, 2)) < 1e-3
+    )
     assert focal_loss(torch.tensor([-8.0, 8.0]).reshape(1, 1, 1, 2), torch.tensor([1.0, 0.0]).reshape(1, 1, 1, 2)) > 10
 
 

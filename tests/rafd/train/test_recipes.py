@@ -1,4 +1,5 @@
 """The shipped default model is what the `default` recipe trains, calibrated on validation data."""
+
 from __future__ import annotations
 
 import math

@@ -1,4 +1,5 @@
 """Training loop: overfits a fixed batch, is deterministic for a seed, and resumes exactly."""
+
 from __future__ import annotations
 
 from pathlib import Path
@@ -11,7 +12,7 @@ from rafd.train.collate import Collator
 from rafd.train.datasets import open_windows
 from rafd.train.distributed import DistContext
 from rafd.train.losses import LOSS_TERMS
-from rafd.train.trainer import Trainer, TrainConfig, optimizer_state_path
+from rafd.train.trainer import TrainConfig, Trainer, optimizer_state_path
 
 CPU = DistContext()
 
@@ -68,7 +69,9 @@ def test_resume_equals_uninterrupted_run(tiny_root: Path, tiny_cfg: RaFDConfig, 
 
     assert resumed.step == full.step
     _assert_same(_weights(full), _weights(resumed))
-    assert [h["loss_total"] for h in resumed.history] == pytest.approx([h["loss_total"] for h in full.history], rel=0, abs=0)
+    assert [h["loss_total"] for h in resumed.history] == pytest.approx(
+        [h["loss_total"] for h in full.history], rel=0, abs=0
+    )
 
 
 def test_resume_without_optimizer_state_is_a_clear_error(tiny_root: Path, tiny_cfg: RaFDConfig, tmp_path: Path) -> None:
@@ -87,7 +90,9 @@ def test_init_from_a_single_frame_model_copies_its_encoder_and_head(tiny_root: P
 
     base = RaFDConfig.tiny(input_size=64, num_frames=1)
     single_cfg = base.replace(propagation=dataclasses.replace(base.propagation, norm="pre"))
-    single = Trainer(single_cfg, _train_cfg(), open_windows(tiny_root, "train", single_cfg), tmp_path / "single.pt", CPU)
+    single = Trainer(
+        single_cfg, _train_cfg(), open_windows(tiny_root, "train", single_cfg), tmp_path / "single.pt", CPU
+    )
     single.fit()
     multi_cfg = single_cfg.replace(num_frames=2)
     dataset = open_windows(tiny_root, "train", multi_cfg)
@@ -134,8 +139,9 @@ def test_a_frozen_encoder_keeps_its_weights_and_batchnorm_statistics(tiny_root: 
     assert not any(id(p) in trained for p in trainer.model.encoder.parameters())
 
 
-def test_resuming_with_other_frozen_parts_is_a_clear_error(tiny_root: Path, tiny_cfg: RaFDConfig,
-                                                             tmp_path: Path) -> None:
+def test_resuming_with_other_frozen_parts_is_a_clear_error(
+    tiny_root: Path, tiny_cfg: RaFDConfig, tmp_path: Path
+) -> None:
     dataset = open_windows(tiny_root, "train", tiny_cfg)
     Trainer(tiny_cfg, _train_cfg(freeze=("encoder",)), dataset, tmp_path / "frozen.pt", CPU).fit()
     other = Trainer(tiny_cfg, _train_cfg(epochs=2), dataset, None, CPU)

@@ -1,0 +1,354 @@
+"""The speed benchmark (`rafd-bench-speed`): speed, accuracy drift and memory of every runtime and precision, side
+by side in one run.
+
+For each config (the shipped default model, the paper's network with random weights, and the paper's network with
+the speed options flow.stride 8 and enhance.window 16):
+  - PyTorch eager and onnxruntime on the full window (the references);
+  - the streaming step (the service's path) on every runtime and precision this CPU runs (onnxruntime fp32,
+    OpenVINO fp32, OpenVINO bf16 where the CPU has bf16), timed interleaved, with the achieved TFLOP/s against the
+    fp32 and bf16 matmul peaks measured in the same run;
+  - 1 stream against 8 concurrent streams through one runner, with one run at a time and with the service's
+    default of one concurrent run per CPU;
+  - the accuracy gate of every reduced precision against onnxruntime fp32 (export.gate, a small sample);
+then `POST /detect` over HTTP on loopback against a real `rafd-serve` per runtime (1 and N streams, memory with
+100 streams; for the default model also full 1152 px scans). Prints one table.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import os
+import statistics
+import time
+from collections.abc import Callable, Sequence
+from concurrent.futures import ThreadPoolExecutor
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from rafd.bench.flops import count_flops
+from rafd.bench.http_load import encode_png, load_streams
+from rafd.bench.server import rss_bytes, start_server
+from rafd.bench.timing import percentiles, time_calls, time_interleaved
+from rafd.preprocess import model_crop, to_model_input
+
+log = logging.getLogger("rafd.bench")
+
+CONFIGS = ("default", "paper", "paper-options")
+FULL_SCAN = 1152  # a RADIATE Navtech Cartesian scan
+
+
+@dataclass
+class Row:
+    config: str
+    path: str
+    p50_ms: float
+    p95_ms: float | None  # None where only a mean is measured (aggregate throughput rows)
+    fps: float
+    note: str = ""
+
+
+@dataclass
+class Report:
+    rows: list[Row] = field(default_factory=list)
+    facts: dict[str, Any] = field(default_factory=dict)
+
+
+def simulated_frames(size: int, count: int, seed: int) -> tuple[list[np.ndarray], np.ndarray]:
+    """`count` simulated scans of size x size (uint8) and their true world poses [count, 3]."""
+    from rafd.sim.sensor import Difficulty
+    from rafd.sim.sequence import run_simulation
+
+    sequence = run_simulation(seed, count, "test", size, Difficulty(), name="bench")
+    return list(sequence.images), np.asarray(sequence.poses, dtype=np.float64)
+
+
+def count_step_flops(model: Any, cfg: Any) -> float:
+    """FLOPs of one streaming step: the exported StepGraph itself (new frame, newest pair flow, detect)."""
+    from export.step import build_graph, example_inputs, feature_channels
+
+    return count_flops(build_graph(model, cfg, "step"), *example_inputs(cfg, "step", feature_channels(model, cfg)))
+
+
+# ----------------------------------------------------------------------------- model paths
+def export_forms(checkpoint: Path, out_dir: Path) -> dict[str, Path]:
+    """The window and the step (streaming) ONNX forms of a checkpoint, through rafd-export."""
+    from export.cli import main as export_main
+
+    forms = {}
+    for form in ("window", "step"):
+        path = out_dir / f"{checkpoint.stem}.{form}.onnx"
+        start = time.perf_counter()
+        if export_main([str(checkpoint), str(path), "--form", form, "--no-verify"]) != 0:
+            raise RuntimeError(f"rafd-export failed for {checkpoint} ({form})")
+        log.info("exported %s in %.1f s (%.2f MB)", path.name, time.perf_counter() - start, path.stat().st_size / 1e6)
+        forms[form] = path
+    return forms
+
+
+def stream_fps(runner: Any, inputs: list[np.ndarray], poses: np.ndarray, streams: int, frames: int) -> float:
+    """Aggregate frames/s of `streams` threads, each stepping its own stream `frames` times through `runner`."""
+
+    def client(offset: int) -> None:
+        state = runner.new_state()
+        for k in range(frames):
+            j = (offset + k) % len(inputs)
+            _, state = runner.step(state, inputs[j], poses[j])
+
+    start = time.perf_counter()
+    with ThreadPoolExecutor(max_workers=streams) as pool:
+        list(pool.map(client, range(streams)))  # list(): a client's exception surfaces here
+    return streams * frames / (time.perf_counter() - start)
+
+
+def bench_model(
+    name: str,
+    checkpoint: Path,
+    work: Path,
+    threads: int,
+    repeats: int,
+    concurrency_frames: int,
+    gate: tuple[int, int] | None,
+    peaks: dict[str, float],
+    report: Report,
+) -> dict[str, Any]:
+    """PyTorch window, ORT window, the streaming step on every runtime, concurrency and the gate -> rows + facts."""
+    import onnxruntime as ort
+    import torch
+
+    from rafd.checkpoint import load_checkpoint
+    from rafd.runtime import open_runner, supported_choices
+
+    torch.set_num_threads(threads)
+    model, cfg, _ = load_checkpoint(checkpoint)
+    size, frames_per_window = cfg.input_size, cfg.num_frames
+    images, poses = simulated_frames(size, max(repeats, 8) + frames_per_window, seed=7)
+    inputs = [to_model_input(im) for im in images]
+    window = torch.from_numpy(np.stack(inputs[:frames_per_window]))[None, :, None]  # [1, T, 1, S, S]
+    window_poses = torch.from_numpy(poses[:frames_per_window].astype(np.float32))[None]  # [1, T, 3]
+
+    with torch.no_grad():
+        eager = time_calls(lambda _: model(window, window_poses), repeats)
+    report.rows.append(Row(name, "pytorch eager, full window", *percentiles(eager), 1.0 / np.median(eager)))
+
+    forms = export_forms(checkpoint, work)
+    options = ort.SessionOptions()
+    options.intra_op_num_threads = threads
+    options.graph_optimization_level = ort.GraphOptimizationLevel.ORT_ENABLE_ALL
+    session = ort.InferenceSession(str(forms["window"]), options, providers=["CPUExecutionProvider"])
+    feeds = {"frames": window.numpy(), "poses": window_poses.numpy()}
+    ort_window = time_calls(lambda _: session.run(None, feeds), repeats)
+    report.rows.append(
+        Row(name, "onnxruntime fp32, full window", *percentiles(ort_window), 1.0 / np.median(ort_window))
+    )
+    session = None  # frees the window graph's session before the step graphs load
+
+    step_flops = count_step_flops(model, cfg)
+    window_flops = count_flops(model, window, window_poses)
+    choices = supported_choices()
+    runners = {f"{r}/{p}": open_runner(forms["step"], r, p, threads) for r, p in choices}
+    states = {}
+    for key, runner in runners.items():  # past the warm-up: every timed step is a steady-state frame
+        state = runner.new_state()
+        for i in range(frames_per_window):
+            _, state = runner.step(state, inputs[i], poses[i])
+        states[key] = state
+
+    def stepper(key: str) -> Callable[[int], None]:
+        runner = runners[key]
+
+        def one_step(i: int) -> None:
+            j = frames_per_window + i % (len(inputs) - frames_per_window)
+            _, states[key] = runner.step(states[key], inputs[j], poses[j])
+
+        return one_step
+
+    samples = time_interleaved({key: stepper(key) for key in runners}, repeats)
+    reference = float(np.median(samples["onnxruntime/fp32"]))
+    achieved = {}
+    for key, seconds in samples.items():
+        precision = key.split("/")[1]
+        median = float(np.median(seconds))
+        tflops = step_flops / median / 1e12
+        achieved[key] = round(tflops, 3)
+        note = f"{reference / median:.2f}x the ORT fp32 step; {tflops:.3f} TFLOP/s"
+        if precision in peaks:
+            note += f" = {100 * tflops * 1e3 / peaks[precision]:.0f}% of the {precision} matmul peak"
+        if key == "onnxruntime/fp32":
+            note += f"; {float(np.median(ort_window)) / median:.2f}x faster than the ORT window"
+        report.rows.append(Row(name, f"streaming step, {key}", *percentiles(seconds), 1.0 / median, note))
+
+    concurrency = {}
+    for key in runners:
+        runtime, precision = key.split("/")
+        for runs in sorted({1, threads}):
+            runner = open_runner(forms["step"], runtime, precision, threads, concurrent_runs=runs)
+            stream_fps(runner, inputs, poses, 1, frames_per_window)  # warm both compilations up
+            stream_fps(runner, inputs, poses, 2, frames_per_window)
+            one = stream_fps(runner, inputs, poses, 1, concurrency_frames)
+            eight = stream_fps(runner, inputs, poses, 8, concurrency_frames)
+            concurrency[f"{key}, {runs} concurrent run(s)"] = {
+                "1_stream_fps": round(one, 1),
+                "8_streams_fps": round(eight, 1),
+                "ratio": round(eight / one, 2),
+            }
+            report.rows.append(
+                Row(
+                    name,
+                    f"8 streams through one runner, {key}, {threads} threads, {runs} concurrent run(s)",
+                    1e3 * 8 / eight,
+                    None,
+                    eight,
+                    f"{eight / one:.2f}x one stream's {one:.1f} frames/s (p50 column: mean ms per frame of a stream)",
+                )
+            )
+
+    gates = {}
+    if gate is not None:
+        from export.gate import gate_model
+
+        sample = os.environ.get("RAFD_RADIATE_SAMPLE")
+        radiate = sample if sample and Path(sample, "Navtech_Cartesian").is_dir() else None
+        for runtime, precision in choices:
+            if precision == "fp32":
+                continue
+            result = gate_model(
+                forms["step"], (runtime, precision), sequences=gate[0], frames=gate[1], radiate=radiate, threads=threads
+            )
+            for line in result.lines():
+                log.info("%s", line)
+            gates[f"{runtime}/{precision}"] = {
+                "verdict": "PASS" if result.ok else "FAIL",
+                "failed": [f"{s}: {c}" for s, c, _, _, ok in result.checks() if not ok],
+                "figures": result.figures(),
+            }
+    report.facts[name] = {
+        "input_size": size,
+        "num_frames": frames_per_window,
+        "config_options": {"flow.stride": cfg.flow.stride, "enhance_window_cells": cfg.enhance_window},
+        "parameters": int(sum(p.numel() for p in model.parameters())),
+        "onnx_step_mb": round(forms["step"].stat().st_size / 1e6, 2),
+        "gflop_per_step": round(step_flops / 1e9, 3),
+        "gflop_per_window": round(window_flops / 1e9, 3),
+        "achieved_tflops_streaming": achieved,
+        "stream_state_bytes": int(states["onnxruntime/fp32"].nbytes),
+        "concurrency": concurrency,
+        "gate": gates,
+    }
+    return {"step_onnx": forms["step"], "cfg": cfg}
+
+
+def bench_http(
+    name: str,
+    model: Path,
+    size: int,
+    threads: int,
+    frames: int,
+    concurrency: Sequence[int],
+    runtime: str,
+    precision: str,
+    full_scans: bool,
+    report: Report,
+) -> None:
+    import httpx
+
+    images, poses = simulated_frames(max(FULL_SCAN, size) if full_scans else size, 16, seed=11)
+    inputs = {"model-size": [encode_png(model_crop(image, size)) for image in images]}
+    if full_scans:
+        inputs[f"full {FULL_SCAN} px scans"] = [encode_png(image) for image in images]
+    server = start_server(
+        model,
+        threads,
+        env={
+            "RAFD_MAX_STREAMS": "1000",
+            "RAFD_RUNTIME": runtime,
+            "RAFD_PRECISION": precision,
+            "RAFD_SCORE_THRESHOLD": "0.3",
+        },
+    )
+    url = server.url
+    try:
+        served = httpx.get(f"{url}/model", timeout=10.0).json()["runtime"]
+        label = f"{served['runtime']}/{served['precision']}"
+        for kind, bodies in inputs.items():
+            for streams in concurrency if kind == "model-size" else [1]:
+                result = load_streams(url, bodies, poses, streams, frames, f"{label}-{kind}")
+                p50, p95 = percentiles(result["latencies"])
+                timing = {
+                    k: statistics.median(a["timing"][k] for a in result["answers"])
+                    for k in ("read_ms", "decode_ms", "model_ms", "post_ms", "total_ms", "wait_ms")
+                }
+                models = {(a["model"]["runtime"], a["model"]["precision"]) for a in result["answers"]}
+                on_top = p50 - timing["model_ms"] - timing["decode_ms"]
+                note = (
+                    f"{kind}; median body read {timing['read_ms']:.1f} ms, PNG decode "
+                    f"{timing['decode_ms']:.1f} ms, model {timing['model_ms']:.1f} ms, post "
+                    f"{timing['post_ms']:.1f} ms; HTTP, decoding and JSON on top of model and PNG decode "
+                    f"{on_top:.1f} ms (client p50)"
+                )
+                if models != {(served["runtime"], served["precision"])}:
+                    raise RuntimeError(f"answers report runtimes {models}, /model says {label}")
+                report.rows.append(
+                    Row(name, f"HTTP /detect, {label}, {streams} stream(s)", p50, p95, result["fps"], note)
+                )
+        before = rss_bytes(server.pid)
+        bodies = inputs["model-size"]
+        with httpx.Client(base_url=url, timeout=120.0) as http:
+            for index in range(100):  # 100 streams, each with a full buffer
+                for k in range(4):
+                    body = {
+                        "stream_id": f"mem-{index}",
+                        "timestamp": float(k),
+                        "pose": {"x": float(poses[k, 0]), "y": float(poses[k, 1]), "yaw": float(poses[k, 2])},
+                        "image": bodies[k],
+                    }
+                    if http.post("/detect", json=body, params={"flow": "false"}).status_code != 200:
+                        raise RuntimeError("memory fill request failed")
+        after = rss_bytes(server.pid)
+        memory = report.facts[name].setdefault("rss_mb", {})
+        memory[label] = {
+            "before_100_streams": round(before / 1e6, 1),
+            "with_100_streams": round(after / 1e6, 1),
+            "per_stream_kb": round((after - before) / 100 / 1e3, 1),
+        }
+    finally:
+        server.stop()
+
+
+# ----------------------------------------------------------------------------- table
+def format_report(report: Report, machine: str) -> str:
+    lines = [
+        f"machine: {machine}",
+        "",
+        "| config | path | p50 ms | p95 ms | frames/s | note |",
+        "|---|---|---|---|---|---|",
+    ]
+    for row in report.rows:
+        p95 = "-" if row.p95_ms is None else f"{row.p95_ms:.1f}"
+        lines.append(f"| {row.config} | {row.path} | {row.p50_ms:.1f} | {p95} | {row.fps:.1f} | {row.note} |")
+    lines.append("")
+    for name, facts in report.facts.items():
+        lines.append(f"{name}: " + json.dumps(facts, sort_keys=False))
+    return "\n".join(lines)
+
+
+def config_checkpoint(work: Path, name: str) -> Path:
+    """The paper config (optionally with the speed options) with random weights (speed does not depend on them)."""
+    import dataclasses
+
+    import torch
+
+    from rafd import RaFDConfig, build_model, save_checkpoint
+
+    torch.manual_seed(0)
+    cfg = RaFDConfig.paper()
+    if name == "paper-options":
+        cfg = cfg.replace(
+            flow=dataclasses.replace(cfg.flow, stride=8), enhance=dataclasses.replace(cfg.enhance, window=16)
+        )
+    path = work / f"{name}_random.pt"
+    save_checkpoint(path, build_model(cfg).eval(), cfg, meta={"note": "random weights for timing"})
+    return path

@@ -1,0 +1,123 @@
+"""Full-scan evaluation: the PyTorch model streamed over whole scans in tiles (rafd.eval.tiled), merged at tile borders.
+
+The dataset is opened at the scan's own size (no crop, so every annotated vehicle counts, not only those inside the
+protocol's 256 px crop). Each sequence is walked frame by frame like a stream: a frame's tiles are encoded once,
+each tile's newest pair flow is computed once (model.encode_frame / pair_flow, the decomposition the exported step
+graph uses), the last T of them are kept per tile, and every window of the dataset is detected from those caches
+(model.detect) -- the same result as running each tile's window, T times cheaper.
+"""
+
+from __future__ import annotations
+
+import math
+from collections import deque
+from typing import Any
+
+import numpy as np
+import torch
+from torch import nn
+from tqdm import tqdm
+
+from rafd.config import RaFDConfig
+from rafd.data.dataset import _protocol
+from rafd.eval.predict import FrameResult
+from rafd.eval.tiled import TileGrid, merge_tiles, tile_poses
+from rafd.model import relative_pose_torch
+from rafd.preprocess import to_model_input
+from rafd.train.precision import autocast
+
+
+def scan_config(cfg: RaFDConfig, scan_size: int) -> RaFDConfig:
+    """What the dataset needs to hand out whole scans: the model's config at the scan's size (the dataset reads only
+    the input size, frames and resolution; no model is built from it)."""
+    return cfg.replace(input_size=scan_size)
+
+
+def scan_size_of(root, split) -> int:
+    """Side in pixels of the scans of the first sequence of `split` under `root` (all must share it)."""
+    from rafd.data.dataset import select_sequences
+    from rafd.data.reader import list_frames
+
+    folders, seen = select_sequences(root, split)
+    if not folders:
+        raise ValueError(f"no sequence of split {split!r} under {root} (splits: {seen})")
+    return list_frames(folders[0]).image_size
+
+
+@torch.no_grad()
+def predict_full_scan(
+    model: nn.Module,
+    dataset: Any,
+    cfg: RaFDConfig,
+    device: torch.device | str = "cpu",
+    grid: TileGrid | None = None,
+    precision: str = "fp32",
+    tiles_per_batch: int = 32,
+    progress: bool = True,
+) -> list[FrameResult]:
+    """Every window of a whole-scan RadarWindowDataset (opened with scan_config) -> FrameResults with the merged
+    detections of the whole newest scan (ego frame, all K of every tile kept: AP wants the tail)."""
+    device = torch.device(device)
+    model.eval()
+    frames_per_window = cfg.num_frames
+    wanted = {(s, start + frames_per_window - 1) for s, start in dataset.windows}  # (sequence, newest position)
+    results = []
+
+    def batched(function, *tensors: torch.Tensor) -> torch.Tensor:
+        outputs = []
+        for start in range(0, len(tensors[0]), tiles_per_batch):
+            with autocast(device, precision):
+                outputs.append(function(*(t[start : start + tiles_per_batch] for t in tensors)))
+        return torch.cat(outputs)
+
+    bar = tqdm(total=len(wanted), desc="full scans", disable=not progress, dynamic_ncols=True)
+    for s, meta in enumerate(dataset.sequences):
+        features: deque = deque(maxlen=frames_per_window)  # per frame: [n, C, Hf, Wf]
+        flows: deque = deque(maxlen=max(frames_per_window - 1, 1))  # per pair: [n, 2, Hf, Wf]
+        poses: deque = deque(maxlen=frames_per_window)  # per frame: [n, 3] tile world poses
+        previous_number = None
+        for k, number in enumerate(meta.numbers):
+            if previous_number is not None and number != previous_number + 1:  # a gap: the stream starts again
+                features.clear(), flows.clear(), poses.clear()
+            previous_number = number
+            scan = dataset._scan(s, k)
+            tiles = grid or TileGrid.for_model(cfg.input_size, scan_size=scan.shape[0], resolution=cfg.resolution)
+            crops = torch.from_numpy(to_model_input(tiles.crops(scan)))[:, None].to(device)  # [n, 1, S, S]
+            pose = torch.from_numpy(tile_poses(meta.poses[k], tiles.offsets_m).astype(np.float64))  # [n, 3]
+            encoded = batched(model.encode_frame, crops).float()
+            if features and frames_per_window > 1:
+                relative = relative_pose_torch(poses[-1], pose).float().to(device)  # [n, 3]
+                flows.append(batched(model.pair_flow, features[-1], encoded, relative).float())
+            features.append(encoded)
+            poses.append(pose)
+            if (s, k) not in wanted or len(features) < frames_per_window:
+                continue
+            window_poses = torch.stack(list(poses), 1).float().to(device)  # [n, T, 3]
+            stacked = torch.stack(list(features), 1)  # [n, T, C, Hf, Wf]
+            pair_flows = torch.stack(list(flows), 1) if frames_per_window > 1 else None  # [n, T-1, 2, Hf, Wf]
+            boxes, scores = [], []
+            for start in range(0, len(stacked), tiles_per_batch):
+                part = slice(start, start + tiles_per_batch)
+                with autocast(device, precision):
+                    out = model.detect(
+                        stacked[part], None if pair_flows is None else pair_flows[part], window_poses[part]
+                    )
+                boxes.append(out["boxes"].float().cpu().numpy())
+                scores.append(out["scores"].float().cpu().numpy())
+            found = merge_tiles(tiles, np.concatenate(boxes), np.concatenate(scores))
+            truth, _, _ = _protocol(meta.boxes[k], meta.ids[k], meta.classes[k], scan.shape[0], cfg.resolution)
+            results.append(
+                FrameResult(
+                    sequence=meta.name,
+                    frame=int(number),
+                    predictions=found.as_array(),
+                    ground_truth=truth,
+                    epe_all=math.nan,
+                    epe_foreground=math.nan,
+                    cells_all=0,
+                    cells_foreground=0,
+                )
+            )
+            bar.update(1)
+    bar.close()
+    return results

@@ -1,0 +1,50 @@
+"""What evaluation and serving must agree on, defined once (numpy-free, torch-free: the service imports it).
+
+- Which detections are answered: scores at or above the operating threshold. A model carries its own, calibrated on
+  validation data (`rafd-eval --calibrate` writes it into the checkpoint's meta, `rafd-export` into the ONNX
+  metadata as text); a model without one is read at DEFAULT_SCORE_THRESHOLD. `operating_threshold` is the one
+  lookup, range-checked, used by `rafd-eval`, the plots, the MCAP logs and the service.
+- How detections are scored: oriented-box IoU thresholds of the benchmark protocol (TempoRadar, SIRA, RaFD) and the
+  centre-matching distance.
+- When a stream's answer is "warming up": fewer real frames than the model's window (the window is padded by
+  repeating the oldest frame; rafd.runtime.streaming.window_from_history).
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Mapping
+from typing import Any
+
+DEFAULT_SCORE_THRESHOLD = 0.3  # a model exported or saved without an operating threshold
+IOU_THRESHOLDS = (0.3, 0.5, 0.7)  # mAP@0.3 / 0.5 / 0.7 on oriented boxes (polygon IoU, match when IoU > t)
+CENTRE_DISTANCE_M = 2.0  # centre matching: a detection counts when its centre is within this of an unmatched vehicle's
+OPERATING_THRESHOLD_KEY = "operating_threshold"  # checkpoint meta and ONNX metadata key
+
+
+def check_score_threshold(value: Any, source: str) -> float:
+    """A score threshold as a float in [0, 1]; ValueError naming `source` when it is not a number or out of range."""
+    try:
+        threshold = float(value)
+    except (TypeError, ValueError) as error:
+        raise ValueError(f"{source} is not a number: {value!r}") from error
+    if not (math.isfinite(threshold) and 0.0 <= threshold <= 1.0):
+        raise ValueError(f"{source} is outside [0, 1]: {threshold}")
+    return threshold
+
+
+def operating_threshold(meta: Mapping[str, Any] | None, override: float | None = None) -> float:
+    """The score threshold to answer at: `override` when given (a user's choice), else the model's documented
+    operating threshold in `meta` (a checkpoint's meta dict or an ONNX model's metadata), else
+    DEFAULT_SCORE_THRESHOLD. ValueError when either is not a number in [0, 1]."""
+    if override is not None:
+        return check_score_threshold(override, "the score threshold")
+    value = (meta or {}).get(OPERATING_THRESHOLD_KEY)
+    if value is None:
+        return DEFAULT_SCORE_THRESHOLD
+    return check_score_threshold(value, f"the model's {OPERATING_THRESHOLD_KEY}")
+
+
+def warming_up(frames_used: int, num_frames: int) -> bool:
+    """Whether a stream's window still holds fewer real frames than the model reads (its old end is padded)."""
+    return frames_used < num_frames

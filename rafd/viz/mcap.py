@@ -1,0 +1,294 @@
+"""Foxglove / MCAP logs of a radar detection run: written with foxglove-sdk in Foxglove's standard schemas.
+
+Topics (every message stamped with the scan's own time, so the file replays at the sensor's rate):
+
+    /radar/scan                 foxglove.CompressedImage   the scan as PNG (Image panel)
+    /radar/scan/grid            foxglove.Grid              the model's crop as a uint8 `intensity` grid in frame
+                                                           `radar`, so the 3D panel shows returns under the boxes
+    /tf                         foxglove.FrameTransform    ego pose: `world` -> `radar` (x right, y forward, z up)
+    /radar/detections           foxglove.SceneUpdate       one cube per box (centre, size, yaw), score as text
+    /radar/detections/image     foxglove.ImageAnnotations  box outlines and scores on /radar/scan
+    /radar/flow                 foxglove.SceneUpdate       one arrow per moving flow cell (true length, metres)
+    /radar/ground_truth         foxglove.SceneUpdate       ground-truth cubes (only when labels exist)
+    /radar/ground_truth/image   foxglove.ImageAnnotations  ground-truth outlines on /radar/scan
+
+Each SceneUpdate first deletes everything older on its topic, so a frame shows exactly its own boxes.
+Needs the `logs` extra (foxglove-sdk; reading back: mcap + mcap-protobuf-support): import this module only
+when a log is asked for.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from pathlib import Path
+
+import foxglove
+import numpy as np
+from foxglove import channels
+from foxglove.messages import (
+    ArrowPrimitive,
+    Color,
+    CompressedImage,
+    CubePrimitive,
+    FrameTransform,
+    Grid,
+    ImageAnnotations,
+    KeyValuePair,
+    PackedElementField,
+    PackedElementFieldNumericType,
+    Point2,
+    PointsAnnotation,
+    PointsAnnotationType,
+    Pose,
+    Quaternion,
+    SceneEntity,
+    SceneEntityDeletion,
+    SceneEntityDeletionType,
+    SceneUpdate,
+    TextAnnotation,
+    TextPrimitive,
+    Timestamp,
+    Vector2,
+    Vector3,
+)
+
+FRAME_WORLD = "world"
+FRAME_RADAR = "radar"
+FRAME_IMAGE = "radar_image"
+BOX_HEIGHT_M = 1.6  # radar boxes are 2-D: drawn as 1.6 m tall cubes standing on the ground
+TOPICS = {
+    "scan": "/radar/scan",
+    "grid": "/radar/scan/grid",
+    "tf": "/tf",
+    "detections": "/radar/detections",
+    "detections_image": "/radar/detections/image",
+    "flow": "/radar/flow",
+    "truth": "/radar/ground_truth",
+    "truth_image": "/radar/ground_truth/image",
+}
+_PRED_RGBA = (1.0, 0.15, 0.1, 0.55)
+_TRUTH_RGBA = (0.1, 0.9, 0.2, 0.35)
+_FLOW_RGBA = (1.0, 0.9, 0.1, 1.0)
+
+
+@dataclass(frozen=True, eq=False)
+class LoggedFrame:
+    """One radar frame with what the model said about it; metres in the frame's ego frame (x right, y forward)."""
+
+    timestamp_ns: int  # the scan's time, UNIX nanoseconds
+    scan_png: bytes  # the scan as PNG (what was posted / what the model's crop was cut from)
+    scan_size: int  # pixels per side of that scan, radar at (S/2, S/2)
+    resolution: float  # metres per pixel
+    crop: tuple[int, int]  # (offset px, side px) of the model's crop in the scan
+    crop_pixels: np.ndarray  # uint8 [side, side]: the crop itself (for the 3D grid)
+    pose: np.ndarray  # [3] world pose of the radar (x, y, yaw)
+    boxes: np.ndarray  # [N, 5] (x, y, width, length, yaw)
+    scores: np.ndarray  # [N]
+    classes: list[str]  # [N]
+    polygons: np.ndarray  # [N, 4, 2] corner pixels (u, v) in the scan
+    flow_heads: np.ndarray | None = None  # [P, 2] metres: cell centres now
+    flow_motions: np.ndarray | None = None  # [P, 2] metres moved since the previous frame
+    truth_boxes: np.ndarray | None = None  # [M, 5]; None = no labels
+    truth_polygons: np.ndarray | None = None  # [M, 4, 2] scan pixels
+
+
+def _timestamp(nanoseconds: int) -> Timestamp:
+    return Timestamp(sec=int(nanoseconds) // 1_000_000_000, nsec=int(nanoseconds) % 1_000_000_000)
+
+
+def _yaw_quaternion(yaw: float) -> Quaternion:
+    return Quaternion(x=0.0, y=0.0, z=math.sin(yaw / 2.0), w=math.cos(yaw / 2.0))
+
+
+def _colour(rgba: tuple[float, float, float, float]) -> Color:
+    return Color(r=rgba[0], g=rgba[1], b=rgba[2], a=rgba[3])
+
+
+class RadarMcapLog:
+    """An MCAP file of one radar stream. Use as a context manager; write(frame) per frame in time order."""
+
+    def __init__(self, path: str | Path, allow_overwrite: bool = True) -> None:
+        self.path = Path(path)
+        if not self.path.parent.is_dir():
+            raise FileNotFoundError(f"folder of the MCAP file {self.path} does not exist")
+        self._context = foxglove.Context()  # our own: channels of other logs in this process stay apart
+        self._writer = foxglove.open_mcap(self.path, allow_overwrite=allow_overwrite, context=self._context)
+        ctx = self._context
+        self._scan = channels.CompressedImageChannel(TOPICS["scan"], context=ctx)
+        self._grid = channels.GridChannel(TOPICS["grid"], context=ctx)
+        self._tf = channels.FrameTransformChannel(TOPICS["tf"], context=ctx)
+        self._detections = channels.SceneUpdateChannel(TOPICS["detections"], context=ctx)
+        self._detections_image = channels.ImageAnnotationsChannel(TOPICS["detections_image"], context=ctx)
+        self._flow = channels.SceneUpdateChannel(TOPICS["flow"], context=ctx)
+        self._truth = self._truth_image = None  # created on the first labelled frame
+        self.frames = 0
+
+    def __enter__(self) -> RadarMcapLog:
+        return self
+
+    def __exit__(self, *exc_info) -> None:
+        self.close()
+
+    def close(self) -> None:
+        if self._writer is not None:
+            self._writer.close()
+            self._writer = None
+
+    def write_metadata(self, name: str, values: dict[str, object]) -> None:
+        """A Metadata record (e.g. the run: sequence, stream, model), values as text."""
+        if self._writer is None:
+            raise RuntimeError(f"{self.path} is closed")
+        self._writer.write_metadata(name, {str(k): str(v) for k, v in values.items()})
+
+    def write(self, frame: LoggedFrame) -> None:
+        """Log one frame on every topic (flow only when given, ground truth only when labelled)."""
+        if self._writer is None:
+            raise RuntimeError(f"{self.path} is closed")
+        time_ns = int(frame.timestamp_ns)
+        stamp = _timestamp(time_ns)
+        self._scan.log(
+            CompressedImage(timestamp=stamp, frame_id=FRAME_IMAGE, data=frame.scan_png, format="png"), log_time=time_ns
+        )
+        self._grid.log(_grid(frame, stamp), log_time=time_ns)
+        self._tf.log(_transform(frame.pose, stamp), log_time=time_ns)
+        labels = [f"{c} {s:.2f}" for c, s in zip(frame.classes, np.asarray(frame.scores, np.float64))]
+        self._detections.log(_cubes(frame.boxes, labels, "pred", _PRED_RGBA, stamp), log_time=time_ns)
+        self._detections_image.log(_outlines(frame.polygons, labels, _PRED_RGBA, stamp), log_time=time_ns)
+        if frame.flow_heads is not None and frame.flow_motions is not None:
+            self._flow.log(_arrows(frame.flow_heads, frame.flow_motions, stamp), log_time=time_ns)
+        if frame.truth_boxes is not None:
+            if self._truth is None:
+                self._truth = channels.SceneUpdateChannel(TOPICS["truth"], context=self._context)
+                self._truth_image = channels.ImageAnnotationsChannel(TOPICS["truth_image"], context=self._context)
+            truth_polygons = frame.truth_polygons if frame.truth_polygons is not None else np.zeros((0, 4, 2))
+            names = ["truth"] * len(frame.truth_boxes)
+            self._truth.log(_cubes(frame.truth_boxes, names, "truth", _TRUTH_RGBA, stamp), log_time=time_ns)
+            self._truth_image.log(
+                _outlines(truth_polygons, [""] * len(truth_polygons), _TRUTH_RGBA, stamp), log_time=time_ns
+            )
+        self.frames += 1
+
+
+def _transform(pose: np.ndarray, stamp: Timestamp) -> FrameTransform:
+    return FrameTransform(
+        timestamp=stamp,
+        parent_frame_id=FRAME_WORLD,
+        child_frame_id=FRAME_RADAR,
+        translation=Vector3(x=float(pose[0]), y=float(pose[1]), z=0.0),
+        rotation=_yaw_quaternion(float(pose[2])),
+    )
+
+
+def _grid(frame: LoggedFrame, stamp: Timestamp) -> Grid:
+    """The crop as a Grid in the radar frame: row 0 = the crop's bottom row (smallest y), 1 byte per cell."""
+    offset, side = frame.crop
+    half = frame.scan_size / 2.0
+    corner = Vector3(x=(offset - half) * frame.resolution, y=(half - offset - side) * frame.resolution, z=0.0)
+    cells = np.ascontiguousarray(np.asarray(frame.crop_pixels, np.uint8)[::-1])  # [side, side], y up
+    return Grid(
+        timestamp=stamp,
+        frame_id=FRAME_RADAR,
+        pose=Pose(position=corner, orientation=_yaw_quaternion(0.0)),
+        column_count=side,
+        cell_size=Vector2(x=frame.resolution, y=frame.resolution),
+        row_stride=side,
+        cell_stride=1,
+        fields=[PackedElementField(name="intensity", offset=0, type=PackedElementFieldNumericType.Uint8)],
+        data=cells.tobytes(),
+    )
+
+
+def _cubes(boxes: np.ndarray, labels: list[str], prefix: str, rgba: tuple, stamp: Timestamp) -> SceneUpdate:
+    """[N, 5] boxes -> SceneUpdate: delete the older entities, then one cube (+ its label) per box."""
+    entities = []
+    for k, (box, label) in enumerate(zip(np.asarray(boxes, np.float64).reshape(-1, 5), labels)):
+        x, y, width, length, yaw = (float(v) for v in box)
+        centre = Pose(position=Vector3(x=x, y=y, z=BOX_HEIGHT_M / 2), orientation=_yaw_quaternion(yaw))
+        cube = CubePrimitive(pose=centre, size=Vector3(x=width, y=length, z=BOX_HEIGHT_M), color=_colour(rgba))
+        above = Pose(position=Vector3(x=x, y=y, z=BOX_HEIGHT_M + 0.5), orientation=_yaw_quaternion(0.0))
+        texts = (
+            [
+                TextPrimitive(
+                    pose=above,
+                    billboard=True,
+                    font_size=14.0,
+                    scale_invariant=True,
+                    color=_colour((*rgba[:3], 1.0)),
+                    text=label,
+                )
+            ]
+            if label
+            else []
+        )
+        entities.append(
+            SceneEntity(
+                timestamp=stamp,
+                frame_id=FRAME_RADAR,
+                id=f"{prefix}-{k}",
+                frame_locked=True,
+                cubes=[cube],
+                texts=texts,
+                metadata=[KeyValuePair(key="label", value=label)],
+            )
+        )
+    return SceneUpdate(
+        deletions=[SceneEntityDeletion(timestamp=stamp, type=SceneEntityDeletionType.All, id="")], entities=entities
+    )
+
+
+def _outlines(polygons: np.ndarray, labels: list[str], rgba: tuple, stamp: Timestamp) -> ImageAnnotations:
+    """[N, 4, 2] scan pixels -> ImageAnnotations: a closed outline per box, its label above the top corner."""
+    points, texts = [], []
+    for polygon, label in zip(np.asarray(polygons, np.float64).reshape(-1, 4, 2), labels):
+        points.append(
+            PointsAnnotation(
+                timestamp=stamp,
+                type=PointsAnnotationType.LineLoop,
+                points=[Point2(x=float(u), y=float(v)) for u, v in polygon],
+                outline_color=_colour((*rgba[:3], 1.0)),
+                thickness=1.5,
+            )
+        )
+        if label:
+            top = polygon[np.argmin(polygon[:, 1])]
+            texts.append(
+                TextAnnotation(
+                    timestamp=stamp,
+                    position=Point2(x=float(top[0]), y=float(top[1]) - 3.0),
+                    text=label,
+                    font_size=12.0,
+                    text_color=_colour((*rgba[:3], 1.0)),
+                    background_color=_colour((0.0, 0.0, 0.0, 0.6)),
+                )
+            )
+    return ImageAnnotations(points=points, texts=texts)
+
+
+def _arrows(heads: np.ndarray, motions: np.ndarray, stamp: Timestamp) -> SceneUpdate:
+    """Flow -> one entity of arrows from where each cell's content was to where it is (true length)."""
+    arrows = []
+    heads, motions = np.asarray(heads, np.float64).reshape(-1, 2), np.asarray(motions, np.float64).reshape(-1, 2)
+    for head, motion in zip(heads, motions):
+        length = float(np.hypot(*motion))
+        if length <= 0:
+            continue
+        tail = head - motion
+        head_length = min(0.3 * length, 0.4)
+        arrows.append(
+            ArrowPrimitive(
+                pose=Pose(
+                    position=Vector3(x=float(tail[0]), y=float(tail[1]), z=0.1),
+                    orientation=_yaw_quaternion(math.atan2(motion[1], motion[0])),
+                ),
+                shaft_length=length - head_length,
+                shaft_diameter=0.08,
+                head_length=head_length,
+                head_diameter=0.25,
+                color=_colour(_FLOW_RGBA),
+            )
+        )
+    entity = SceneEntity(timestamp=stamp, frame_id=FRAME_RADAR, id="flow", frame_locked=True, arrows=arrows)
+    return SceneUpdate(
+        deletions=[SceneEntityDeletion(timestamp=stamp, type=SceneEntityDeletionType.All, id="")], entities=[entity]
+    )

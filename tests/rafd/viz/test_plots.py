@@ -1,0 +1,147 @@
+"""rafd.viz.plots / rafd.viz.answer: labels never overlap, legends with the flow scale, the answer's zoomed picture."""
+
+from __future__ import annotations
+
+import base64
+import itertools
+
+import numpy as np
+import pytest
+
+from rafd.viz.answer import AnswerView, decode_flow, draw_answer, flow_arrows
+from rafd.viz.plots import FLOW_COLOUR, PRED_COLOUR, draw_detections, draw_scores, place_labels
+
+RES = 0.173611
+
+
+def dominant(picture: np.ndarray, colour: tuple[int, int, int]) -> np.ndarray:
+    """[H, W] mask of pixels close to a BGR colour (antialiased strokes blend at their edges)."""
+    return (np.abs(picture.astype(int) - np.array(colour)) < 90).all(-1) & (picture.max(-1) > 120)
+
+
+def overlaps(a, b) -> bool:
+    return a[0] < b[0] + b[2] and b[0] < a[0] + a[2] and a[1] < b[1] + b[3] and b[1] < a[1] + a[3]
+
+
+def test_placed_labels_never_overlap_each_other_or_what_to_avoid():
+    rng = np.random.default_rng(0)
+    anchors = [(int(x), int(y), 12, 20) for x, y in rng.uniform(60, 120, (30, 2))]  # a crowded cluster
+    avoid = [(0, 0, 60, 30)]
+    rects = place_labels(anchors, [(28, 12)] * 30, (200, 200), avoid)
+    placed = [r for r in rects if r is not None]
+    assert len(placed) >= 20
+    for a, b in itertools.combinations(placed + avoid, 2):
+        assert not overlaps(a, b), (a, b)
+    assert all(0 <= r[0] and 0 <= r[1] and r[0] + r[2] <= 200 and r[1] + r[3] <= 200 for r in placed)
+    assert rects[0][1] + rects[0][3] <= anchors[0][1]  # the first (best) label sits right above its box
+
+
+def test_score_labels_of_stacked_boxes_are_all_readable():
+    canvas = np.zeros((300, 300, 3), np.uint8)
+    polygons = np.array([[[100 + k, 100], [130 + k, 100], [130 + k, 160], [100 + k, 160]] for k in range(6)], float)
+    rects = draw_scores(canvas, polygons, np.linspace(0.9, 0.4, 6), PRED_COLOUR)
+    assert all(r is not None for r in rects)
+    for a, b in itertools.combinations(rects, 2):
+        assert not overlaps(a, b)
+    assert dominant(canvas, PRED_COLOUR).sum() > 50  # the text is drawn
+
+
+def test_evaluation_picture_has_a_legend_strip_and_flow_arrows():
+    image = np.full((64, 64), 40, np.uint8)
+    flow = np.zeros((2, 16, 16))
+    flow[0, 8, 8] = 1.0  # one cell moved 1 m to the right
+    canvas = draw_detections(
+        image,
+        np.array([[0.0, 2.0, 2.0, 4.0, 0.0]]),
+        np.array([[0.5, 2.0, 2.0, 4.0, 0.1]]),
+        np.array([0.8]),
+        RES,
+        flow=flow,
+        upscale=4,
+    )
+    assert canvas.shape[1] == 256 and canvas.shape[0] > 256  # the legend lies below the scan, not over it
+    strip = canvas[256:]
+    assert dominant(strip, FLOW_COLOUR).sum() > 20 and dominant(strip, PRED_COLOUR).sum() > 20
+    assert dominant(canvas[:256], FLOW_COLOUR).sum() > 20
+
+
+def answer_for(posted: int, model: int, flow_format: str = "list") -> dict:
+    """A /detect answer with one box 3 m ahead and one flow cell moving 1 m right (grid stride 4)."""
+    offset = (posted - model) // 2
+    cells = model // 4
+    values = np.zeros((2, cells, cells))
+    values[0, cells // 2, cells // 2] = 1.0
+    encoded = (
+        values.tolist() if flow_format == "list" else base64.b64encode(values.astype("<f2").tobytes()).decode("ascii")
+    )
+    centre = posted / 2.0
+    polygon = [
+        [centre - 6, centre - 23],
+        [centre + 6, centre - 23],
+        [centre + 6, centre - 11],
+        [centre - 6, centre - 11],
+    ]
+    return {
+        "timestamp": 12.5,
+        "frames_used": 2,
+        "num_frames": 4,
+        "warming_up": True,
+        "pose_source": "request",
+        "boxes": [
+            {
+                "x": 0.0,
+                "y": 3.0,
+                "width": 2.0,
+                "length": 2.0,
+                "yaw": 0.0,
+                "score": 0.77,
+                "class": "vehicle",
+                "polygon": polygon,
+            }
+        ],
+        "flow": {
+            "shape": [2, cells, cells],
+            "encoding": "list" if flow_format == "list" else "base64-float16",
+            "values": encoded,
+            "grid": {
+                "height": cells,
+                "width": cells,
+                "cell_size_m": 4 * RES,
+                "stride_px": 4,
+                "origin_px": [offset, offset],
+            },
+        },
+        "input": {"posted_size": posted, "model_size": model, "crop_offset_px": offset},
+        "timing": {"model_ms": 12.0},
+    }
+
+
+@pytest.mark.parametrize("posted, model, zoom", [(1152, 128, 6), (1152, 256, 3), (128, 128, 6), (1152, 1152, 1)])
+def test_the_model_crop_is_zoomed_and_the_side_panel_sits_beside_it(posted, model, zoom):
+    scan = np.full((posted, posted), 30, np.uint8)
+    picture = draw_answer(scan, answer_for(posted, model), truth_polygons=np.zeros((0, 4, 2)), resolution=RES)
+    assert picture.shape == (max(model * zoom, picture.shape[0]), model * zoom + AnswerView().panel_px, 3)
+    no_flow = answer_for(posted, model)
+    no_flow["flow"] = None
+    assert draw_answer(scan, no_flow, np.zeros((0, 4, 2)), RES).shape == picture.shape  # one size per sequence
+
+
+def test_flow_arrow_is_drawn_at_its_scale_ending_at_the_cell():
+    answer = answer_for(1152, 128)
+    picture = draw_answer(np.zeros((1152, 1152), np.uint8), answer, None, RES, AnswerView(flow_step=1))
+    view = picture[:768, :768]
+    yellow_columns = np.flatnonzero(dominant(view, FLOW_COLOUR).any(0))
+    # Cell (16, 16) centre: posted u = 512 + 66 = 578 -> view (578 - 512) * 6 = 396; 1 m at zoom 6 = 34.6 px.
+    assert yellow_columns.min() == pytest.approx(396 - 34.6, abs=3) and yellow_columns.max() == pytest.approx(
+        396, abs=2
+    )
+
+
+def test_flow_encodings_decode_alike_and_bad_scans_are_refused():
+    np.testing.assert_allclose(
+        decode_flow(answer_for(1152, 128, "base64")["flow"]), decode_flow(answer_for(1152, 128)["flow"])
+    )
+    heads, motions = flow_arrows(answer_for(1152, 128)["flow"], min_m=0.05)
+    assert heads.tolist() == [[578.0, 578.0]] and motions.tolist() == [[1.0, 0.0]]
+    with pytest.raises(ValueError, match="posted"):
+        draw_answer(np.zeros((256, 256), np.uint8), answer_for(1152, 128), None, RES)
