@@ -26,6 +26,7 @@ import tempfile
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -268,7 +269,7 @@ def run_sequence(
     frames: list[LabelledFrame],
     figures: SourceFigures,
     thresholds: GateThresholds,
-    labelled: dict[str, list],
+    labelled: dict[str, list[Any]],
 ) -> None:
     """Stream one sequence through both runners; compare every full window; collect labelled outputs."""
     from rafd.eval.metrics import end_point_error_terms
@@ -284,7 +285,7 @@ def run_sequence(
             labelled["gt"].append(item.boxes)
             for name, result in (("reference", ref), ("candidate", cand)):
                 labelled[name].append(decode_detections(result.boxes, result.scores, 0.0).as_array())
-                if item.gt_flow is not None and result.flow is not None:
+                if item.gt_flow is not None and item.flow_valid is not None and result.flow is not None:
                     labelled[f"{name}_epe"].append(
                         end_point_error_terms(result.flow[-1], item.gt_flow, item.flow_valid[None])
                     )
@@ -307,7 +308,7 @@ def run_gate(
     )
     for name, sequences in sources.items():
         figures = SourceFigures()
-        labelled: dict[str, list] = {
+        labelled: dict[str, list[Any]] = {  # GT and detection arrays, (sum, count) EPE terms
             "gt": [],
             "reference": [],
             "candidate": [],

@@ -11,6 +11,7 @@ import warnings
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Any
 
 import onnx
 import torch
@@ -103,7 +104,7 @@ def build_metadata(
 
 def _torch_export(
     graph: torch.nn.Module,
-    inputs: tuple,
+    inputs: tuple[torch.Tensor, ...],
     path: Path,
     cfg: RaFDConfig,
     form: str,
@@ -111,7 +112,7 @@ def _torch_export(
     log: Callable[[str], None],
 ) -> str:
     """torch.onnx.export with static shapes: the TorchScript exporter first (robust with grid_sample), then dynamo."""
-    names = dict(
+    names: dict[str, Any] = dict(  # keyword arguments of both exporters
         input_names=list(graph_inputs(form, cfg.num_frames)),
         output_names=list(graph_outputs(form, cfg.num_frames)),
         opset_version=opset,
@@ -125,6 +126,7 @@ def _torch_export(
         log(f"TorchScript exporter failed ({type(error).__name__}: {error}); trying the dynamo exporter")
     try:
         program = torch.onnx.export(graph, inputs, dynamo=True, external_data=False, optimize=True, **names)
+        assert program is not None  # dynamo=True returns the program
         program.save(str(path))
         return "dynamo"
     except Exception as error:  # noqa: BLE001

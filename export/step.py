@@ -11,7 +11,7 @@ import torch
 from torch import Tensor, nn
 
 from rafd.config import RaFDConfig
-from rafd.model import relative_pose_torch
+from rafd.model import RaFD, relative_pose_torch
 from rafd.runtime import FORMS
 
 
@@ -24,7 +24,7 @@ class StepGraph(nn.Module):
     For T = 1 it is the single-frame model: inputs frame, poses [1,1,3]; outputs heatmap, scores, boxes.
     """
 
-    def __init__(self, model: nn.Module, num_frames: int) -> None:
+    def __init__(self, model: RaFD, num_frames: int) -> None:
         super().__init__()
         self.model = model
         self.num_frames = num_frames
@@ -48,7 +48,7 @@ class StepGraph(nn.Module):
 class WindowGraph(nn.Module):
     """model.forward on a full window: frames [1,T,1,S,S], poses [1,T,3] -> heatmap, scores, boxes(, flow)."""
 
-    def __init__(self, model: nn.Module, num_frames: int) -> None:
+    def __init__(self, model: RaFD, num_frames: int) -> None:
         super().__init__()
         self.model = model
         self.num_frames = num_frames
@@ -61,12 +61,12 @@ class WindowGraph(nn.Module):
 
 
 @torch.no_grad()
-def feature_channels(model: nn.Module, cfg: RaFDConfig) -> int:
+def feature_channels(model: RaFD, cfg: RaFDConfig) -> int:
     """C of model.encode_frame (the step graph's cached feature maps)."""
     return int(model.encode_frame(torch.zeros(1, 1, cfg.input_size, cfg.input_size)).shape[1])
 
 
-def build_graph(model: nn.Module, cfg: RaFDConfig, form: str) -> nn.Module:
+def build_graph(model: RaFD, cfg: RaFDConfig, form: str) -> nn.Module:
     if form not in FORMS:
         raise ValueError(f"form must be one of {FORMS}, got {form!r}")
     return (StepGraph if form == "step" else WindowGraph)(model, cfg.num_frames).eval()

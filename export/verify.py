@@ -137,17 +137,28 @@ def compare_detections(
     return box_diff, score_diff
 
 
+def _detections(outputs: dict[str, np.ndarray | None], name: str) -> np.ndarray:
+    """outputs["boxes"] / outputs["scores"], which every form has (only flow is None, for T = 1)."""
+    value = outputs[name]
+    if value is None:
+        raise VerificationError(f"{name}: missing")
+    return value
+
+
 def compare_outputs(
     report: Report, source: str, ort: dict[str, np.ndarray | None], ref: dict[str, np.ndarray | None]
 ) -> None:
     """ort/ref: heatmap [Hf,Wf], boxes [K,5], scores [K], flow [T-1,2,Hf,Wf] or None (batch dimension dropped)."""
     report.cases[source] = report.cases.get(source, 0) + 1
     for name in ("heatmap", "flow"):
-        if ref.get(name) is not None or ort.get(name) is not None:
-            if ref.get(name) is None or ort.get(name) is None:
+        ort_value, ref_value = ort.get(name), ref.get(name)
+        if ref_value is not None or ort_value is not None:
+            if ref_value is None or ort_value is None:
                 raise VerificationError(f"{name}: present in only one of onnxruntime / torch")
-            report.add(source, name, compare_dense(ort[name], ref[name], *TOLERANCES[name]))
-    boxes, scores = compare_detections(ort["boxes"], ort["scores"], ref["boxes"], ref["scores"])
+            report.add(source, name, compare_dense(ort_value, ref_value, *TOLERANCES[name]))
+    boxes, scores = compare_detections(
+        _detections(ort, "boxes"), _detections(ort, "scores"), _detections(ref, "boxes"), _detections(ref, "scores")
+    )
     report.add(source, "boxes", boxes)
     report.add(source, "scores", scores)
 

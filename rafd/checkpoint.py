@@ -10,12 +10,15 @@ import json
 import os
 import tempfile
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import torch
 from torch import nn
 
 from rafd.config import RaFDConfig
+
+if TYPE_CHECKING:  # the model code loads lazily
+    from rafd.model import RaFD
 
 CHECKPOINT_VERSION = "rafd-checkpoint/1"
 _REQUIRED_KEYS = ("state_dict", "config", "version", "meta")
@@ -89,7 +92,7 @@ def read_checkpoint(
 
 def load_checkpoint(
     path: str | os.PathLike[str], map_location: str | torch.device = "cpu"
-) -> tuple[nn.Module, RaFDConfig, dict[str, Any]]:
+) -> tuple[RaFD, RaFDConfig, dict[str, Any]]:
     """-> (model rebuilt from the stored config, in eval mode, cfg, meta dict)."""
     from rafd.model import build_model
 

@@ -12,6 +12,8 @@ Conventions (used everywhere: model outputs, targets, metrics, service):
 
 from __future__ import annotations
 
+from collections.abc import Sequence
+
 import numpy as np
 
 RADIATE_RESOLUTION = 0.173611  # metres per pixel of RADIATE's Cartesian Navtech scans
@@ -129,7 +131,7 @@ def box_polygons_pixels(boxes: np.ndarray, image_size: int, resolution: float = 
     return metres_to_pixels(box_corners(boxes), image_size, resolution)
 
 
-def radiate_polygon(position: np.ndarray, rotation_deg: float) -> np.ndarray:
+def radiate_polygon(position: Sequence[float] | np.ndarray, rotation_deg: float) -> np.ndarray:
     """RADIATE SDK construction: corners of the unrotated [x0, y0, w, h] box rotated about its
     centre by R(deg2rad(-rotation)) in pixel coordinates. Returns [4, 2] (u, v)."""
     x0, y0, w, h = (float(p) for p in position)
@@ -139,7 +141,7 @@ def radiate_polygon(position: np.ndarray, rotation_deg: float) -> np.ndarray:
 
 
 def radiate_to_box(
-    position: np.ndarray,
+    position: Sequence[float] | np.ndarray,
     rotation_deg: float,
     image_size: int = RADIATE_SCAN_SIZE,
     resolution: float = RADIATE_RESOLUTION,

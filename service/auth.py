@@ -132,4 +132,5 @@ class ApiKeyMiddleware:
 
 def caller_of(scope: Scope) -> str | None:
     """The key name the request was authenticated with (None without API keys)."""
-    return scope.get("state", {}).get(CALLER)
+    caller: str | None = scope.get("state", {}).get(CALLER)  # the ASGI scope's values are Any
+    return caller

@@ -10,6 +10,7 @@ import argparse
 import logging
 import sys
 from pathlib import Path
+from typing import Any
 
 from pydantic import ValidationError
 
@@ -38,7 +39,7 @@ def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     from service.settings import Settings
 
-    overrides: dict[str, object] = {}
+    overrides: dict[str, Any] = {}  # Settings field -> value (of that field's type)
     if args.model is not None:
         overrides["model_path"] = args.model
     if args.threads is not None:

@@ -14,7 +14,7 @@ from service.errors import ApiError
 
 
 async def get_service(request: Request) -> DetectService:
-    service = getattr(request.app.state, "service", None)
+    service: DetectService | None = getattr(request.app.state, "service", None)
     if service is None:
         error = getattr(request.app.state, "load_error", None)
         reason = f"model failed to load: {error}" if error else "model is loading or warming up"

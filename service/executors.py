@@ -12,7 +12,7 @@ import asyncio
 import threading
 from collections.abc import Callable
 from concurrent.futures import Future, ThreadPoolExecutor
-from typing import TypeVar
+from typing import Any, TypeVar
 
 from service.errors import ApiError
 
@@ -49,7 +49,7 @@ class BoundedExecutor:
         """Jobs queued behind the running ones."""
         return max(0, self.pending - self.workers)
 
-    def _finished(self, _: Future) -> None:
+    def _finished(self, _: Future[Any]) -> None:
         with self._lock:
             self._pending -= 1
 

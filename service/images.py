@@ -124,7 +124,7 @@ def decode_frame(image: PostedImage, input_size: int, resolution: float) -> Deco
     layout = check_posted_image(image, input_size, resolution)
     if isinstance(image, str):
         try:
-            data = binascii.a2b_base64(strip_data_url(image), strict_mode=True)
+            data = png.a2b_base64_strict(strip_data_url(image))
         except binascii.Error as exc:
             raise ApiError("invalid_image", f"field 'image' is not valid base64: {exc}") from exc
     else:

@@ -16,7 +16,9 @@ row (1.2 MB file) takes 2 s. So, before decoding:
 from __future__ import annotations
 
 import binascii
+import re
 import struct
+import sys
 import zlib
 from dataclasses import dataclass
 from typing import Protocol
@@ -32,6 +34,21 @@ MAX_ANCILLARY_BYTES = 64 * 1024
 COLOUR_TYPES = {0: "greyscale", 2: "RGB", 3: "palette", 4: "greyscale + alpha", 6: "RGBA"}
 # Adam7 passes: (first row, first column, row step, column step).
 ADAM7 = ((0, 0, 8, 8), (0, 4, 8, 8), (4, 0, 8, 4), (0, 2, 4, 4), (2, 0, 4, 2), (0, 1, 2, 2), (1, 0, 2, 1))
+
+if sys.version_info >= (3, 11):
+
+    def a2b_base64_strict(text: str) -> bytes:
+        """Base64 text -> bytes; binascii.Error unless it is the alphabet only, padded at the end only."""
+        return binascii.a2b_base64(text, strict_mode=True)
+
+else:  # Python 3.10's a2b_base64 has no strict_mode (it skips stray characters): the same rules as a pattern
+    _STRICT_BASE64 = re.compile(r"(?:[A-Za-z0-9+/]{4})*(?:[A-Za-z0-9+/]{2}==|[A-Za-z0-9+/]{3}=)?")
+
+    def a2b_base64_strict(text: str) -> bytes:
+        """Base64 text -> bytes; binascii.Error unless it is the alphabet only, padded at the end only."""
+        if _STRICT_BASE64.fullmatch(text) is None:
+            raise binascii.Error("only A-Z, a-z, 0-9, + and / in groups of 4, '=' padding only at the end")
+        return binascii.a2b_base64(text)
 
 
 class ByteSource(Protocol):
@@ -73,7 +90,7 @@ class Base64Bytes:
     def read(self, offset: int, size: int) -> bytes:
         start, stop = offset // 3 * 4, -(-(offset + size) // 3) * 4
         try:
-            block = binascii.a2b_base64(self.text[start:stop], strict_mode=True)
+            block = a2b_base64_strict(self.text[start:stop])
         except binascii.Error as exc:
             raise ApiError("invalid_image", f"field 'image' is not valid base64: {exc}") from exc
         return block[offset % 3 : offset % 3 + size]
@@ -190,6 +207,7 @@ def read_layout(source: ByteSource) -> PngLayout:
         raise _invalid(f"the PNG has {size - offset} bytes after its IEND chunk")
     if not rules.idat:
         raise _invalid("the PNG has no image data (IDAT)")
+    assert rules.header is not None  # the first chunk set it (or was refused)
     return PngLayout(header=rules.header, ihdr=rules.ihdr, idat=tuple(rules.idat), ancillary_chunks=rules.ancillary)
 
 

@@ -41,6 +41,7 @@ async def parse_detect_request(
 
     `upload_check()` gives a feeder that sees a multipart image upload piece by piece as it streams in."""
     media_type = request.headers.get("content-type", "").split(";")[0].strip().lower()
+    image: PostedImage  # text from a JSON body, bytes from a form
     if media_type == JSON:
         body, image = parse_json_body(await request.body())
     elif media_type == MULTIPART:
@@ -53,7 +54,8 @@ async def parse_detect_request(
 
 
 def resolve_stream_id(body: DetectBody, stream_hint: str | None) -> DetectFields:
-    if body.stream_id is None and stream_hint is None:
+    stream_id = body.stream_id or stream_hint  # a posted stream_id is never empty (StreamId: min_length=1)
+    if stream_id is None:
         raise ApiError(
             "validation_error",
             "stream_id: Field required (in the body, the X-Stream-Id header or the path /streams/{stream_id}/detect)",
@@ -64,7 +66,7 @@ def resolve_stream_id(body: DetectBody, stream_hint: str | None) -> DetectFields
             f"the body's stream_id {body.stream_id!r} differs from "
             f"{stream_hint!r} given in the X-Stream-Id header or the path",
         )
-    return DetectFields(stream_id=body.stream_id or stream_hint, timestamp=body.timestamp, pose=body.pose)
+    return DetectFields(stream_id=stream_id, timestamp=body.timestamp, pose=body.pose)
 
 
 # ---------------------------------------------------------------------------------------------------- JSON

@@ -30,12 +30,17 @@ import time
 import zlib
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 
 from rafd.bench.server import cpu_seconds, free_port, serve_command, wait_ready
 from rafd.bench.timing import percentile
 from service.png import png_chunk
+
+if TYPE_CHECKING:  # the classes behind multiprocessing.Event() and multiprocessing.Queue()
+    import multiprocessing.queues
+    import multiprocessing.synchronize
 
 HOST = "127.0.0.1"
 READY_PROBE_PERIOD_S = 0.05
@@ -65,12 +70,13 @@ def model_crops(scans: list[bytes], size: int) -> list[bytes]:
 
     from rafd.preprocess import model_crop
 
-    return [
-        cv2.imencode(".png", model_crop(cv2.imdecode(np.frombuffer(scan, np.uint8), cv2.IMREAD_GRAYSCALE), size))[
-            1
-        ].tobytes()
-        for scan in scans
-    ]
+    crops = []
+    for scan in scans:
+        image = cv2.imdecode(np.frombuffer(scan, np.uint8), cv2.IMREAD_GRAYSCALE)
+        if image is None:
+            raise ValueError("a scan is not a decodable PNG")
+        crops.append(cv2.imencode(".png", model_crop(image, size))[1].tobytes())
+    return crops
 
 
 def padded_png(scan: bytes, target_bytes: int = 7_700_000) -> bytes:
@@ -130,7 +136,11 @@ def _flood_connection(
 
 
 def flood(
-    port: int, request: bytes, connections: int, stop: multiprocessing.Event, results: multiprocessing.Queue
+    port: int,
+    request: bytes,
+    connections: int,
+    stop: multiprocessing.synchronize.Event,
+    results: multiprocessing.queues.Queue[dict[str, int]],
 ) -> None:
     """Runs in its own process: `connections` clients posting `request` back to back until `stop`."""
     counts: collections.Counter = collections.Counter()
@@ -163,7 +173,9 @@ class Run:
     flood_seconds: float = 0.0  # the flood runs from 1 s before each measured block to its end
 
 
-def probe_readiness(url: str, stop: multiprocessing.Event, results: multiprocessing.Queue) -> None:
+def probe_readiness(
+    url: str, stop: multiprocessing.synchronize.Event, results: multiprocessing.queues.Queue[list[tuple[float, bool]]]
+) -> None:
     """Runs in its own process (so the normal stream's client does not delay it): [(seconds, ok), ...]."""
     import httpx
 
@@ -216,7 +228,8 @@ def measure(
     with_pose: bool = False,
 ) -> None:
     """One block of the normal stream with the readiness probe, added to `run`."""
-    stop, results = multiprocessing.Event(), multiprocessing.Queue()
+    stop = multiprocessing.Event()
+    results: multiprocessing.queues.Queue[list[tuple[float, bool]]] = multiprocessing.Queue()  # the probes
     prober = multiprocessing.Process(target=probe_readiness, args=(url, stop, results))
     start, server_cpu = time.perf_counter(), cpu_seconds(server_pid)
     flood_cpu = cpu_seconds(flood_pid) if flood_pid else 0.0
@@ -236,7 +249,8 @@ def measure(
 
 def flood_cost(port: int, request: bytes, connections: int, seconds: float, server_pid: int) -> None:
     """The flood alone: the server's CPU time per flood request (a figure the background load hardly moves)."""
-    stop, results = multiprocessing.Event(), multiprocessing.Queue()
+    stop = multiprocessing.Event()
+    results: multiprocessing.queues.Queue[dict[str, int]] = multiprocessing.Queue()  # the flood's counts
     flooder = multiprocessing.Process(target=flood, args=(port, request, connections, stop, results))
     cpu = cpu_seconds(server_pid)
     flooder.start()
@@ -264,7 +278,8 @@ def flooded_block(
     with_pose: bool,
 ) -> None:
     """One block of the normal stream while the flood runs (from 1 s before it); the flood's answers add to `run`."""
-    stop, results = multiprocessing.Event(), multiprocessing.Queue()
+    stop = multiprocessing.Event()
+    results: multiprocessing.queues.Queue[dict[str, int]] = multiprocessing.Queue()  # the flood's counts
     flooder = multiprocessing.Process(target=flood, args=(port, request, connections, stop, results))
     started = time.perf_counter()
     flooder.start()
@@ -367,7 +382,12 @@ def main(argv: list[str] | None = None) -> int:
         serve_command(port, model=args.model, threads=args.threads),
         env={k: v for k, v in os.environ.items() if not k.startswith("RAFD_")},
     )
-    watchdog = threading.Timer(args.max_seconds, lambda: (server.kill(), os._exit(2)))
+
+    def give_up() -> None:
+        server.kill()
+        os._exit(2)
+
+    watchdog = threading.Timer(args.max_seconds, give_up)
     watchdog.daemon = True
     watchdog.start()
     try:

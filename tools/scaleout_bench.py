@@ -108,8 +108,8 @@ def main(argv: list[str] | None = None) -> int:
         )
     print(f"{args.streams} streams x {args.frames} frames (1152 px scans, odometry), through nginx")
     print(f"{'replicas':>8} {'frames':>6} {'wall s':>7} {'frames/s':>8} {'median ms':>9}  frames per replica")
-    for replicas, frames, wall, fps, median, spread in rows:
-        print(f"{replicas:>8} {frames:>6} {wall:>7.2f} {fps:>8.2f} {median:>9.1f}  {spread}")
+    for replicas, frames, wall, fps, median, per_replica in rows:
+        print(f"{replicas:>8} {frames:>6} {wall:>7.2f} {fps:>8.2f} {median:>9.1f}  {per_replica}")
     return 0
 
 

@@ -21,7 +21,11 @@ def matmul_peaks_gflops(threads: int, n: int = 2048, repeats: int = 5) -> dict[s
     try:
         for name, dtype in dtypes.items():
             a, b = torch.randn(n, n, dtype=dtype), torch.randn(n, n, dtype=dtype)
-            samples = time_calls(lambda _, a=a, b=b: torch.mm(a, b), repeats)
+
+            def matmul(_: int, a: torch.Tensor = a, b: torch.Tensor = b) -> torch.Tensor:
+                return torch.mm(a, b)
+
+            samples = time_calls(matmul, repeats)
             peaks[name] = 2.0 * n**3 / min(samples) / 1e9
     finally:
         torch.set_num_threads(previous)

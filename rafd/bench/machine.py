@@ -36,5 +36,6 @@ def usable_cores() -> int:
 
 def machine_description(threads: int) -> str:
     model, flags = cpu_model_and_flags()
-    units = [f for f in ("avx512_bf16", "amx_bf16", "amx_int8", "avx512_vnni") if f in flags] or ["no bf16 units"]
+    found: list[str] = [f for f in ("avx512_bf16", "amx_bf16", "amx_int8", "avx512_vnni") if f in flags]
+    units = found or ["no bf16 units"]
     return f"{model} ({', '.join(units)}), {usable_cores()} usable cores, {threads} threads"

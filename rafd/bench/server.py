@@ -13,7 +13,7 @@ import urllib.request
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
-from typing import IO
+from typing import IO, cast
 
 LOOPBACK = "127.0.0.1"
 
@@ -39,7 +39,8 @@ def wait_ready(url: str, process: subprocess.Popen[bytes], timeout: float = 120.
     deadline = time.monotonic() + timeout
     while time.monotonic() < deadline:
         if process.poll() is not None:
-            raise RuntimeError(f"{process.args[0]} exited with {process.returncode} before {url} was ready")
+            program = cast("Sequence[str]", process.args)[0]  # started from an argument list (serve_command)
+            raise RuntimeError(f"{program} exited with {process.returncode} before {url} was ready")
         try:
             if http_get(url + path, timeout=1.0)[0] == 200:
                 return

@@ -9,7 +9,7 @@ from typing import Any
 import numpy as np
 
 
-def percentile(values: Sequence[float], q: float) -> float:
+def percentile(values: Sequence[float] | np.ndarray, q: float) -> float:
     """The q-th percentile (0-100, linear interpolation) of `values`; nan when there are none."""
     return float(np.percentile(np.asarray(values, dtype=np.float64), q)) if len(values) else float("nan")
 

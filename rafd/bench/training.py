@@ -21,8 +21,12 @@ import tempfile
 import time
 from collections.abc import Callable, Sequence
 from pathlib import Path
+from typing import TYPE_CHECKING, Any, cast
 
 import numpy as np
+
+if TYPE_CHECKING:  # torch loads lazily
+    from torch.utils.data import Dataset
 
 log = logging.getLogger("rafd.train_bench")
 
@@ -164,7 +168,7 @@ def step_times(cfg, batch_size: int, steps: int) -> dict[str, float]:
         precision: Trainer(
             cfg,
             TrainConfig(batch_size=batch_size, precision=precision, progress=False, device="cpu", optimizer="adam"),
-            [0],
+            cast("Dataset[Any]", [0]),  # a stand-in: train_step gets its batch from here
             None,
             DistContext(),
         )

@@ -4,6 +4,7 @@ turns the benchmark's TrainRun into its own (rafd.bench.accuracy runs them)."""
 from __future__ import annotations
 
 from dataclasses import dataclass, replace
+from typing import Any
 
 from rafd.train.run import TrainRun
 
@@ -27,7 +28,7 @@ class Variant:
 
     def apply(self, run: TrainRun) -> TrainRun:
         """The benchmark's training run changed as this variant says (its --init is set by the runner)."""
-        legacy = {"box_encoding": "as_labelled", "heatmap_min_overlap": 0.7, "heatmap_min_radius": 1}
+        legacy: dict[str, Any] = {"box_encoding": "as_labelled", "heatmap_min_overlap": 0.7, "heatmap_min_radius": 1}
         return replace(
             run,
             frames=self.frames,

@@ -257,7 +257,7 @@ def main(argv: list[str] | None = None) -> int:
             )
             if log is not None:
                 log.write(logged_frame(frame, scan, png, answer, sequence.resolution, sequence.annotated))
-            if out is None:
+            if out is None or answers is None:  # (both or neither)
                 continue
             answers.write(json.dumps(answer) + "\n")
             canvas = draw_answer(
@@ -273,7 +273,7 @@ def main(argv: list[str] | None = None) -> int:
             if writer is None:
                 size = (canvas.shape[1], canvas.shape[0])
                 writer = cv2.VideoWriter(
-                    str(out / "sequence.mp4"), cv2.VideoWriter_fourcc(*"mp4v"), frame_rate(frames), size
+                    str(out / "sequence.mp4"), cv2.VideoWriter.fourcc(*"mp4v"), frame_rate(frames), size
                 )
             writer.write(canvas)
     except (ServiceError, OSError, ValueError) as exc:

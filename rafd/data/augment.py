@@ -117,7 +117,7 @@ class Augmentation:
     def changes_intensity(self) -> bool:
         return (self.gain, self.gamma, self.floor, self.blur, self.jitter) != (1.0, 1.0, 0.0, 0.0, 0.0)
 
-    def as_dict(self) -> dict[str, float | bool]:
+    def as_dict(self) -> dict[str, float | bool | tuple[float, float]]:
         """The parameters (what a window records of its augmentation)."""
         return {
             "flip": self.flip,

@@ -29,7 +29,7 @@ import os
 from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import Any, overload
 
 import numpy as np
 
@@ -54,12 +54,16 @@ class MissingPosesError(ValueError):
     """Selected sequences have no ego_poses.csv and odometry was not asked for."""
 
 
+@overload
+def split_names(split: None) -> None: ...
+@overload
+def split_names(split: str | Sequence[str]) -> frozenset[str]: ...
 def split_names(split: str | Sequence[str] | None) -> frozenset[str] | None:
     """'a', 'a,b' or ['a', 'b'] -> {'a', 'b'}; None -> None (every split)."""
     if split is None:
         return None
-    names = split.split(",") if isinstance(split, str) else [n for part in split for n in str(part).split(",")]
-    names = frozenset(n.strip() for n in names if n.strip())
+    parts = split.split(",") if isinstance(split, str) else [n for part in split for n in str(part).split(",")]
+    names = frozenset(n.strip() for n in parts if n.strip())
     if not names:
         raise ValueError("no split name given")
     return names
@@ -69,7 +73,8 @@ def select_sequences(root: str | Path, split: str | Sequence[str] | None) -> tup
     """Sequence folders under `root` whose meta.json "set" is in `split` (only meta.json is read) ->
     (folders, {split: count} of everything found)."""
     wanted = split_names(split)
-    chosen, seen = [], {}
+    chosen: list[Path] = []
+    seen: dict[str | None, int] = {}
     for folder in find_sequences(root):
         name = read_meta(folder / META_FILE).get("set")
         seen[name] = seen.get(name, 0) + 1

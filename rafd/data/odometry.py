@@ -96,7 +96,7 @@ class _Level:
 
     def prepare(self, image: np.ndarray) -> np.ndarray:
         """[S, S] scan -> [n, n] float32 structure image (background removed, radial window applied)."""
-        img = np.asarray(image, dtype=np.float32)
+        img: np.ndarray = np.asarray(image, dtype=np.float32)
         if img.shape[0] != self.work:
             img = cv2.resize(img, (self.work, self.work), interpolation=cv2.INTER_AREA)
         img = cv2.GaussianBlur(img, (0, 0), 0.8)
@@ -205,7 +205,10 @@ def _refine_yaw(previous: np.ndarray, current: np.ndarray, warp: np.ndarray) -> 
     criteria = (cv2.TERM_CRITERIA_EPS | cv2.TERM_CRITERIA_COUNT, 15, 1e-4)
     for blur in (5, 1):
         try:
-            _, warp = cv2.findTransformECC(current, previous, warp.copy(), cv2.MOTION_EUCLIDEAN, criteria, None, blur)
+            # OpenCV's stubs want a mask beside gaussFiltSize, but the function takes None (no mask)
+            _, warp = cv2.findTransformECC(  # type: ignore[call-overload]
+                current, previous, warp.copy(), cv2.MOTION_EUCLIDEAN, criteria, None, blur
+            )
         except cv2.error as error:  # no convergence or a degenerate image: keep the correlation estimate
             log.debug("ECC refinement failed (%s); keeping the correlation estimate", str(error).strip()[-80:])
             return None

@@ -39,7 +39,9 @@ def _format_timestamp(value: float | str) -> str:
     return f"{float(value):.9f}"
 
 
-def write_ego_poses(path: str | Path, frames: Sequence[int], timestamps: Sequence[float], poses: np.ndarray) -> Path:
+def write_ego_poses(
+    path: str | Path, frames: Sequence[int] | np.ndarray, timestamps: Sequence[float | str], poses: np.ndarray
+) -> Path:
     """Write `frames` (N frame numbers), `timestamps` (N seconds: floats, or strings written verbatim) and
     `poses` [N, 3] to `path` atomically (temporary file + rename)."""
     path = Path(path)

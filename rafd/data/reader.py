@@ -341,7 +341,7 @@ def _check_images(
     if extra:
         names = ", ".join(on_disk[n].name for n in extra[:5]) + (" ..." if len(extra) > 5 else "")
         raise ValueError(f"{timestamps_path} disagrees with the images: no timestamp for {len(extra)} scans ({names})")
-    sizes = {}
+    sizes: dict[tuple[int, int], Path] = {}
     for path in paths:
         width, height = png_size(path)
         if width != height and image_dir_name == IMAGE_DIR:

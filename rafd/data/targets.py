@@ -140,9 +140,9 @@ def _flow_pair(
     if len(boxes_cur) == 0:
         return flow, valid, foreground
     to_cur = relative_pose(pose_prev, pose_cur)  # maps frame t-1 ego coordinates into frame t's
-    previous = {}
-    for k, object_id in enumerate(ids_prev.tolist()):
-        previous.setdefault(object_id, k)  # a repeated id: the first one (the reader warns about repeats)
+    previous: dict[int, int] = {}
+    for index, object_id in enumerate(ids_prev.tolist()):
+        previous.setdefault(object_id, index)  # a repeated id: the first one (the reader warns about repeats)
     rows, cols, inside = centre_cells(boxes_cur[:, :2], cfg)
     best = np.full((size, size), np.inf)  # normalised distance of the region owning each cell
     for k in np.flatnonzero(inside):
@@ -161,7 +161,7 @@ def _flow_pair(
         best[window][region] = distance[region]
         match = previous.get(int(ids_cur[k]))
         if match is None:  # new in frame t: unknown motion
-            flow[(slice(None), *window)][:, region] = 0.0
+            flow[:, top:bottom, left:right][:, region] = 0.0
             valid[0][window][region] = 0.0
             foreground[0][window][region] = 0.0
             continue

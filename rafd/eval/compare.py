@@ -88,6 +88,7 @@ class _Scored:
         outcomes = ranked_outcomes(predictions, truths, IOU_THRESHOLDS)
         centres = match_centres(predictions, truths, CENTRE_DISTANCE_M)
         self.iou = [(outcomes.frames, outcomes.true_positive[float(t)]) for t in IOU_THRESHOLDS]
+        assert centres.frames is not None  # match_centres fills it
         self.centre = (centres.frames, centres.true_positive)
         self.num_gt = outcomes.num_gt_per_frame.astype(np.float64)
 

@@ -15,14 +15,13 @@ from typing import Any
 
 import numpy as np
 import torch
-from torch import nn
 from tqdm import tqdm
 
 from rafd.config import RaFDConfig
 from rafd.data.dataset import _protocol
 from rafd.eval.predict import FrameResult
 from rafd.eval.tiled import TileGrid, merge_tiles, tile_poses
-from rafd.model import relative_pose_torch
+from rafd.model import RaFD, relative_pose_torch
 from rafd.preprocess import to_model_input
 from rafd.train.precision import autocast
 
@@ -46,7 +45,7 @@ def scan_size_of(root, split) -> int:
 
 @torch.no_grad()
 def predict_full_scan(
-    model: nn.Module,
+    model: RaFD,
     dataset: Any,
     cfg: RaFDConfig,
     device: torch.device | str = "cpu",
@@ -78,7 +77,9 @@ def predict_full_scan(
         previous_number = None
         for k, number in enumerate(meta.numbers):
             if previous_number is not None and number != previous_number + 1:  # a gap: the stream starts again
-                features.clear(), flows.clear(), poses.clear()
+                features.clear()
+                flows.clear()
+                poses.clear()
             previous_number = number
             scan = dataset._scan(s, k)
             tiles = grid or TileGrid.for_model(cfg.input_size, scan_size=scan.shape[0], resolution=cfg.resolution)

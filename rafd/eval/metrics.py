@@ -260,6 +260,8 @@ class CentreMatches:
         """Per range band [edges[i], edges[i+1]) m: vehicles in it, the recall among them and the false positives
         per frame lying in it, of the detections scoring >= the threshold. A radar engineer's first question:
         where does the detector lose vehicles and where does it invent them?"""
+        if self.matched_range is None or self.detection_range is None or self.vehicle_range is None:
+            raise ValueError("by_range needs the ranges of the detections and vehicles (match_centres fills them)")
         keep = self.scores >= score_threshold
         found, false = self.matched_range[keep & self.true_positive], self.detection_range[keep & ~self.true_positive]
         bands = []

@@ -54,6 +54,6 @@ class AttentionLayer(nn.Module):
         source = x if source is None else source
         message = attention(self.q_proj(x), self.k_proj(source), self.v_proj(source))  # [B, N, C]
         x = self.norm1(x + self.out_proj(message))
-        if self.ffn is not None:
+        if self.ffn is not None and self.norm2 is not None:  # both or neither
             x = self.norm2(x + self.ffn(x))
         return x

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from typing import cast
+
 from torch import Tensor, nn
 
 
@@ -23,7 +25,7 @@ class BasicBlock(nn.Module):
         needs_projection = stride != 1 or in_channels != out_channels
         self.shortcut = conv_bn(in_channels, out_channels, 1, stride) if needs_projection else nn.Identity()
         # Zero-init the last BN scale: each residual block starts as identity (Goyal et al.), stabler at lr 2e-4.
-        nn.init.zeros_(self.conv2[1].weight)
+        nn.init.zeros_(cast(nn.BatchNorm2d, self.conv2[1]).weight)  # conv_bn: (Conv2d, BatchNorm2d)
 
     def forward(self, x: Tensor) -> Tensor:
         out = self.relu(self.conv1(x))

@@ -4,6 +4,7 @@ cross-attention into the final BEV map around each peak, FFN; then the box regre
 from __future__ import annotations
 
 import math
+from typing import cast
 
 from torch import Tensor, nn
 
@@ -51,7 +52,7 @@ class BoxRegression(nn.Module):
         self.log_size = mlp(channels, 2)
         self.rotation = mlp(channels, 2)
         # Start at a vehicle-sized box (log 3 m) rather than 1 m: the L1 size loss starts smaller.
-        nn.init.constant_(self.log_size[-1].bias, math.log(initial_size))
+        nn.init.constant_(cast(nn.Linear, self.log_size[-1]).bias, math.log(initial_size))
 
     def forward(self, queries: Tensor) -> dict[str, Tensor]:
         return {

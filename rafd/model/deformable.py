@@ -14,6 +14,7 @@ contiguous rows of queries (sampling and weighting fused into one pass over the 
 from __future__ import annotations
 
 import math
+from typing import cast
 
 import torch
 from torch import Tensor, nn
@@ -62,6 +63,8 @@ def layer_norm_on_map(norm: nn.LayerNorm, x: Tensor) -> Tensor:
 class DeformableAttention(nn.Module):
     """query [B, Q, C], reference [B, Q, 2] (normalised), value map [B, C, H, W] -> [B, Q, C]."""
 
+    cell: Tensor  # a buffer (register_buffer in __init__), declared so that type checkers know it as a tensor
+
     def __init__(self, channels: int, num_points: int, map_size: tuple[int, int]) -> None:
         super().__init__()
         self.num_points = num_points
@@ -83,7 +86,7 @@ class DeformableAttention(nn.Module):
         nn.init.zeros_(self.attention_weights.weight)
         nn.init.zeros_(self.attention_weights.bias)
         nn.init.xavier_uniform_(self.value_proj.weight)
-        nn.init.zeros_(self.value_proj.bias)
+        nn.init.zeros_(cast(Tensor, self.value_proj.bias))  # Conv2d(bias=True): never None
         nn.init.xavier_uniform_(self.output_proj.weight)
         nn.init.zeros_(self.output_proj.bias)
 
@@ -125,7 +128,7 @@ class DeformableLayer(nn.Module):
         self.norm2 = nn.LayerNorm(channels)
         self.pre_norm = norm == "pre"
         if self.pre_norm:
-            for last in (attention.output_proj, self.ffn.net[-1]):
+            for last in (attention.output_proj, cast(nn.Linear, self.ffn.net[-1])):
                 nn.init.zeros_(last.weight)
                 nn.init.zeros_(last.bias)
 
@@ -138,7 +141,7 @@ class DeformableLayer(nn.Module):
 
     def forward_map(self, query: Tensor, reference: Tensor, value: Tensor) -> Tensor:
         """forward for every cell of a channel-major query map: [B, C, H, W] -> [B, C, H, W]."""
-        hidden, activation, out = self.ffn.net  # Linear, GELU, Linear
+        hidden, activation, out = cast("tuple[nn.Linear, nn.GELU, nn.Linear]", self.ffn.net)  # FeedForward's layers
 
         def ffn(x: Tensor) -> Tensor:
             return linear_on_map(out, activation(linear_on_map(hidden, x)))

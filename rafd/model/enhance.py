@@ -86,6 +86,8 @@ class WindowBlock(nn.Module):
     window: (wh, ww) cells, default half the map (2 x 2 windows, the paper); each side must divide the map.
     """
 
+    mask: Tensor  # a buffer (register_buffer in __init__), declared so that type checkers know it as a tensor
+
     def __init__(
         self,
         regular: AttentionLayer,

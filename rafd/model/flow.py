@@ -59,6 +59,10 @@ class FlowEstimator(nn.Module):
     `position` and `centres` belong to that grid.
     """
 
+    # buffers (register_buffer in __init__), declared so that type checkers know them as tensors
+    position: Tensor
+    centres: Tensor
+
     def __init__(
         self,
         encoder: nn.Module,

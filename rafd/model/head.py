@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from typing import cast
+
 import torch
 from torch import Tensor, nn
 from torch.nn import functional as F
@@ -21,7 +23,7 @@ class HeatmapHead(nn.Module):
         self.net = nn.Sequential(
             nn.Conv2d(channels, channels, 3, padding=1), nn.ReLU(inplace=True), nn.Conv2d(channels, num_classes, 1)
         )
-        nn.init.constant_(self.net[-1].bias, HEATMAP_PRIOR_BIAS)
+        nn.init.constant_(cast(Tensor, self.net[-1].bias), HEATMAP_PRIOR_BIAS)  # the last Conv2d's (bias=True)
 
     def forward(self, features: Tensor) -> Tensor:
         return self.net(features)
@@ -63,6 +65,10 @@ def gather_cells(features: Tensor, indices: Tensor) -> Tensor:
 
 class DetectionHead(nn.Module):
     """T_T [B, C, Hf, Wf] (+ optional GT indices) -> heatmap, query indices, regression, scores, boxes."""
+
+    # buffers (register_buffer in __init__), declared so that type checkers know them as tensors
+    centres: Tensor
+    grid: Tensor
 
     def __init__(
         self,

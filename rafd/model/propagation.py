@@ -7,6 +7,9 @@ estimated flow, r_t - V (where its content was), or r_t itself for the vanilla a
 
 from __future__ import annotations
 
+from collections.abc import Iterable
+from typing import cast
+
 from torch import Tensor, nn
 
 from rafd.model.align import align_to_current, metres_to_grid
@@ -15,6 +18,8 @@ from rafd.model.deformable import DeformableLayer
 
 class FlowGuidedPropagation(nn.Module):
     """(S_t, T_{t-1} [B, C, Hf, Wf], flow [B, 2, Hf, Wf] m, relative_pose [B, 3]) -> T_t [B, C, Hf, Wf]."""
+
+    centres: Tensor  # a buffer (register_buffer in __init__), declared so that type checkers know it as a tensor
 
     def __init__(self, layers: list[DeformableLayer], centres: Tensor, half_extent: float, flow_guided: bool) -> None:
         super().__init__()
@@ -38,6 +43,6 @@ class FlowGuidedPropagation(nn.Module):
         reference = self.reference_points(flow)  # [B, Hf*Wf, 2]
         # every cell is a query: the layers work on the channel-major map itself (no [B, Hf*Wf, C] transposes)
         x = current
-        for layer in self.layers:
+        for layer in cast("Iterable[DeformableLayer]", self.layers):  # the ModuleList of __init__'s layers
             x = layer.forward_map(x, reference, aligned)  # [B, C, Hf, Wf]
         return x

@@ -11,6 +11,7 @@ from __future__ import annotations
 import os
 import queue
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -65,7 +66,7 @@ class OpenVinoBackend:
         self.compiled = core.compile_model(model, "CPU", config)
         compiled = self.compiled.get_property("INFERENCE_PRECISION_HINT").get_type_name()  # "bf16" / "f32"
         self.precision = {"f32": "fp32"}.get(compiled, compiled)
-        self._idle: queue.SimpleQueue = queue.SimpleQueue()
+        self._idle: queue.SimpleQueue[Any] = queue.SimpleQueue()  # openvino InferRequests (untyped library)
 
     def run(self, feeds: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
         try:

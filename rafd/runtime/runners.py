@@ -8,6 +8,7 @@ import os
 import statistics
 import time
 from collections.abc import Callable
+from typing import Any, cast
 
 import numpy as np
 
@@ -52,8 +53,8 @@ class OnnxRunner(StreamRunner):
         )
 
     @property
-    def session(self):  # noqa: ANN201 - onnxruntime.InferenceSession, not imported at module level
-        return self.backend.session
+    def session(self) -> Any:  # onnxruntime.InferenceSession: an untyped library, not imported at module level
+        return cast(OrtBackend, self.backend).session  # __init__ gives it an OrtBackend
 
 
 class OpenVinoRunner(StreamRunner):

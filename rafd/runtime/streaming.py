@@ -57,7 +57,7 @@ from rafd.runtime.contract import FORMS, graph_inputs, graph_outputs
 
 
 def window_from_history(
-    frames: Sequence[np.ndarray], poses: np.ndarray | Sequence[np.ndarray], num_frames: int
+    frames: Sequence[np.ndarray] | np.ndarray, poses: np.ndarray | Sequence[np.ndarray], num_frames: int
 ) -> tuple[np.ndarray, np.ndarray]:
     """A stream's history (oldest first, any length >= 1) -> its newest window under the warm-up rule.
 

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from typing import cast
 
 import numpy as np
 
@@ -18,7 +19,8 @@ class Scatterers:
     normal: np.ndarray  # [N, 2] unit outward normal, or 0
     occluder: np.ndarray  # [N] bool: casts a radar shadow behind it
     owner: np.ndarray  # [N] int
-    diffuse: np.ndarray = field(default=None)  # [N] bool; None = none diffuse
+    # [N] bool; None = none diffuse (__post_init__ puts zeros in its place, so it is an array once constructed)
+    diffuse: np.ndarray = field(default=cast("np.ndarray", None))
 
     def __post_init__(self) -> None:
         if self.diffuse is None:

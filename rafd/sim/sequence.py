@@ -288,8 +288,8 @@ def run_simulation(
         echoes = sensor.illuminate(Scatterers.concat(parts), conditions)
         lit, seen_count = visible_beams(echoes, len(agents), sensor.config.azimuths)
         ghosts_from = []
-        for k in np.flatnonzero(seen_count > 0):
-            own = echoes.owner == k
+        for owner in np.flatnonzero(seen_count > 0):
+            own = echoes.owner == owner
             ghosts_from.append((echoes.azimuth[own], echoes.ranges[own], echoes.power[own]))
         t_az, t_rg, t_pw = _transient_returns(rng, sensor, difficulty, conditions.clutter_persistence, ghosts_from)
         # World-fixed clutter: seen where the sweep finds it, scintillating from scan to scan; like the transient
@@ -325,9 +325,9 @@ def run_simulation(
             & (np.hypot(ego_boxes[:, 0], ego_boxes[:, 1]) < sensor.max_range)
             & annotator_sees(lit, seen_count, strengths, sensor.config.shadow)
         )
-        for k in np.flatnonzero(in_view):
-            truth[k, t] = annotation_box(
-                ego_boxes[k], agents[k].class_name, looks[k], label_rng, sensor.beam_sigma_rad, sensor.range_sigma_m
+        for i in np.flatnonzero(in_view):  # agent indices (numpy integers; `k` above is an int)
+            truth[i, t] = annotation_box(
+                ego_boxes[i], agents[i].class_name, looks[i], label_rng, sensor.beam_sigma_rad, sensor.range_sigma_m
             )
     if ambiguous:
         truth = ambiguous_labels(truth, label_rng)

@@ -62,7 +62,7 @@ def write_sequence(sequence: SimulatedSequence, out_dir: Path, poses: bool = Tru
     if polar and (sequence.polar_scans is None or len(sequence.polar_scans) != len(sequence.images)):
         raise ValueError(f"sequence {sequence.name} carries no polar scan per frame; cannot write Navtech_Polar")
     _write_scans(out_dir, "Navtech_Cartesian", sequence.images, sequence.timestamps_ns)
-    if polar:
+    if polar and sequence.polar_scans is not None:  # (polar without scans raised above)
         _write_scans(out_dir, "Navtech_Polar", sequence.polar_scans, sequence.timestamps_ns)
     (out_dir / "annotations").mkdir(exist_ok=True)
     (out_dir / "annotations" / "annotations.json").write_text(json.dumps(annotations_json(sequence)))

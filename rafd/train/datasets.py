@@ -5,12 +5,15 @@ from __future__ import annotations
 import logging
 from collections.abc import Sequence
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any, cast
 
 import numpy as np
 from torch.utils.data import Dataset
 
 from rafd.config import RaFDConfig
+
+if TYPE_CHECKING:  # the data code loads lazily
+    from rafd.data import RadarWindowDataset
 
 log = logging.getLogger(__name__)
 
@@ -32,7 +35,8 @@ class WindowSubset(Dataset):
     @property
     def sequences(self) -> list:
         """The underlying dataset's sequences (names, conditions), which a subset of its windows still draws on."""
-        return self.dataset.sequences
+        # a window dataset: what open_windows and the trainer wrap
+        return cast("RadarWindowDataset | WindowSubset", self.dataset).sequences
 
     def __getitem__(self, key: int | tuple[int, int]) -> Any:
         if isinstance(key, tuple):
@@ -51,7 +55,7 @@ def open_windows(
     estimate_poses: bool = False,
     seed: int = 0,
     history: int | None = None,
-) -> Dataset:
+) -> RadarWindowDataset | WindowSubset:
     """Windows of cfg.num_frames frames at cfg.input_size from the sequences of `split` (one name, a comma-separated
     list or a list) under `root`, scans from a prepared `cache` when given. `history` N keeps only the windows whose
     newest frame an N-frame model also scores (a model of fewer frames is then compared on equal frames)."""

@@ -134,7 +134,7 @@ def unwrap_model(model: nn.Module) -> nn.Module:
 class EpochSampler(DistributedSampler):
     """DistributedSampler that yields (epoch, index) keys instead of indices (see the module docstring)."""
 
-    def __iter__(self) -> Iterator[tuple[int, int]]:  # type: ignore[override]
+    def __iter__(self) -> Iterator[tuple[int, int]]:
         epoch = self.epoch
         return ((epoch, int(index)) for index in super().__iter__())
 

@@ -96,7 +96,7 @@ def model_config(run: TrainRun, base: RaFDConfig) -> RaFDConfig:
         changes["flow"] = dataclasses.replace(base.flow, stride=run.flow_stride)
     if run.box_encoding is not None:
         changes["head"] = dataclasses.replace(base.head, box_encoding=run.box_encoding)
-    targets = {
+    targets: dict[str, Any] = {
         k: v
         for k, v in (("heatmap_min_overlap", run.heatmap_min_overlap), ("heatmap_min_radius", run.heatmap_min_radius))
         if v is not None

@@ -25,7 +25,7 @@ import time
 from collections.abc import Iterable, Iterator
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import Any, cast
 
 import numpy as np
 import torch
@@ -275,7 +275,12 @@ class Trainer:
             batch = batch.to(self.ctx.device)
             last = index == len(group) - 1
             # Gradients of all but the last micro-batch stay local: one all-reduce per optimizer step.
-            sync = contextlib.nullcontext() if last or not self.ctx.enabled else self.ddp_model.no_sync()
+            # (ctx.enabled: wrap_model gave a DistributedDataParallel)
+            sync = (
+                contextlib.nullcontext()
+                if last or not self.ctx.enabled
+                else cast(nn.parallel.DistributedDataParallel, self.ddp_model).no_sync()
+            )
             with sync:
                 with autocast(self.ctx.device, self.cfg.precision):
                     outputs = self.ddp_model(

@@ -26,6 +26,7 @@ from pathlib import Path
 import foxglove
 import numpy as np
 from foxglove import channels
+from foxglove.mcap import MCAPWriter
 from foxglove.messages import (
     ArrowPrimitive,
     Color,
@@ -113,7 +114,9 @@ class RadarMcapLog:
         if not self.path.parent.is_dir():
             raise FileNotFoundError(f"folder of the MCAP file {self.path} does not exist")
         self._context = foxglove.Context()  # our own: channels of other logs in this process stay apart
-        self._writer = foxglove.open_mcap(self.path, allow_overwrite=allow_overwrite, context=self._context)
+        self._writer: MCAPWriter | None = foxglove.open_mcap(
+            self.path, allow_overwrite=allow_overwrite, context=self._context
+        )
         ctx = self._context
         self._scan = channels.CompressedImageChannel(TOPICS["scan"], context=ctx)
         self._grid = channels.GridChannel(TOPICS["grid"], context=ctx)
@@ -121,7 +124,9 @@ class RadarMcapLog:
         self._detections = channels.SceneUpdateChannel(TOPICS["detections"], context=ctx)
         self._detections_image = channels.ImageAnnotationsChannel(TOPICS["detections_image"], context=ctx)
         self._flow = channels.SceneUpdateChannel(TOPICS["flow"], context=ctx)
-        self._truth = self._truth_image = None  # created on the first labelled frame
+        # created on the first labelled frame
+        self._truth: channels.SceneUpdateChannel | None = None
+        self._truth_image: channels.ImageAnnotationsChannel | None = None
         self.frames = 0
 
     def __enter__(self) -> RadarMcapLog:
@@ -158,7 +163,7 @@ class RadarMcapLog:
         if frame.flow_heads is not None and frame.flow_motions is not None:
             self._flow.log(_arrows(frame.flow_heads, frame.flow_motions, stamp), log_time=time_ns)
         if frame.truth_boxes is not None:
-            if self._truth is None:
+            if self._truth is None or self._truth_image is None:  # both or neither
                 self._truth = channels.SceneUpdateChannel(TOPICS["truth"], context=self._context)
                 self._truth_image = channels.ImageAnnotationsChannel(TOPICS["truth_image"], context=self._context)
             truth_polygons = frame.truth_polygons if frame.truth_polygons is not None else np.zeros((0, 4, 2))

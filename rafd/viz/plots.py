@@ -8,6 +8,7 @@ in metres (draw_legend). The service answer's picture (model crop zoomed, side p
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -73,7 +74,7 @@ def place_labels(
     anchors: list[Rect],
     sizes: list[tuple[int, int]],
     bounds: tuple[int, int],
-    avoid: list[Rect] = (),
+    avoid: Sequence[Rect] = (),
     gap: int = 2,
     max_rings: int = 8,
 ) -> list[Rect | None]:
@@ -115,7 +116,7 @@ def draw_scores(
     scores: np.ndarray,
     colour: tuple[int, int, int],
     font_scale: float = 0.4,
-    avoid: list[Rect] = (),
+    avoid: Sequence[Rect] = (),
 ) -> list[Rect | None]:
     """Score labels for [N, 4, 2] canvas-pixel polygons, placed best score first and never overlapping (a thin
     leader line joins a label pushed away from its box) -> the label rects in the polygons' order."""

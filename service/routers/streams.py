@@ -9,7 +9,7 @@ from fastapi import APIRouter, Depends, Path, Response
 from service.dependencies import get_caller, get_service
 from service.detector import DetectService
 from service.errors import ApiError, error_responses
-from service.schemas import STREAM_ID_PATTERN, StreamsResponse
+from service.schemas import STREAM_ID_PATTERN, StreamOut, StreamsResponse
 
 router = APIRouter(prefix="/streams", tags=["streams"])
 
@@ -24,7 +24,7 @@ async def list_streams(
         count=len(infos),
         max_streams=service.store.max_streams,
         ttl_s=service.store.ttl_s,
-        streams=[dataclasses.asdict(info) for info in infos],
+        streams=[StreamOut.model_validate(dataclasses.asdict(info)) for info in infos],
     )
 
 
