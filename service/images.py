@@ -1,12 +1,14 @@
-"""Posted radar frames: 8-bit greyscale PNG, a full RADIATE scan, the model's input size or a polar scan in
-RADIATE's Navtech_Polar layout, -> the model's crop.
+"""Posted radar frames: 8-bit greyscale PNG, a full RADIATE scan, the model's input size, a polar scan in
+RADIATE's Navtech_Polar layout or a native scan as Oxford Radar RobotCar and Boreas store them, -> the model's crop.
 
 `decode_frame` is THE decode: every posted image goes through it (on the decode executor), and it ends in
 rafd.preprocess, the one torch-free path from a scan to the model input. A polar scan is recognised by its
 shape (576 rows of range x 400 columns of azimuth; Cartesian inputs are square, so none has it) and converted
 there with rafd.preprocess.polar_to_cartesian to RADIATE's 1152 px Cartesian scan, which then takes the
-Cartesian path unchanged. `check_posted_image` is its cheap first half (chunk headers only), run on the event
-loop as soon as the body is parsed so a hostile file is refused before it takes a decode slot; `upload_check`
+Cartesian path unchanged. A native scan (one row per azimuth: timestamp, encoder angle, valid flag, then the range
+bins; rafd.native) is recognised by its shape too (a few hundred rows, far wider than high) and converted with
+rafd.native.to_cartesian the same way. `check_posted_image` is its cheap first half (chunk headers only), run on the
+event loop as soon as the body is parsed so a hostile file is refused before it takes a decode slot; `upload_check`
 runs the same rules on a multipart upload while it streams in.
 """
 
@@ -20,6 +22,8 @@ import cv2
 import numpy as np
 
 from rafd.geometry import RADIATE_RESOLUTION, RADIATE_SCAN_SIZE
+from rafd.native import HEADER_COLUMNS, NATIVE_FORMATS, is_native_shape, parse_native_scan
+from rafd.native import to_cartesian as native_to_cartesian
 from rafd.polar import RADIATE_AZIMUTHS, RADIATE_RANGE_BINS
 from rafd.preprocess import model_crop, polar_to_cartesian, to_model_input
 from service import png
@@ -33,6 +37,9 @@ DATA_URL_PREFIX = "data:image/png;base64,"
 # A posted polar scan: (height, width) = (range bins, azimuths), RADIATE's Navtech_Polar PNGs as they are on disk.
 POLAR_SHAPE = (RADIATE_RANGE_BINS, RADIATE_AZIMUTHS)
 
+# A posted native scan: the Oxford Radar RobotCar's 3768 range bins; any other native width is read as Boreas'.
+OXFORD_RANGE_BINS = 3768
+
 # A posted image: PNG bytes (multipart file) or base64 text of them (JSON field).
 PostedImage = bytes | str
 
@@ -45,7 +52,9 @@ class DecodedFrame:
     posted_size: int
     crop_offset: int  # pixel of that scan where the crop's top-left corner lies (0 when posted at model size)
     odometry_view: np.ndarray  # [V, V] uint8 centre of that scan that odometry registers (V >= S)
-    posted_format: str = "cartesian"  # or "polar"
+    posted_format: str = "cartesian"  # or "polar" (RADIATE's Navtech_Polar), or "native" (Oxford / Boreas)
+    # native scans: (per-azimuth timestamps in UNIX microseconds [A], azimuths in radians clockwise from forward [A])
+    sweep: tuple[np.ndarray, np.ndarray] | None = None
 
     def model_input(self) -> np.ndarray:
         """[S, S] uint8 -> [S, S] float32 in [0, 1], the runner's frame."""
@@ -78,18 +87,36 @@ def _source(image: PostedImage) -> png.ByteSource:
     return png.Base64Bytes(strip_data_url(image)) if isinstance(image, str) else png.RawBytes(image)
 
 
+def native_format_name(width: int) -> str:
+    """The dataset a posted native scan is read as, from its width: Oxford's 3768 range bins, else Boreas'."""
+    return "oxford" if width - HEADER_COLUMNS == OXFORD_RANGE_BINS else "boreas"
+
+
+def native_description() -> dict[str, object]:
+    """What GET /model says about native scans (rafd.native): the shape rule and each dataset's range bin."""
+    return {
+        "rows": "one per azimuth, 100-1000 (Oxford and Boreas: 400)",
+        "columns": f"{HEADER_COLUMNS} header columns (timestamp, encoder angle, valid flag) + the range bins, more "
+        "than twice the rows",
+        "formats": {name: fmt.range_bin_m for name, fmt in NATIVE_FORMATS.items()},
+        "format_rule": f"{OXFORD_RANGE_BINS} range bins: oxford; any other number: boreas (boreas-2021 after its "
+        "sensor upgrade, by the scan's timestamp)",
+    }
+
+
 def _check_size(header: png.PngHeader, input_size: int, resolution: float) -> None:
-    """422 unless the PNG is an accepted square Cartesian size or (where accepted) a RADIATE polar scan."""
+    """422 unless the PNG is an accepted square Cartesian size or (where accepted) a RADIATE polar or a native scan."""
     sizes = accepted_sizes(input_size, resolution)
     polar = accepts_polar(input_size, resolution)
-    if (header.height, header.width) == POLAR_SHAPE and polar:
+    if polar and ((header.height, header.width) == POLAR_SHAPE or is_native_shape(header.width, header.height)):
         return
     if header.width != header.height or header.width not in sizes:
         accepted = " or ".join(f"{s}x{s}" for s in sizes)
         if polar:
             accepted += (
                 f" (Cartesian), or {POLAR_SHAPE[1]}x{POLAR_SHAPE[0]} (a polar scan: {POLAR_SHAPE[1]} "
-                f"azimuth columns x {POLAR_SHAPE[0]} range rows, RADIATE's Navtech_Polar layout)"
+                f"azimuth columns x {POLAR_SHAPE[0]} range rows, RADIATE's Navtech_Polar layout), or a native scan "
+                "(Oxford / Boreas: one row per azimuth, 11 header columns + the range bins)"
             )
         raise ApiError(
             "unsupported_image_size",
@@ -136,8 +163,16 @@ def decode_frame(image: PostedImage, input_size: int, resolution: float) -> Deco
     if decoded.ndim != 2 or decoded.dtype != np.uint8:  # the header said 8-bit greyscale: a decoder mismatch
         raise ApiError("unsupported_image_format", f"decoded {decoded.dtype} {decoded.shape}; expected 8-bit grey")
     posted_format = "cartesian"
+    sweep = None
     if decoded.shape == POLAR_SHAPE:  # the size check let it through: polar scans are accepted here
         decoded, posted_format = polar_to_cartesian(decoded), "polar"  # [576, 400] -> [1152, 1152] uint8
+    elif decoded.shape[0] != decoded.shape[1]:  # a native scan (the size check let only these through)
+        try:
+            scan = parse_native_scan(decoded, native_format_name(decoded.shape[1]))
+        except ValueError as exc:
+            raise ApiError("invalid_image", f"the native scan's header columns do not read as one: {exc}") from exc
+        decoded, posted_format = native_to_cartesian(scan), "native"  # [A, 11 + R] -> [1152, 1152] uint8
+        sweep = (scan.timestamps_us, scan.azimuths)
     width = decoded.shape[1]
     view = model_crop(decoded, max(input_size, min(width, ODOMETRY_VIEW_SIZE)))
     return DecodedFrame(
@@ -146,4 +181,5 @@ def decode_frame(image: PostedImage, input_size: int, resolution: float) -> Deco
         crop_offset=(width - input_size) // 2,
         odometry_view=view,
         posted_format=posted_format,
+        sweep=sweep,
     )

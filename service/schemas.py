@@ -106,9 +106,10 @@ class InputOut(Answer):
     posted_size: int
     model_size: int
     crop_offset_px: int = Field(description="posted pixel of the model crop's top-left corner")
-    posted_format: Literal["cartesian", "polar"] = Field(
-        description="polar: a Navtech_Polar scan was posted and converted to RADIATE's Cartesian scan; posted_size, "
-        "crop_offset_px and every polygon are in that Cartesian scan's pixels"
+    posted_format: Literal["cartesian", "polar", "native"] = Field(
+        description="polar: a Navtech_Polar scan was posted, native: an Oxford / Boreas native scan; either is "
+        "converted to RADIATE's Cartesian scan, and posted_size, crop_offset_px and every polygon are in that "
+        "Cartesian scan's pixels"
     )
 
 
@@ -188,6 +189,10 @@ class ModelInfo(Answer):
     accepted_image_sizes: list[int]
     accepted_polar_shape: list[int] | None = Field(
         description="[range rows, azimuth columns] of a Navtech_Polar scan, accepted where a full RADIATE scan is"
+    )
+    accepted_native: dict[str, Any] | None = Field(
+        description="native scans (Oxford Radar RobotCar, Boreas) are accepted where a full RADIATE scan is: the "
+        "shape rule and each dataset's range bin in metres"
     )
     score_threshold: float = Field(description="detections scoring below it are not answered")
     runtime: RuntimeOut = Field(description="how the graph runs")

@@ -30,3 +30,16 @@ def radiate_polar_sample(radiate_sample: Path) -> Path:
             f"no polar RADIATE sample at {path} (set RAFD_RADIATE_POLAR_SAMPLE to shared/radiate/tiny_foggy_polar)"
         )
     return path
+
+
+@pytest.fixture(scope="session")
+def oxford_sample() -> Path:
+    """13 real Oxford Radar RobotCar scans in their native layout with ground-truth odometry (not a test split);
+    skips with the reason when RAFD_OXFORD_SAMPLE is not set."""
+    path = os.environ.get("RAFD_OXFORD_SAMPLE")
+    if not path:
+        pytest.skip("RAFD_OXFORD_SAMPLE is not set (point it at shared/oxford_radar_sample; .ci/run does)")
+    sample = Path(path)
+    if not (sample / "radar").is_dir():
+        pytest.skip(f"RAFD_OXFORD_SAMPLE={path} holds no radar/ folder of native scans")
+    return sample

@@ -26,6 +26,7 @@ from typing import Any
 import cv2
 import numpy as np
 
+from rafd.data.native_folder import NativeSource
 from rafd.data.reader import RadarFrame
 from rafd.geometry import RADIATE_RESOLUTION, RADIATE_SCAN_SIZE
 from rafd.polar import RADIATE_AZIMUTHS, RADIATE_RANGE_BINS
@@ -58,14 +59,15 @@ class ClientFrame:
         return scan, encoded.tobytes()
 
     def posted_png(self, scan_png: bytes) -> bytes:
-        """The PNG to post: a RADIATE polar scan as it is on disk when it was converted to RADIATE's own grid (the
-        service converts it the same way, and the answer's pixels are that grid's); else the scan's PNG."""
-        polar = self.source.polar
-        if (
-            polar is not None
-            and polar.size == RADIATE_SCAN_SIZE
-            and polar.resolution == RADIATE_RESOLUTION
-            and _png_size(self.source.image_path) == (RADIATE_AZIMUTHS, RADIATE_RANGE_BINS)
+        """The PNG to post: a RADIATE polar scan or a native scan (Oxford, Boreas) as it is on disk when it was
+        converted to RADIATE's own grid (the service converts it the same way, and the answer's pixels are that
+        grid's); else the scan's PNG."""
+        source = self.source.polar
+        if source is None or source.size != RADIATE_SCAN_SIZE or source.resolution != RADIATE_RESOLUTION:
+            return scan_png
+        if isinstance(source, NativeSource) or _png_size(self.source.image_path) == (
+            RADIATE_AZIMUTHS,
+            RADIATE_RANGE_BINS,
         ):
             return self.source.image_path.read_bytes()
         return scan_png

@@ -24,7 +24,7 @@ from pathlib import Path
 import numpy as np
 
 from rafd.data.dataset import select_sequences
-from rafd.data.ego_motion import error_summary, estimate, pose_errors, write_poses
+from rafd.data.ego_motion import consecutive_pairs, error_summary, estimate, signed_errors, write_poses
 from rafd.data.parallel import default_workers
 from rafd.data.poses import POSES_FILE
 
@@ -47,8 +47,13 @@ def _parser() -> argparse.ArgumentParser:
     parser.add_argument(
         "--evaluate",
         action="store_true",
-        help=f"compare the estimates with each sequence's {POSES_FILE} (true poses) and print error statistics; "
-        "writes nothing",
+        help=f"compare the estimates with each sequence's true poses ({POSES_FILE}, or a native folder's ground-truth "
+        "odometry) and print error statistics over the pairs one scan period apart; writes nothing",
+    )
+    parser.add_argument(
+        "--per-pair",
+        action="store_true",
+        help="with --evaluate: also print every pair's signed error (x right, y forward, yaw CCW)",
     )
     return parser
 
@@ -58,14 +63,24 @@ def _fail(message: str) -> int:
     return 2
 
 
-def _evaluate(folders: list[Path]) -> int:
+def _evaluate(folders: list[Path], per_pair: bool) -> int:
     all_translation, all_yaw, all_seconds = [], [], []
     for seq_dir in folders:
         try:
-            numbers, _, _, relatives, seconds = estimate(seq_dir)
-            translation, yaw = pose_errors(seq_dir, numbers, relatives)
-        except (FileNotFoundError, ValueError) as error:
-            return _fail(str(error))
+            numbers, stamps, _, relatives, seconds = estimate(seq_dir)
+            error = signed_errors(seq_dir, numbers, relatives)
+        except (FileNotFoundError, ValueError) as failure:
+            return _fail(str(failure))
+        keep = consecutive_pairs(stamps)  # a pair across a gap in the recording is not one scan's step
+        if per_pair:
+            for k, (dx, dy, dyaw) in enumerate(error.tolist(), 1):
+                gap = "" if keep[k - 1] else "  (across a gap: not in the summary)"
+                print(
+                    f"{seq_dir} frames {numbers[k - 1]}-{numbers[k]}: error x {dx:+.3f} m, y {dy:+.3f} m, "
+                    f"yaw {np.rad2deg(dyaw):+.3f} deg{gap}"
+                )
+        translation, yaw = np.hypot(error[keep, 0], error[keep, 1]), np.abs(np.rad2deg(error[keep, 2]))
+        seconds = list(np.asarray(seconds)[keep])
         print(error_summary(str(seq_dir), translation, yaw, seconds))
         all_translation.append(translation)
         all_yaw.append(yaw)
@@ -95,7 +110,7 @@ def main(argv: list[str] | None = None) -> int:
     if args.evaluate:
         if args.out is not None:
             return _fail("--out is not used with --evaluate")
-        return _evaluate(folders)
+        return _evaluate(folders, args.per_pair)
     if args.out is not None:
         if len(folders) != 1:
             return _fail(f"--out takes one sequence, found {len(folders)}")

@@ -7,6 +7,9 @@ rafd-polar POLAR_SEQ --compare CARTESIAN_SEQ --fit
                                                 radar's pixel that best reproduce RADIATE's image (how
                                                 RADIATE_POLAR was set: frame 1's values, rounded)
 rafd-polar POLAR_SEQ --out DIR                  write DIR/Navtech_Cartesian/NNNNNN.png (+ the timestamps)
+rafd-polar NATIVE_SEQ --out DIR                 the same for native scans (Oxford Radar RobotCar, Boreas:
+                                                radar/<microseconds>.png), and DIR/ego_poses.csv from the
+                                                ground-truth odometry when the folder has it
 """
 
 from __future__ import annotations
@@ -21,7 +24,12 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from rafd.data.reader import POLAR_DIR, POLAR_TIMESTAMPS_FILE, load_image, read_timestamps
+from rafd.data.native_folder import NativeSource, is_native_folder
+from rafd.data.poses import POSES_FILE, write_ego_poses
+from rafd.data.reader import POLAR_DIR, POLAR_TIMESTAMPS_FILE, load_image, read_sequence, read_timestamps
+from rafd.geometry import RADIATE_SCAN_SIZE
+from rafd.native import read_native_scan
+from rafd.native import to_cartesian as native_to_cartesian
 from rafd.polar import NOMINAL_POLAR, RADIATE_POLAR, PolarConventions, polar_to_cartesian, scan_agreement
 
 FIT_STEPS = (0.25, 0.25, 0.5, 0.5)  # first step of (azimuth offset, range offset, centre u, centre v)
@@ -72,7 +80,11 @@ def build_parser() -> argparse.ArgumentParser:
         formatter_class=argparse.RawDescriptionHelpFormatter,
         epilog=__doc__,
     )
-    parser.add_argument("sequence", type=Path, help=f"folder holding {POLAR_DIR}/ and {POLAR_TIMESTAMPS_FILE}")
+    parser.add_argument(
+        "sequence",
+        type=Path,
+        help=f"folder holding {POLAR_DIR}/ and {POLAR_TIMESTAMPS_FILE}, or a native folder (radar/<microseconds>.png)",
+    )
     parser.add_argument("--compare", type=Path, help="RADIATE folder with the same frames' Navtech_Cartesian/")
     parser.add_argument("--fit", action="store_true", help="with --compare: fit the conventions on each frame")
     parser.add_argument("--out", type=Path, help="write the converted scans as DIR/Navtech_Cartesian/ + .txt")
@@ -86,8 +98,57 @@ def _fail(message: str) -> int:
     return 2
 
 
+def convert_native(args: argparse.Namespace) -> int:
+    """A native folder (rafd.data.native_folder) -> its scans on RADIATE's grid, timed, optionally written out."""
+    if args.compare is not None or args.fit:
+        return _fail(
+            "--compare and --fit compare RADIATE's polar scans with RADIATE's images; a native folder has none"
+        )
+    try:
+        sequence = read_sequence(args.sequence, estimate_poses=False)
+        source = sequence.frames[0].polar
+        assert isinstance(source, NativeSource)  # a native folder's frames convert through one
+        first = read_native_scan(sequence.frames[0].image_path, source.fmt)
+        size = args.size or RADIATE_SCAN_SIZE
+        scans = {
+            frame.number: native_to_cartesian(read_native_scan(frame.image_path, first.fmt), size)
+            for frame in sequence.frames
+        }
+    except (OSError, ValueError) as error:
+        return _fail(str(error))
+    seconds = []
+    for _ in range(max(1, args.repeats)):
+        start = time.perf_counter()
+        native_to_cartesian(first, size)
+        seconds.append(time.perf_counter() - start)
+    print(
+        f"conversion {first.power.shape[0]} azimuths x {first.range_bins} bins ({first.fmt.name}) -> {size} px: "
+        f"median {1e3 * float(np.median(seconds)):.2f} ms over {len(seconds)} runs (maps cached)"
+    )
+    if args.out is not None:
+        image_dir = args.out / "Navtech_Cartesian"
+        image_dir.mkdir(parents=True, exist_ok=True)
+        for number, scan in scans.items():
+            if not cv2.imwrite(str(image_dir / f"{number:06d}.png"), scan):
+                return _fail(f"could not write {image_dir / f'{number:06d}.png'}")
+        (args.out / "Navtech_Cartesian.txt").write_text(
+            "".join(f"Frame: {f.number:06d} Time: {f.timestamp_text}\n" for f in sequence.frames)
+        )
+        if sequence.poses is not None:
+            write_ego_poses(
+                args.out / POSES_FILE,
+                [f.number for f in sequence.frames],
+                [f.timestamp_text for f in sequence.frames],
+                sequence.poses,
+            )
+        print(f"wrote {len(scans)} scans to {image_dir}")
+    return 0
+
+
 def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
+    if is_native_folder(args.sequence):
+        return convert_native(args)
     try:
         listed = read_timestamps(args.sequence / POLAR_TIMESTAMPS_FILE)
         polars = {number: load_image(args.sequence / POLAR_DIR / f"{number:06d}.png") for number, _, _ in listed}

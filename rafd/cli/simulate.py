@@ -60,8 +60,9 @@ def _parser() -> argparse.ArgumentParser:
         type=Path,
         nargs="+",
         metavar="REAL_SEQ",
-        help="instead of writing: compare simulated scans with these real sequences' scans (no labels "
-        "used) and print the realism table (rafd.sim.realism)",
+        help="instead of writing: compare simulated scans with these real sequences' scans (no labels used) and print "
+        "the realism table (rafd.sim.realism), one pair of columns per real root (e.g. RADIATE's tiny_foggy and the "
+        "Oxford Radar RobotCar sample, read in its native layout)",
     )
     parser.add_argument(
         "--realism-sim",
@@ -165,7 +166,7 @@ def _realism(args: argparse.Namespace, difficulty: Difficulty) -> int:
     import json
 
     from rafd.sim.api import sequence_seed
-    from rafd.sim.realism import format_table, realism_table
+    from rafd.sim.realism import format_table, format_tables, realism_table
     from rafd.sim.sequence import run_simulation
 
     if args.realism_sim is not None and args.weather is not None:
@@ -173,7 +174,7 @@ def _realism(args: argparse.Namespace, difficulty: Difficulty) -> int:
             "--weather chooses the weather of the scans simulated here; --realism-sim reads scans already made"
         )
     try:
-        real = [scans for root in args.realism for scans in _sequences_of(root)]
+        references = {root.name: _sequences_of(root) for root in args.realism}
         if args.realism_sim is not None:
             simulated = _sequences_of(args.realism_sim)
         else:  # RADIATE-sized scans, a few consecutive frames from each of several drives
@@ -191,19 +192,25 @@ def _realism(args: argparse.Namespace, difficulty: Difficulty) -> int:
             ]
     except (FileNotFoundError, ValueError) as error:
         return _fail(str(error))
+    real = [scans for sequences in references.values() for scans in sequences]
     sizes = {scan.shape for scans in real + simulated for scan in scans}
     if sizes != {(RADIATE_SCAN_SIZE, RADIATE_SCAN_SIZE)}:
         return _fail(f"the realism measures compare {RADIATE_SCAN_SIZE} px RADIATE scans; got shapes {sorted(sizes)}")
     try:
-        rows = realism_table(real, simulated, seed=args.seed, classifier_steps=args.realism_steps)
+        tables = {
+            name: realism_table(sequences, simulated, seed=args.seed, classifier_steps=args.realism_steps)
+            for name, sequences in references.items()
+        }
     except ImportError:
         return _fail("the patch classifier needs torch: install the train extra")
     except ValueError as error:
         return _fail(str(error))
-    print(f"{sum(map(len, real))} real scans, {sum(map(len, simulated))} simulated scans")
-    print(format_table(rows))
+    counts = ", ".join(f"{sum(map(len, sequences))} real scans of {name}" for name, sequences in references.items())
+    print(f"{counts}; {sum(map(len, simulated))} simulated scans")
+    print(format_table(next(iter(tables.values()))) if len(tables) == 1 else format_tables(tables))
     if args.json is not None:
-        args.json.write_text(json.dumps([row.__dict__ for row in rows], indent=2))
+        payload = {name: [row.__dict__ for row in rows] for name, rows in tables.items()}
+        args.json.write_text(json.dumps(payload if len(tables) > 1 else next(iter(payload.values())), indent=2))
     return 0
 
 

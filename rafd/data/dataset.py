@@ -36,6 +36,7 @@ import numpy as np
 from rafd.config import RaFDConfig
 from rafd.data.augment import Augmentation, AugmentConfig
 from rafd.data.cache import CROPS_FILE, cache_folder, read_cached, required_crop
+from rafd.data.native_folder import NATIVE_DIR, is_native_folder
 from rafd.data.poses import POSES_FILE
 from rafd.data.reader import IMAGE_DIR, META_FILE, POLAR_DIR, read_meta, read_sequence
 from rafd.geometry import metres_to_pixels
@@ -84,23 +85,25 @@ def select_sequences(root: str | Path, split: str | Sequence[str] | None) -> tup
 
 
 def find_sequences(root: str | Path) -> list[Path]:
-    """Sequence folders (holding Navtech_Cartesian/, or only the polar scans Navtech_Polar/) at or under `root`,
-    sorted; FileNotFoundError if none."""
+    """Sequence folders (holding Navtech_Cartesian/, or only the polar scans Navtech_Polar/, or native scans in
+    radar/) at or under `root`, sorted; FileNotFoundError if none."""
     root = Path(root)
     if not root.is_dir():
         raise FileNotFoundError(f"data root {root} not found or not a directory")
     scan_dirs = {IMAGE_DIR, POLAR_DIR}
-    if any((root / name).is_dir() for name in scan_dirs):
+    if any((root / name).is_dir() for name in scan_dirs) or is_native_folder(root):
         return [root]
     found = []
     for current, folders, _ in os.walk(root):
-        if scan_dirs & set(folders):
+        if scan_dirs & set(folders) or (NATIVE_DIR in folders and is_native_folder(Path(current))):
             found.append(Path(current))
             folders[:] = []  # a sequence folder holds no further sequences
         else:
             folders.sort()
     if not found:
-        raise FileNotFoundError(f"no RADIATE sequence folders (with {IMAGE_DIR}/ or {POLAR_DIR}/) at or under {root}")
+        raise FileNotFoundError(
+            f"no sequence folders (with {IMAGE_DIR}/, {POLAR_DIR}/ or native {NATIVE_DIR}/) at or under {root}"
+        )
     return sorted(found)
 
 

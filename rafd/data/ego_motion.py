@@ -13,26 +13,39 @@ from pathlib import Path
 
 import numpy as np
 
-from rafd.data.odometry import estimate_relative_pose
+from rafd.data.native_folder import NativeSource
+from rafd.data.odometry import GAP_PERIODS, OdometryStream, SweepTiming
 from rafd.data.parallel import run_per_sequence
-from rafd.data.poses import POSES_FILE, read_ego_poses, write_ego_poses
-from rafd.data.reader import list_frames
+from rafd.data.poses import POSES_FILE, write_ego_poses
+from rafd.data.reader import FrameList, list_frames, read_sequence
 from rafd.geometry import compose_poses, relative_pose, wrap_angle
+from rafd.native import read_native_scan, to_cartesian
+
+
+def scan_and_timing(listing: FrameList, index: int) -> tuple[np.ndarray, SweepTiming | None]:
+    """A frame's Cartesian scan and, for native scans, its sweep's own timing (None: uniform, from the timestamps)."""
+    if isinstance(listing.polar, NativeSource):
+        scan = read_native_scan(listing.image_paths[index], listing.polar.fmt)
+        image = to_cartesian(scan, listing.polar.size, listing.polar.resolution)
+        return image, SweepTiming.of_native(scan.timestamps_us, scan.azimuths)
+    return listing.load(index), None  # a Cartesian scan (converted from the polar one in polar-only folders)
 
 
 def estimate(seq_dir: Path) -> tuple[list[int], list[str], np.ndarray, np.ndarray, list[float]]:
-    """-> (frame numbers, canonical timestamp texts, world poses [N, 3], relative poses [N-1, 3], seconds per pair)."""
+    """-> (frame numbers, canonical timestamp texts, world poses [N, 3], relative poses [N-1, 3], seconds per pair).
+    Motion-compensated from the scans' timestamps (rafd.data.odometry.OdometryStream)."""
     listing = list_frames(seq_dir)
     if len(listing.numbers) < 2:
         raise ValueError(f"{seq_dir} has {len(listing.numbers)} frame(s); odometry needs at least 2")
     relatives, seconds = [], []
-    previous = listing.load(0)
-    for index in range(1, len(listing.numbers)):
-        current = listing.load(index)  # a Cartesian scan (converted from the polar one in polar-only folders)
+    stream = OdometryStream(listing.resolution)
+    for index in range(len(listing.numbers)):
+        image, timing = scan_and_timing(listing, index)
         start = time.perf_counter()
-        relatives.append(estimate_relative_pose(previous, current, listing.resolution))
-        seconds.append(time.perf_counter() - start)
-        previous = current
+        relative = stream.add(image, listing.timestamps[index], timing)
+        if relative is not None:
+            relatives.append(relative)
+            seconds.append(time.perf_counter() - start)
     poses = [np.zeros(3)]
     for relative in relatives:
         poses.append(compose_poses(poses[-1], relative))
@@ -50,16 +63,32 @@ def prepare_poses(seq_dir: Path, out: Path | None, force: bool) -> tuple[str, in
 
 
 def pose_errors(seq_dir: Path, numbers: list[int], relatives: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Per-pair (translation error m, yaw error deg) against SEQ_DIR/ego_poses.csv."""
-    truth_table = read_ego_poses(seq_dir / POSES_FILE)
-    missing = [n for n in numbers if n not in truth_table]
+    """Per-pair (translation error m, yaw error deg) against the folder's true poses: its ego_poses.csv (the
+    simulator's), or a native folder's ground-truth odometry (Oxford's gt/radar_odometry.csv)."""
+    truth = signed_errors(seq_dir, numbers, relatives)
+    return np.hypot(truth[:, 0], truth[:, 1]), np.abs(np.rad2deg(truth[:, 2]))
+
+
+def signed_errors(seq_dir: Path, numbers: list[int], relatives: np.ndarray) -> np.ndarray:
+    """[N-1, 3] estimated minus true relative pose per pair (x m, y m, yaw rad wrapped), in the previous ego frame."""
+    sequence = read_sequence(seq_dir, estimate_poses=False)
+    if sequence.pose_source != "file" or sequence.poses is None:
+        raise ValueError(f"{seq_dir}: no true poses to compare with ({POSES_FILE} or a native folder's ground truth)")
+    by_number = sequence.poses_by_frame()
+    missing = [n for n in numbers if n not in by_number]
     if missing:
-        raise ValueError(f"{seq_dir / POSES_FILE}: no pose for frame {missing[0]}")
-    truth = np.stack([truth_table[n][1] for n in numbers])
+        raise ValueError(f"{seq_dir}: no true pose for frame {missing[0]}")
+    truth = np.stack([by_number[n] for n in numbers])
     true_relatives = np.stack([relative_pose(truth[k], truth[k - 1]) for k in range(1, len(truth))]).reshape(-1, 3)
-    translation = np.hypot(*(relatives[:, :2] - true_relatives[:, :2]).T)
-    yaw = np.abs(np.rad2deg(wrap_angle(relatives[:, 2] - true_relatives[:, 2])))
-    return translation, yaw
+    error = np.asarray(relatives, np.float64).reshape(-1, 3) - true_relatives
+    error[:, 2] = wrap_angle(error[:, 2])
+    return error
+
+
+def consecutive_pairs(timestamp_texts: Sequence[str]) -> np.ndarray:
+    """[N-1] bool: the pairs of scans one period apart (not across a gap in the recording, GAP_PERIODS)."""
+    dt = np.diff(np.array([float(text) for text in timestamp_texts]))
+    return dt <= GAP_PERIODS * float(np.median(dt)) if len(dt) else np.zeros(0, bool)
 
 
 def error_summary(label: str, translation: np.ndarray, yaw: np.ndarray, seconds: list[float]) -> str:

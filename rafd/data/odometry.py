@@ -35,7 +35,8 @@ from __future__ import annotations
 
 import logging
 import math
-from collections.abc import Iterable
+from collections.abc import Iterable, Sequence
+from dataclasses import dataclass
 
 import cv2
 import numpy as np
@@ -55,6 +56,12 @@ WHITENING = 0.5  # cross-power spectrum divided by |.|^this: 1 = phase correlati
 MAX_STEP_M = 8.0  # largest ego translation between consecutive scans (32 m/s at 4 Hz): bounds the peak search
 MAX_ECC_SHIFT_PX = 3.0  # ECC refinements further than this (fine pixels) from the search result are rejected
 MAX_ECC_YAW_DEG = 1.0  # ... or turning further than this
+PRIOR_YAW_WINDOW_DEG = 4.0  # coarse yaw search around the prior's yaw (the yaw rate changes less per scan)
+# A de-skewed pair is registered again with its own motion when it turned or moved this much more than the velocity
+# it was de-skewed with (the onset of a turn, a hard brake): the sweep's smear then changes visibly.
+REDESKEW_YAW_DEG = 0.5
+REDESKEW_SHIFT_M = 0.2
+GAP_PERIODS = 1.5  # a pair further apart than this many scan periods starts without a prior
 
 
 def _level_size(size: int, largest: int) -> int:
@@ -223,47 +230,271 @@ def _refine_yaw(previous: np.ndarray, current: np.ndarray, warp: np.ndarray) -> 
     return float(moved[2] + start[2])
 
 
+# ---------------------------------------------------------------- the sweep's timing and de-skewing
+@dataclass(frozen=True)
+class SweepTiming:
+    """When each azimuth of a scan was measured, relative to the time the scan's pose refers to.
+
+    A Navtech scan is one clockwise sweep from straight ahead: azimuth theta (radians clockwise from forward) is
+    measured `reference_fraction` sweeps before ... after the scan's reference time. Native scans (Oxford, Boreas)
+    carry every azimuth's timestamp (`azimuths`, `seconds`: from the first azimuth) and refer to their first azimuth;
+    RADIATE-format scans carry none: a uniform sweep over the period between scans is assumed, referred to its middle
+    (the simulator's convention; RADIATE does not document where in the sweep its timestamps fall).
+    """
+
+    period_s: float  # one rotation
+    reference_fraction: float = 0.5  # where in the sweep the scan's timestamp (and pose) lies: 0 start, 0.5 middle
+    azimuths: np.ndarray | None = None  # [A] radians clockwise from forward, increasing (native scans)
+    seconds: np.ndarray | None = None  # [A] seconds from the first azimuth (native scans)
+
+    @classmethod
+    def of_native(cls, timestamps_us: np.ndarray, azimuths: np.ndarray) -> SweepTiming:
+        """A native scan's own timing (rafd.native.NativeScan.timestamps_us / .azimuths), referred to its first
+        azimuth (the time the datasets name the scan by)."""
+        seconds = (np.asarray(timestamps_us, np.int64) - int(timestamps_us[0])) * 1e-6
+        azimuths = np.asarray(azimuths, np.float64)
+        step = (seconds[-1] - seconds[0]) / max(1, len(seconds) - 1)
+        return cls(float(seconds[-1] + step), 0.0, azimuths, seconds)
+
+    def offsets(self, theta: np.ndarray) -> np.ndarray:
+        """Azimuths theta [...] (radians clockwise from forward, in [0, 2 pi)) -> seconds after the reference time."""
+        if self.azimuths is None or self.seconds is None:
+            return (theta / (2.0 * np.pi) - self.reference_fraction) * self.period_s
+        # an azimuth before the first measured one (the seam) is measured at the very end of the sweep
+        turn = np.where(theta < self.azimuths[0], theta + 2.0 * np.pi, theta)
+        azimuths = np.append(self.azimuths, self.azimuths[0] + 2.0 * np.pi)
+        seconds = np.append(self.seconds, self.period_s)
+        return np.interp(turn, azimuths, seconds) - self.reference_fraction * self.period_s
+
+
+class _SweepGrid:
+    """Per working pixel of a level: metres (x right, y forward) and azimuth clockwise from forward (cached)."""
+
+    _cache: dict[tuple[int, float], _SweepGrid] = {}
+
+    def __init__(self, size: int, resolution: float) -> None:
+        centre = (size - 1) / 2.0
+        coords = (np.arange(size, dtype=np.float64) - centre) * resolution
+        self.x, self.y = np.meshgrid(coords, -coords, indexing="xy")  # [n, n] metres
+        self.theta = np.mod(np.arctan2(self.x, self.y), 2.0 * np.pi)  # [n, n] clockwise from forward
+        self.centre, self.resolution = centre, resolution
+
+    @classmethod
+    def get(cls, size: int, resolution: float) -> _SweepGrid:
+        key = (size, float(resolution))
+        if key not in cls._cache:
+            cls._cache[key] = cls(size, resolution)
+        return cls._cache[key]
+
+
+def deskew(image: np.ndarray, resolution: float, velocity: np.ndarray, timing: SweepTiming) -> np.ndarray:
+    """Undo the ego motion during the sweep: [n, n] level image -> the scene as seen from the pose at the reference
+    time. `velocity` (vx, vy m/s in the ego frame, yaw rate rad/s) is taken constant over the sweep: a point measured
+    tau seconds after the reference, at q in the sensor frame of that moment, lies at R(w tau) q + v tau in the
+    reference frame, so the de-skewed image at p samples the scan at q = R(-w tau)(p - v tau), with tau read at q's
+    azimuth (one fixed-point step from p's)."""
+    grid = _SweepGrid.get(image.shape[0], resolution)
+    vx, vy, w = (float(v) for v in velocity)
+    q_x, q_y = grid.x, grid.y
+    tau = timing.offsets(grid.theta)
+    for _ in range(2):
+        angle = -w * tau
+        c, s = np.cos(angle), np.sin(angle)
+        p_x, p_y = grid.x - vx * tau, grid.y - vy * tau
+        q_x, q_y = c * p_x - s * p_y, s * p_x + c * p_y
+        tau = timing.offsets(np.mod(np.arctan2(q_x, q_y), 2.0 * np.pi))
+    map_x = (q_x / resolution + grid.centre).astype(np.float32)
+    map_y = (grid.centre - q_y / resolution).astype(np.float32)
+    return cv2.remap(image, map_x, map_y, cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT, borderValue=0)
+
+
+# ---------------------------------------------------------------- one stream's odometry
+@dataclass
+class PreparedScan:
+    """One scan's registration levels, prepared once and reused as the next pair's previous scan."""
+
+    coarse: np.ndarray  # [n_c, n_c] structure image
+    fine: np.ndarray  # [n_f, n_f]
+    size: int  # side of the scan it was made from
+    timing: SweepTiming | None = None
+    velocity: np.ndarray | None = None  # the motion its de-skewed levels undo (m/s, m/s, rad/s)
+    deskewed: tuple[np.ndarray, np.ndarray] | None = None  # (coarse, fine) with `velocity` undone
+
+    def levels(self) -> tuple[np.ndarray, np.ndarray]:
+        return self.deskewed if self.deskewed is not None else (self.coarse, self.fine)
+
+
+class Odometer:
+    """Radar odometry between consecutive scans of one stream, motion-compensated.
+
+    prepare() makes a scan's registration levels once; estimate(previous, current, dt, prior) registers a pair. With
+    sweep timings, each scan is de-skewed (rafd.data.odometry.deskew) with its ego velocity before registering: the
+    velocity comes from the prior (the previous pair's motion: constant velocity) and is re-estimated from the pair's
+    own registration, then the pair is registered again de-skewed, so the pose refers to the scans' reference times
+    and turns no longer smear the scans. Without a prior (a stream's first pair) the raw scans are registered first.
+    """
+
+    def __init__(self, resolution: float, refine: bool = True) -> None:
+        if not (math.isfinite(resolution) and resolution > 0):
+            raise ValueError(f"resolution must be a positive number of metres per pixel, got {resolution}")
+        self.resolution = resolution
+        self.refine = refine
+
+    def _levels(self, size: int) -> tuple[_Level, _Level]:
+        return _Level.get(size, COARSE_SIZE, self.resolution), _Level.get(size, FINE_SIZE, self.resolution)
+
+    def prepare(self, image: np.ndarray, timing: SweepTiming | None = None) -> PreparedScan:
+        """[S, S] scan (uint8 or float, radar at the centre) -> its levels."""
+        image = np.asarray(image)
+        if image.ndim != 2 or image.shape[0] != image.shape[1]:
+            raise ValueError(f"odometry needs a square scan, got shape {image.shape}")
+        coarse, fine = self._levels(int(image.shape[0]))
+        return PreparedScan(coarse.prepare(image), fine.prepare(image), int(image.shape[0]), timing)
+
+    def _deskewed(self, scan: PreparedScan, velocity: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        assert scan.timing is not None
+        if scan.deskewed is None or scan.velocity is None or not np.array_equal(scan.velocity, velocity):
+            coarse, fine = self._levels(scan.size)
+            scan.velocity = np.array(velocity, dtype=np.float64)
+            scan.deskewed = (
+                deskew(scan.coarse, coarse.resolution, velocity, scan.timing),
+                deskew(scan.fine, fine.resolution, velocity, scan.timing),
+            )
+        return scan.deskewed
+
+    def register(
+        self,
+        previous: tuple[np.ndarray, np.ndarray],
+        current: tuple[np.ndarray, np.ndarray],
+        size: int,
+        expected_yaw: float | None = None,
+    ) -> np.ndarray:
+        """Levels of two scans -> [3] pose of the current ego in the previous ego frame (the correlative search).
+        `expected_yaw` (the prior's) narrows the coarse yaw search to +-PRIOR_YAW_WINDOW_DEG around it; a best yaw
+        on the window's edge falls back to the whole +-MAX_YAW_DEG."""
+        coarse, fine = self._levels(size)
+        (prev_coarse, prev_fine), (cur_coarse, cur_fine) = previous, current
+        if not (prev_fine.any() and cur_fine.any()):
+            log.warning("odometry: a scan holds no structure (blank image); returning zero motion")
+            return np.zeros(3)
+        max_shift = MAX_STEP_M / fine.resolution
+        full = np.deg2rad(np.arange(-MAX_YAW_DEG, MAX_YAW_DEG + 1e-9, COARSE_STEP_DEG))
+        yaws = full
+        if expected_yaw is not None:
+            window = np.deg2rad(np.arange(-PRIOR_YAW_WINDOW_DEG, PRIOR_YAW_WINDOW_DEG + 1e-9, COARSE_STEP_DEG))
+            yaws = expected_yaw + window
+        yaw, _, _ = _search_rotation(prev_coarse, cur_coarse, yaws, MAX_STEP_M / coarse.resolution)
+        if expected_yaw is not None and abs(yaw - expected_yaw) > np.deg2rad(PRIOR_YAW_WINDOW_DEG - COARSE_STEP_DEG):
+            yaw, _, _ = _search_rotation(prev_coarse, cur_coarse, full, MAX_STEP_M / coarse.resolution)
+        steps = np.deg2rad(np.arange(-1, 2) * FINE_STEP_DEG)
+        yaw, shift, _ = _search_rotation(prev_fine, cur_fine, yaw + steps, max_shift)
+        if self.refine:
+            refined = _refine_yaw(prev_fine, cur_fine, _shift_to_warp(yaw, shift, fine.work))
+            if refined is not None:
+                yaw = refined
+            _, shift, _ = _search_rotation(prev_fine, cur_fine, np.array([yaw]), max_shift)  # the shift at that yaw
+        return warp_to_pose(_shift_to_warp(yaw, shift, fine.work), fine.work, fine.resolution)
+
+    def estimate(
+        self, previous: PreparedScan, current: PreparedScan, dt: float | None = None, prior: np.ndarray | None = None
+    ) -> np.ndarray:
+        """[3] pose (x m, y m, yaw rad) of the current ego in the previous ego frame. With both scans' timings and the
+        time between them `dt`, motion-compensated (the class docstring); `prior`: the previous pair's pose."""
+        if previous.size != current.size:
+            raise ValueError(f"odometry needs two scans of the same size, got {previous.size} and {current.size}")
+        compensate = previous.timing is not None and current.timing is not None and dt is not None and dt > 0
+        if not compensate:
+            return self.register((previous.coarse, previous.fine), (current.coarse, current.fine), current.size)
+        assert dt is not None
+        if prior is None:  # no motion known yet: the raw scans give the first estimate
+            prior = self.register((previous.coarse, previous.fine), (current.coarse, current.fine), current.size)
+        used = np.asarray(prior, dtype=np.float64)
+        pose = self.register(
+            self._deskewed(previous, used / dt), self._deskewed(current, used / dt), current.size, float(used[2])
+        )
+        change = pose - used
+        if abs(np.rad2deg(change[2])) > REDESKEW_YAW_DEG or np.hypot(change[0], change[1]) > REDESKEW_SHIFT_M:
+            pose = self.register(
+                self._deskewed(previous, pose / dt), self._deskewed(current, pose / dt), current.size, float(pose[2])
+            )
+        return pose
+
+
 def estimate_relative_pose(
-    previous: np.ndarray, current: np.ndarray, resolution: float, refine: bool = True
+    previous: np.ndarray,
+    current: np.ndarray,
+    resolution: float,
+    refine: bool = True,
+    timings: tuple[SweepTiming, SweepTiming] | None = None,
+    dt: float | None = None,
 ) -> np.ndarray:
     """[S, S] previous and current scans (uint8 or float, radar at the centre, any square size) -> [3] pose
     (x m, y m, yaw rad) of the current ego in the previous ego frame. refine=False skips ECC (faster, ~2x the yaw
-    error)."""
+    error). With both scans' sweep timings and the time between them, motion-compensated (Odometer)."""
     previous, current = np.asarray(previous), np.asarray(current)
     if previous.ndim != 2 or previous.shape[0] != previous.shape[1] or previous.shape != current.shape:
         raise ValueError(f"odometry needs two square scans of the same size, got {previous.shape} and {current.shape}")
-    if not (math.isfinite(resolution) and resolution > 0):
-        raise ValueError(f"resolution must be a positive number of metres per pixel, got {resolution}")
-    size = int(previous.shape[0])
-    coarse, fine = _Level.get(size, COARSE_SIZE, resolution), _Level.get(size, FINE_SIZE, resolution)
-    prev_fine, cur_fine = fine.prepare(previous), fine.prepare(current)
-    if not (prev_fine.any() and cur_fine.any()):
-        log.warning("odometry: a scan holds no structure (blank image); returning zero motion")
-        return np.zeros(3)
-    max_shift = MAX_STEP_M / fine.resolution
-    # Coarse: every yaw in +-MAX_YAW_DEG; fine: around the coarse optimum.
-    yaws = np.deg2rad(np.arange(-MAX_YAW_DEG, MAX_YAW_DEG + 1e-9, COARSE_STEP_DEG))
-    yaw, _, _ = _search_rotation(
-        coarse.prepare(previous), coarse.prepare(current), yaws, MAX_STEP_M / coarse.resolution
-    )
-    yaw, shift, _ = _search_rotation(prev_fine, cur_fine, yaw + np.deg2rad(np.arange(-1, 2) * FINE_STEP_DEG), max_shift)
-    if refine:
-        refined = _refine_yaw(prev_fine, cur_fine, _shift_to_warp(yaw, shift, fine.work))
-        if refined is not None:
-            yaw = refined
-        _, shift, _ = _search_rotation(prev_fine, cur_fine, np.array([yaw]), max_shift)  # the shift at that yaw
-    return warp_to_pose(_shift_to_warp(yaw, shift, fine.work), fine.work, fine.resolution)
+    odometer = Odometer(resolution, refine)
+    prev_timing, cur_timing = timings if timings is not None else (None, None)
+    return odometer.estimate(odometer.prepare(previous, prev_timing), odometer.prepare(current, cur_timing), dt)
 
 
-def estimate_sequence_poses(images: Iterable[np.ndarray], resolution: float) -> np.ndarray:
+class OdometryStream:
+    """The odometry of one stream of scans: add() each scan in time order -> its pose in the previous scan's frame.
+
+    Keeps the previous scan's prepared (and de-skewed) levels and the previous pair's motion as the next pair's prior,
+    so each scan is prepared once and each pair registered once in the usual case (Odometer). Scans without a
+    timestamp are registered raw; with timestamps, motion-compensated over a uniform sweep of the period between
+    scans, or over the scan's own `timing` (native scans). After a gap longer than GAP_PERIODS periods the prior is
+    dropped (the motion may have changed)."""
+
+    def __init__(self, resolution: float, refine: bool = True) -> None:
+        self.odometer = Odometer(resolution, refine)
+        self.previous: PreparedScan | None = None
+        self.previous_time: float | None = None
+        self.prior: np.ndarray | None = None
+        self.period: float | None = None  # typical time between scans, from the first pair on
+
+    def add(
+        self, image: np.ndarray, timestamp: float | None = None, timing: SweepTiming | None = None
+    ) -> np.ndarray | None:
+        """One scan -> [3] its ego pose in the previous scan's ego frame (None for the first scan)."""
+        dt = None
+        if timestamp is not None and self.previous_time is not None:
+            dt = float(timestamp - self.previous_time)
+            if dt <= 0:
+                raise ValueError(f"scan timestamps must increase: {timestamp} after {self.previous_time}")
+        gap = dt is not None and self.period is not None and dt > GAP_PERIODS * self.period
+        if dt is not None and not gap:
+            self.period = dt if self.period is None else self.period
+        if timing is None and timestamp is not None and self.period is not None:
+            timing = SweepTiming(self.period)
+        current = self.odometer.prepare(image, timing)
+        if self.previous is not None and self.previous.timing is None and timing is not None and self.period:
+            self.previous.timing = SweepTiming(self.period)  # the first scan's sweep, known once a period is
+        relative = None
+        if self.previous is not None:
+            relative = self.odometer.estimate(self.previous, current, dt, None if gap else self.prior)
+            self.prior = relative
+        self.previous, self.previous_time = current, timestamp
+        return relative
+
+
+def estimate_sequence_poses(
+    images: Iterable[np.ndarray],
+    resolution: float,
+    timestamps: Sequence[float] | None = None,
+    timings: Iterable[SweepTiming | None] | None = None,
+) -> np.ndarray:
     """N scans (any iterable, consumed once: a generator keeps one pair in memory) -> [N, 3] world poses by
-    chaining consecutive relative poses; the first pose is (0, 0, 0)."""
+    chaining consecutive relative poses (OdometryStream); the first pose is (0, 0, 0). With the scans' `timestamps`
+    (seconds) the motion is compensated (uniform sweeps over the period between scans unless `timings` give each
+    scan's own)."""
+    stream = OdometryStream(resolution)
     poses: list[np.ndarray] = []
-    previous = None
-    for image in images:
-        if previous is None:
-            poses.append(np.zeros(3))
-        else:
-            poses.append(compose_poses(poses[-1], estimate_relative_pose(previous, image, resolution)))
-        previous = image
+    timing_iter = iter(timings) if timings is not None else None
+    for index, image in enumerate(images):
+        timing = next(timing_iter) if timing_iter is not None else None
+        relative = stream.add(image, None if timestamps is None else float(timestamps[index]), timing)
+        poses.append(np.zeros(3) if relative is None else compose_poses(poses[-1], relative))
     return np.array(poses, dtype=np.float64).reshape(-1, 3)

@@ -5,6 +5,8 @@ Folder layout (RADIATE's, docs/data.md):
     Navtech_Cartesian.txt              `Frame: 000001 Time: 1574859771.744660272`, one line per scan
     Navtech_Polar/000001.png ...       or, instead of the two above, the sensor's polar scans uint8 [576, 400]
     Navtech_Polar.txt                  (+ their timestamps), converted to the Cartesian grid on load (rafd.polar)
+    radar/<microseconds>.png ...       or the scans in the sensor's native layout (Oxford Radar RobotCar, Boreas;
+                                       rafd.data.native_folder), converted on load (rafd.native)
     annotations/annotations.json      [{"id", "class_name", "bboxes"}], bboxes[k] = frame k + 1 ([] if absent)
     meta.json                          {"name", "set" (the split), ...; simulated: "image_size", "resolution"}
     ego_poses.csv                      optional, ours (rafd.data.poses): frame, timestamp, x, y, yaw
@@ -33,8 +35,18 @@ from pathlib import Path
 import cv2
 import numpy as np
 
+from rafd.data.native_folder import (
+    GROUND_TRUTH_ODOMETRY,
+    NativeSource,
+    check_native_png,
+    is_native_folder,
+    list_native_scans,
+    microseconds_text,
+    native_format_of,
+    read_ground_truth_odometry,
+)
 from rafd.data.poses import POSES_FILE, read_ego_poses
-from rafd.geometry import RADIATE_RESOLUTION, radiate_polygon, radiate_to_box
+from rafd.geometry import RADIATE_RESOLUTION, RADIATE_SCAN_SIZE, radiate_polygon, radiate_to_box
 from rafd.polar import RADIATE_POLAR, cartesian_size, polar_to_cartesian
 
 log = logging.getLogger(__name__)
@@ -84,7 +96,7 @@ class RadarFrame:
     timestamp: float  # UNIX seconds
     image_path: Path  # the Cartesian scan, or the polar scan when `polar` is set
     objects: list[RadarObject] = field(default_factory=list)
-    polar: PolarSource | None = None  # set for polar-only folders: load() converts image_path
+    polar: PolarSource | NativeSource | None = None  # set for polar-only and native folders: load() converts
     timestamp_text: str = ""  # canonical 'seconds.nnnnnnnnn' (parse_radiate_time): the exact time, all 9 digits
 
     @property
@@ -384,7 +396,7 @@ class FrameList:
     image_size: int  # pixels per side of the (converted) Cartesian scans
     resolution: float
     meta: dict
-    polar: PolarSource | None = None  # set for polar-only folders: load() converts
+    polar: PolarSource | NativeSource | None = None  # set for polar-only and native folders: load() converts
 
     def load(self, index: int) -> np.ndarray:
         """uint8 [S, S] Cartesian scan of image_paths[index] (converted from the polar scan in polar-only folders)."""
@@ -407,6 +419,8 @@ def list_frames(path: str | Path) -> FrameList:
             f"sequence folder {folder} not found (expected {folder / TIMESTAMPS_FILE} and {folder / IMAGE_DIR}/, "
             f"or {POLAR_TIMESTAMPS_FILE} and {POLAR_DIR}/)"
         )
+    if is_native_folder(folder):
+        return _list_native_frames(folder)
     polar_only = is_polar_only(folder)
     timestamps_path = folder / (POLAR_TIMESTAMPS_FILE if polar_only else TIMESTAMPS_FILE)
     listed = read_timestamps(timestamps_path)
@@ -446,6 +460,30 @@ def list_frames(path: str | Path) -> FrameList:
     )
 
 
+def _list_native_frames(folder: Path) -> FrameList:
+    """A native folder (rafd.data.native_folder): scans numbered 1..N in time order, converted to RADIATE's grid."""
+    scans = list_native_scans(folder)
+    meta = read_meta(folder / META_FILE)
+    for _, path in scans[:1]:
+        check_native_png(path, *png_size(path))
+    image_size = meta.get("image_size", RADIATE_SCAN_SIZE)
+    if isinstance(image_size, bool) or not isinstance(image_size, int) or image_size < 2 or image_size % 2:
+        raise ValueError(f"{folder / META_FILE}: image_size must be an even number of pixels, got {image_size!r}")
+    source = NativeSource(native_format_of(meta, scans[0][0]), image_size, RADIATE_RESOLUTION)
+    texts = [microseconds_text(us) for us, _ in scans]
+    return FrameList(
+        folder,
+        list(range(1, len(scans) + 1)),
+        [float(text) for text in texts],
+        texts,
+        [path for _, path in scans],
+        image_size,
+        RADIATE_RESOLUTION,
+        meta,
+        source,
+    )
+
+
 def read_sequence(path: str | Path, estimate_poses: bool = True) -> RadarSequence:
     """One RADIATE sequence folder -> RadarSequence. estimate_poses=False skips odometry when the folder has no
     ego_poses.csv (poses None, pose_source None): for tools that only need frames and annotations."""
@@ -468,8 +506,12 @@ def read_sequence(path: str | Path, estimate_poses: bool = True) -> RadarSequenc
     poses_path = folder / POSES_FILE
     poses: np.ndarray | None = None
     pose_source: str | None = None
+    ground_truth = folder / GROUND_TRUTH_ODOMETRY
     if poses_path.exists():
         poses, pose_source = _file_poses(poses_path, numbers, stamps), "file"
+    elif isinstance(listing.polar, NativeSource) and ground_truth.is_file():
+        microseconds = [int(text.replace(".", "")) // 1000 for text in listing.timestamp_texts]
+        poses, pose_source = read_ground_truth_odometry(ground_truth, microseconds), "file"
     elif estimate_poses:
         from rafd.data.odometry import estimate_sequence_poses  # opencv only; imported here to keep the reader light
 

@@ -21,7 +21,7 @@ cv2.warpPolar (one sample per pixel along range, 1440 azimuths).
 from __future__ import annotations
 
 import math
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 
 import cv2
@@ -295,4 +295,18 @@ def format_table(rows: Sequence[Row]) -> str:
     for row in rows:
         unit = f" {row.unit}" if row.unit else ""
         lines.append(f"| {row.name} | {row.real} | {row.simulated} | {row.distance:.3f}{unit} |")
+    return "\n".join(lines)
+
+
+def format_tables(tables: Mapping[str, Sequence[Row]]) -> str:
+    """Several references against the same simulated scans, side by side: per reference its real value and the
+    simulated scans' distance to it (the simulated value is the same for every reference)."""
+    names = list(tables)
+    first = list(tables[names[0]])
+    header = "| measure | simulated | " + " | ".join(f"{n} | distance to {n}" for n in names) + " |"
+    lines = [header, "|" + "---|" * (2 + 2 * len(names))]
+    for index, row in enumerate(first):
+        unit = f" {row.unit}" if row.unit else ""
+        cells = " | ".join(f"{tables[n][index].real} | {tables[n][index].distance:.3f}{unit}" for n in names)
+        lines.append(f"| {row.name} | {row.simulated} | {cells} |")
     return "\n".join(lines)

@@ -6,7 +6,7 @@ from fastapi import APIRouter, Depends
 
 from service.dependencies import get_service
 from service.detector import DetectService
-from service.images import POLAR_SHAPE, accepts_polar
+from service.images import POLAR_SHAPE, accepts_polar, native_description
 from service.schemas import ModelInfo, RuntimeOut
 
 router = APIRouter(tags=["model"])
@@ -27,6 +27,7 @@ async def model_info(service: DetectService = Depends(get_service)) -> ModelInfo
         accepted_image_sizes=list(service.accepted_sizes),
         # a Navtech_Polar scan [range rows, azimuth columns] is accepted where a full RADIATE scan is
         accepted_polar_shape=list(POLAR_SHAPE) if accepts_polar(cfg.input_size, cfg.resolution) else None,
+        accepted_native=native_description() if accepts_polar(cfg.input_size, cfg.resolution) else None,
         score_threshold=service.score_threshold,
         # how the graph runs: runtime, precision, threads per run, concurrent runs, start-up timings
         runtime=RuntimeOut.model_validate(service.runner.describe()),

@@ -49,7 +49,7 @@ def test_discovery_split_filter_and_window_counts(root: Path, caplog: pytest.Log
     with caplog.at_level(logging.WARNING, logger="rafd.data.dataset"):
         assert len(RadarWindowDataset(root, split="train_good_and_bad_weather", cfg=CFG)) == 0
     assert "splits found" in caplog.text
-    with pytest.raises(FileNotFoundError, match="no RADIATE sequence"):
+    with pytest.raises(FileNotFoundError, match="no sequence folders"):
         RadarWindowDataset(root / "good" / "sim_31_0" / "annotations", split=None, cfg=CFG)
 
 

@@ -1,0 +1,181 @@
+"""Navtech scans in the sensor's own polar layout, as the Oxford Radar RobotCar and Boreas datasets store them, and
+their conversion to RADIATE's Cartesian grid (torch-free; part of the one preprocessing path, rafd.preprocess).
+
+One PNG per scan, 8-bit grey, one row per azimuth (400 per turn):
+    columns 0-7    the azimuth's timestamp, int64 UNIX microseconds, little-endian bytes
+    columns 8-9    the encoder angle, uint16 (5600 counts per turn)
+    column 10      valid flag (255: measured; else interpolated by the dataset from its neighbours)
+    columns 11-    the range bins, power as 8-bit grey; bin i covers [i, i + 1) bin sizes from the radar (sampled at
+                   its centre, as the datasets' SDKs convert them)
+
+Conventions, established on the 13 real Oxford scans of `oxford_radar_sample` (docs/data.md "Native polar scans";
+tests/rafd/test_native.py checks them on the sample): the encoder angle counts CLOCKWISE seen from above from the
+vehicle's forward direction (angle 0 = straight ahead = image up, a quarter turn = right), the radar sits at the centre
+of the converted image, and the azimuths are swept in row order (timestamps increase with the encoder angle).
+Established by radar odometry between consecutive converted scans against the dataset's ground-truth radar odometry:
+under this convention the estimated motion agrees in sign and size with the ground truth on every pair (forward
+0.9-2.5 m per scan); read counter-clockwise the estimated yaw has the opposite sign of the truth, read with forward
+at azimuth 180 degrees the forward motion has.
+
+Formats (NATIVE_FORMATS, overridable by passing a NativeFormat): the range bin size per dataset; the number of range
+bins and azimuths is read from the PNG itself.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from pathlib import Path
+
+import cv2
+import numpy as np
+
+from rafd.geometry import RADIATE_RESOLUTION, RADIATE_SCAN_SIZE
+from rafd.polar import RADIATE_RANGE_BINS, PolarConventions, polar_to_cartesian
+
+HEADER_COLUMNS = 11  # 8 timestamp bytes + 2 encoder bytes + 1 valid flag
+RADIATE_MAX_RANGE_M = RADIATE_RANGE_BINS * RADIATE_RESOLUTION  # 100 m: RADIATE's scans end there
+ENCODER_COUNTS = 5600  # encoder counts per turn (Navtech CTS350-X and CIR304-H)
+
+
+@dataclass(frozen=True)
+class NativeFormat:
+    """What the PNG does not say about a dataset's scans."""
+
+    name: str
+    range_bin_m: float  # metres per range bin
+    encoder_counts: int = ENCODER_COUNTS
+    description: str = ""
+
+    def __post_init__(self) -> None:
+        if not (math.isfinite(self.range_bin_m) and self.range_bin_m > 0):
+            raise ValueError(f"range_bin_m must be a positive number of metres, got {self.range_bin_m}")
+        if self.encoder_counts < 1:
+            raise ValueError(f"encoder_counts must be >= 1, got {self.encoder_counts}")
+
+
+# The documented table. Boreas changed its radar's range resolution on 2021-09-21 (pyboreas' upgrade time
+# 1632182400): scans before it use `boreas`, after it `boreas-2021`.
+NATIVE_FORMATS: dict[str, NativeFormat] = {
+    fmt.name: fmt
+    for fmt in (
+        NativeFormat("oxford", 0.0432, description="Oxford Radar RobotCar, Navtech CTS350-X: 3768 bins (163 m)"),
+        NativeFormat("boreas", 0.0596, description="Boreas, Navtech CIR304-H, until 2021-09-21"),
+        NativeFormat("boreas-2021", 0.04381, description="Boreas, Navtech CIR304-H, from 2021-09-21"),
+    )
+}
+BOREAS_UPGRADE_US = 1_632_182_400_000_000  # pyboreas' upgrade time, UNIX microseconds
+
+
+def format_for(name: str | NativeFormat, timestamp_us: int | None = None) -> NativeFormat:
+    """A format by name ("oxford", "boreas", "boreas-2021"; "boreas" picks by the scan's time when it is given)."""
+    if isinstance(name, NativeFormat):
+        return name
+    if name == "boreas" and timestamp_us is not None and timestamp_us > BOREAS_UPGRADE_US:
+        name = "boreas-2021"
+    if name not in NATIVE_FORMATS:
+        raise ValueError(f"unknown native scan format {name!r}; known: {sorted(NATIVE_FORMATS)}")
+    return NATIVE_FORMATS[name]
+
+
+@dataclass(frozen=True)
+class NativeScan:
+    """One native scan, decoded."""
+
+    timestamps_us: np.ndarray  # int64 [A] UNIX microseconds of each azimuth
+    encoder: np.ndarray  # int64 [A] encoder angle of each azimuth (counts)
+    valid: np.ndarray  # bool [A]
+    power: np.ndarray  # uint8 [A, R]
+    fmt: NativeFormat
+
+    @property
+    def timestamp_us(self) -> int:
+        """The scan's timestamp: its first azimuth's (the datasets name each file after it)."""
+        return int(self.timestamps_us[0])
+
+    @property
+    def azimuths(self) -> np.ndarray:
+        """float64 [A] radians clockwise from forward, unwrapped so that they increase through the sweep."""
+        turns = self.encoder.astype(np.float64) / self.fmt.encoder_counts
+        return np.unwrap(turns * 2.0 * np.pi)
+
+    @property
+    def range_bins(self) -> int:
+        return int(self.power.shape[1])
+
+
+def is_native_shape(width: int, height: int) -> bool:
+    """Whether a PNG of this size can be a native scan: some hundreds of azimuth rows, far more range columns."""
+    return 100 <= height <= 1000 and width > HEADER_COLUMNS + 2 * height
+
+
+def parse_native_scan(image: np.ndarray, fmt: str | NativeFormat = "oxford") -> NativeScan:
+    """uint8 [A, 11 + R] native PNG pixels -> NativeScan; ValueError when the rows do not read as a scan."""
+    image = np.asarray(image)
+    if image.dtype != np.uint8 or image.ndim != 2 or image.shape[1] <= HEADER_COLUMNS:
+        raise ValueError(f"a native scan is uint8 [azimuths, 11 + range bins], got {image.dtype} {image.shape}")
+    header = np.ascontiguousarray(image[:, :HEADER_COLUMNS])
+    timestamps = header[:, :8].copy().view("<i8").ravel().astype(np.int64)
+    encoder = header[:, 8:10].copy().view("<u2").ravel().astype(np.int64)
+    fmt = format_for(fmt, int(timestamps[0]))
+    if np.any(np.diff(timestamps) < 0):
+        raise ValueError("the native scan's azimuth timestamps decrease (not a native scan, or a corrupt one)")
+    if np.any(encoder >= fmt.encoder_counts):
+        raise ValueError(f"encoder angles reach {int(encoder.max())}, beyond {fmt.encoder_counts} counts per turn")
+    return NativeScan(timestamps, encoder, header[:, 10] == 255, np.ascontiguousarray(image[:, HEADER_COLUMNS:]), fmt)
+
+
+def read_native_scan(path: str | Path, fmt: str | NativeFormat = "oxford") -> NativeScan:
+    """A native scan PNG file -> NativeScan (FileNotFoundError / ValueError naming the file)."""
+    path = Path(path)
+    if not path.is_file():
+        raise FileNotFoundError(f"native radar scan {path} not found")
+    image = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
+    if image is None:
+        raise ValueError(f"native radar scan {path} is corrupt or not an image")
+    try:
+        return parse_native_scan(image, fmt)
+    except ValueError as error:
+        raise ValueError(f"native radar scan {path}: {error}") from error
+
+
+def to_polar(
+    scan: NativeScan, range_bin: float = RADIATE_RESOLUTION, max_range_m: float | None = None
+) -> tuple[np.ndarray, PolarConventions]:
+    """A native scan -> (float32 polar [range rows, azimuths] on uniform azimuths, its PolarConventions).
+
+    Range is averaged down to bins of about `range_bin` metres (area averaging: no aliasing of the fine bins, e.g. 4.02
+    Oxford bins per RADIATE bin); rows beyond `max_range_m` are dropped. Azimuths are resampled onto a uniform grid
+    from the encoder angles when they are not already uniform (Boreas' early scans wobble)."""
+    power = scan.power.astype(np.float32)  # [A, R]
+    azimuths, bins = power.shape
+    native_bin = scan.fmt.range_bin_m
+    rows = max(1, int(round(bins * native_bin / range_bin)))
+    polar = cv2.resize(power.T, (azimuths, rows), interpolation=cv2.INTER_AREA)  # [rows, A]
+    bin_m = bins * native_bin / rows  # exact size of an averaged bin
+    if max_range_m is not None:
+        polar = polar[: min(rows, int(math.ceil(max_range_m / bin_m)) + 1)]
+    # azimuth of row j in steps of a uniform grid of `azimuths` per turn, from the encoder
+    steps = scan.azimuths / (2.0 * np.pi) * azimuths  # [A], increasing
+    offset = float(steps[0])
+    if np.max(np.abs(steps - (offset + np.arange(azimuths)))) > 1e-3:  # not uniform: resample each range row
+        target = offset + np.arange(azimuths, dtype=np.float64)
+        wrapped_steps = np.concatenate([steps - azimuths, steps, steps + azimuths])
+        polar = np.stack([np.interp(target, wrapped_steps, np.tile(row, 3)) for row in polar]).astype(np.float32)
+    offset = offset % azimuths
+    conventions = PolarConventions(azimuth_offset=offset, range_offset=0.5, range_bin=bin_m, centre_offset=(0.0, 0.0))
+    return polar, conventions
+
+
+def to_cartesian(
+    scan: NativeScan,
+    size: int = RADIATE_SCAN_SIZE,
+    resolution: float = RADIATE_RESOLUTION,
+    max_range_m: float = RADIATE_MAX_RANGE_M,
+) -> np.ndarray:
+    """A native scan -> uint8 [size, size] Cartesian scan on RADIATE's grid (radar at the centre, x right, y forward
+    = image up, `resolution` metres per pixel), so it reads like a RADIATE scan everywhere in the project: black
+    beyond `max_range_m` (RADIATE's 100 m disc; the Oxford radar reaches 163 m)."""
+    polar, conventions = to_polar(scan, resolution, max_range_m=max_range_m)
+    rows = int(math.floor(max_range_m / conventions.range_bin))
+    return polar_to_cartesian(polar[:rows], size, resolution, conventions)
