@@ -126,6 +126,17 @@ def box_corners(boxes: np.ndarray) -> np.ndarray:
     return rotated + boxes[:, None, :2]
 
 
+def points_in_boxes(points: np.ndarray, boxes: np.ndarray) -> np.ndarray:
+    """[N, 2] points and [M, 5] boxes (metres) -> [N, M] bool: the point lies inside the box (edges included)."""
+    points = np.asarray(points, dtype=np.float64).reshape(-1, 2)
+    boxes = np.asarray(boxes, dtype=np.float64).reshape(-1, 5)
+    d = points[:, None, :] - boxes[None, :, :2]  # [N, M, 2]
+    c, s = np.cos(boxes[:, 4]), np.sin(boxes[:, 4])  # [M]
+    local_x = c * d[..., 0] + s * d[..., 1]  # R(-yaw) d: along the box's width axis
+    local_y = -s * d[..., 0] + c * d[..., 1]
+    return (np.abs(local_x) <= boxes[:, 2] / 2.0) & (np.abs(local_y) <= boxes[:, 3] / 2.0)
+
+
 def box_polygons_pixels(boxes: np.ndarray, image_size: int, resolution: float = RADIATE_RESOLUTION) -> np.ndarray:
     """[N, 5] metre boxes -> [N, 4, 2] corner pixels (u, v) of a square image centred on the radar."""
     return metres_to_pixels(box_corners(boxes), image_size, resolution)

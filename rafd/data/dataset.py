@@ -36,6 +36,7 @@ import numpy as np
 from rafd.config import RaFDConfig
 from rafd.data.augment import Augmentation, AugmentConfig
 from rafd.data.cache import CROPS_FILE, cache_folder, read_cached, required_crop
+from rafd.data.labels import IGNORE_CLASS
 from rafd.data.native_folder import NATIVE_DIR, is_native_folder
 from rafd.data.poses import POSES_FILE
 from rafd.data.reader import IMAGE_DIR, META_FILE, POLAR_DIR, read_meta, read_sequence
@@ -48,7 +49,7 @@ except ImportError:  # pragma: no cover - torch-free installs
 
 log = logging.getLogger(__name__)
 
-DROPPED_CLASSES = frozenset({"pedestrian", "group_of_pedestrians"})
+DROPPED_CLASSES = frozenset({"pedestrian", "group_of_pedestrians", IGNORE_CLASS})
 
 
 class MissingPosesError(ValueError):
@@ -125,13 +126,17 @@ class _SequenceMeta:
 
 
 def _protocol(boxes: np.ndarray, ids: np.ndarray, classes: list[str], crop: int, resolution: float):
-    """Keep objects not of a dropped class whose centre lies inside the crop -> (boxes, ids, classes)."""
+    """Keep objects not of a dropped class whose centre lies inside the crop -> (boxes, ids, classes, ignore boxes):
+    the labeller's ignore regions (rafd.data.labels.IGNORE_CLASS) that touch the crop, kept apart."""
     if len(boxes) == 0:
-        return boxes.reshape(0, 5), ids.reshape(0), []
+        return boxes.reshape(0, 5), ids.reshape(0), [], np.zeros((0, 5))
     uv = metres_to_pixels(boxes[:, :2], crop, resolution)
     inside = (uv[:, 0] >= 0) & (uv[:, 0] < crop) & (uv[:, 1] >= 0) & (uv[:, 1] < crop)
     keep = inside & np.array([c not in DROPPED_CLASSES for c in classes])
-    return boxes[keep], ids[keep], [c for c, k in zip(classes, keep) if k]
+    reach = np.hypot(boxes[:, 2], boxes[:, 3]) / 2.0 / resolution  # pixels from its centre a box may reach
+    near = (uv[:, 0] > -reach) & (uv[:, 0] < crop + reach) & (uv[:, 1] > -reach) & (uv[:, 1] < crop + reach)
+    ignore = near & np.array([c == IGNORE_CLASS for c in classes])
+    return boxes[keep], ids[keep], [c for c, k in zip(classes, keep) if k], boxes[ignore]
 
 
 class RadarWindowDataset(_Base):
@@ -287,18 +292,20 @@ class RadarWindowDataset(_Base):
         span = range(start, start + self.cfg.num_frames)
         size, resolution = self.cfg.input_size, self.cfg.resolution
         frames = augmentation.intensity(np.stack([augmentation.image(self._scan(s, k), size) for k in span]))
-        boxes, ids, classes = [], [], []
+        boxes, ids, classes, ignore = [], [], [], []
         for k in span:
-            b, i, c = _protocol(augmentation.boxes(meta.boxes[k]), meta.ids[k], meta.classes[k], size, resolution)
+            b, i, c, g = _protocol(augmentation.boxes(meta.boxes[k]), meta.ids[k], meta.classes[k], size, resolution)
             boxes.append(b)
             ids.append(i)
             classes.append(c)
+            ignore.append(g)
         return {
             "frames": frames,  # uint8 [T, S, S]
             "poses": augmentation.poses(meta.poses[start : start + self.cfg.num_frames]),  # float64 [T, 3]
             "boxes": boxes,
             "ids": ids,
             "classes": classes,
+            "ignore": ignore,  # T x [K, 5] regions the labeller left undecided: neither rewarded nor penalised
             "sequence": meta.name,
             "frame": int(meta.numbers[start + self.cfg.num_frames - 1]),
             "timestamps": meta.timestamps[start : start + self.cfg.num_frames].copy(),

@@ -29,24 +29,28 @@ import math
 import re
 import struct
 import time
+from collections.abc import Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
 
 import cv2
 import numpy as np
 
+from rafd.data.labels import IGNORE_CLASS, index_by_frame, timestamp_keyed
 from rafd.data.native_folder import (
     GROUND_TRUTH_ODOMETRY,
+    MVDNET_LABELS,
     NativeSource,
     check_native_png,
     is_native_folder,
     list_native_scans,
     microseconds_text,
+    mvdnet_labels_by_scan,
     native_format_of,
     read_ground_truth_odometry,
 )
 from rafd.data.poses import POSES_FILE, read_ego_poses
-from rafd.geometry import RADIATE_RESOLUTION, RADIATE_SCAN_SIZE, radiate_polygon, radiate_to_box
+from rafd.geometry import RADIATE_RESOLUTION, RADIATE_SCAN_SIZE, box_polygons_pixels, radiate_polygon, radiate_to_box
 from rafd.polar import RADIATE_POLAR, cartesian_size, polar_to_cartesian
 
 log = logging.getLogger(__name__)
@@ -268,10 +272,22 @@ def _number(value, path: Path, where: str) -> float:
 
 
 def read_annotations(
-    path: Path, frame_numbers: list[int], image_size: int, resolution: float
+    path: Path,
+    frame_numbers: list[int],
+    image_size: int,
+    resolution: float,
+    frames_by_timestamp: Mapping[int, int] | None = None,
 ) -> dict[int, list[RadarObject]]:
-    """annotations.json -> {frame number: objects} for the frames on disk (bboxes[k] is frame k + 1)."""
+    """annotations.json -> {frame number: objects} for the frames on disk (bboxes[k] is frame k + 1). A label file
+    keyed by scan timestamps (rafd.data.labels, native folders) is read through `frames_by_timestamp`."""
     entries = _read_json(path)
+    if timestamp_keyed(entries):
+        if frames_by_timestamp is None:
+            raise ValueError(f"{path}: keys its boxes by scan timestamps; only a native folder's scans have them")
+        try:
+            entries = index_by_frame(entries, frames_by_timestamp)
+        except ValueError as error:
+            raise ValueError(f"{path}: {error}") from error
     if not isinstance(entries, list):
         raise ValueError(f"{path}: expected a JSON list of objects, got {type(entries).__name__}")
     objects: dict[int, list[RadarObject]] = {n: [] for n in frame_numbers}
@@ -286,7 +302,7 @@ def read_annotations(
             raise ValueError(f"{path}: entry {index} (id {object_id}): 'class_name' must be a non-empty string")
         if not isinstance(bboxes, list):
             raise ValueError(f"{path}: entry {index} (id {object_id}): 'bboxes' must be a list")
-        if class_name not in RADIATE_CLASSES:
+        if class_name not in RADIATE_CLASSES and class_name != IGNORE_CLASS:
             unknown_classes.add(class_name)
         for number in frame_numbers:
             if number < 1 or number > len(bboxes):
@@ -484,6 +500,20 @@ def _list_native_frames(folder: Path) -> FrameList:
     )
 
 
+def _mvdnet_objects(
+    folder: Path, numbers: list[int], texts: list[str], image_size: int, resolution: float
+) -> dict[int, list[RadarObject]]:
+    """A native folder's MVDNet labels (rafd.data.native_folder) as objects of its frames."""
+    stamps = [int(text.replace(".", "")) // 1000 for text in texts]
+    by_scan = mvdnet_labels_by_scan(folder, stamps)
+    objects: dict[int, list[RadarObject]] = {n: [] for n in numbers}
+    for number, stamp in zip(numbers, stamps):
+        for track, class_name, box in by_scan.get(stamp, []):
+            polygon = box_polygons_pixels(box[None], image_size, resolution)[0]
+            objects[number].append(RadarObject(track, class_name, polygon, box))
+    return objects
+
+
 def read_sequence(path: str | Path, estimate_poses: bool = True) -> RadarSequence:
     """One RADIATE sequence folder -> RadarSequence. estimate_poses=False skips odometry when the folder has no
     ego_poses.csv (poses None, pose_source None): for tools that only need frames and annotations."""
@@ -493,8 +523,15 @@ def read_sequence(path: str | Path, estimate_poses: bool = True) -> RadarSequenc
 
     annotations_path = folder / ANNOTATIONS_FILE
     annotated = annotations_path.is_file()
-    if annotated:
-        objects = read_annotations(annotations_path, numbers, image_size, resolution)
+    mvdnet = isinstance(listing.polar, NativeSource) and (folder / MVDNET_LABELS).is_dir() and not annotated
+    if mvdnet:
+        annotated = True
+        objects = _mvdnet_objects(folder, numbers, listing.timestamp_texts, image_size, resolution)
+    elif annotated:
+        by_stamp = None
+        if isinstance(listing.polar, NativeSource):  # native scans are named by their UNIX microseconds
+            by_stamp = {int(text.replace(".", "")) // 1000: n for n, text in zip(numbers, listing.timestamp_texts)}
+        objects = read_annotations(annotations_path, numbers, image_size, resolution, by_stamp)
     else:
         log.warning("%s not found: the %d frames carry no objects", annotations_path, len(numbers))
         objects = {n: [] for n in numbers}

@@ -36,7 +36,7 @@ import math
 import numpy as np
 
 from rafd.config import RaFDConfig
-from rafd.geometry import relative_pose, transform_points, wrap_angle
+from rafd.geometry import feature_cell_centres, points_in_boxes, relative_pose, transform_points, wrap_angle
 
 log = logging.getLogger(__name__)
 
@@ -173,7 +173,11 @@ def _flow_pair(
 
 
 def build_targets(
-    boxes: list[np.ndarray], ids: list[np.ndarray], poses: np.ndarray, cfg: RaFDConfig
+    boxes: list[np.ndarray],
+    ids: list[np.ndarray],
+    poses: np.ndarray,
+    cfg: RaFDConfig,
+    ignore: np.ndarray | None = None,
 ) -> dict[str, np.ndarray]:
     """T frames of boxes [M_t, 5] (metres, each frame's ego frame), ids [M_t] and world poses [T, 3] -> targets
     (see the module docstring and the DATA contract)."""
@@ -234,8 +238,15 @@ def build_targets(
         for t in range(1, num_frames)
     ]
     empty = np.zeros((0, 1, size, size), np.float32)
+    # The newest frame's ignore regions (rafd.data.labels.IGNORE_CLASS): their cells are no heatmap negatives.
+    heatmap_weight = np.ones((1, size, size), np.float32)
+    if ignore is not None and len(ignore):
+        cells = feature_cell_centres(size, cfg.input_size, cfg.resolution).reshape(-1, 2)
+        inside = points_in_boxes(cells, ignore).any(axis=1).reshape(size, size)
+        heatmap_weight[0][inside & (heatmap < 1.0 - 1e-6)] = 0.0
     return {
         "heatmap": heatmap[None].astype(np.float32),
+        "heatmap_weight": heatmap_weight,
         "centre_index": centre_index,
         "box_mask": box_mask,
         "offset": offset,

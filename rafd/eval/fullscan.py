@@ -19,7 +19,7 @@ from tqdm import tqdm
 
 from rafd.config import RaFDConfig
 from rafd.data.dataset import _protocol
-from rafd.eval.predict import FrameResult
+from rafd.eval.predict import FrameResult, outside_ignored
 from rafd.eval.tiled import TileGrid, merge_tiles, tile_poses
 from rafd.model import RaFD, relative_pose_torch
 from rafd.preprocess import to_model_input
@@ -106,12 +106,12 @@ def predict_full_scan(
                 boxes.append(out["boxes"].float().cpu().numpy())
                 scores.append(out["scores"].float().cpu().numpy())
             found = merge_tiles(tiles, np.concatenate(boxes), np.concatenate(scores))
-            truth, _, _ = _protocol(meta.boxes[k], meta.ids[k], meta.classes[k], scan.shape[0], cfg.resolution)
+            truth, _, _, ignore = _protocol(meta.boxes[k], meta.ids[k], meta.classes[k], scan.shape[0], cfg.resolution)
             results.append(
                 FrameResult(
                     sequence=meta.name,
                     frame=int(number),
-                    predictions=found.as_array(),
+                    predictions=outside_ignored(found.as_array(), ignore),
                     ground_truth=truth,
                     epe_all=math.nan,
                     epe_foreground=math.nan,

@@ -16,6 +16,7 @@ from tqdm import tqdm
 from rafd.config import RaFDConfig
 from rafd.detections import decode_detections
 from rafd.eval.metrics import end_point_error, match_centres, mean_average_precision
+from rafd.geometry import points_in_boxes
 from rafd.protocol import CENTRE_DISTANCE_M, IOU_THRESHOLDS
 from rafd.train.collate import Collator
 
@@ -33,6 +34,15 @@ class FrameResult:
     cells_foreground: int
     flow: np.ndarray | None = None  # [2, Hf, Wf] predicted newest-pair flow (kept on request)
     gt_flow: np.ndarray | None = None  # [2, Hf, Wf]
+
+
+def outside_ignored(predictions: np.ndarray, ignore: np.ndarray) -> np.ndarray:
+    """[N, 6] predictions without those whose centre lies in a region the labeller left undecided ([K, 5] ignore
+    boxes, rafd.data.labels.IGNORE_CLASS): such a detection is neither a true nor a false positive."""
+    ignore = np.asarray(ignore, dtype=np.float64).reshape(-1, 5)
+    if len(ignore) == 0 or len(predictions) == 0:
+        return predictions
+    return predictions[~points_in_boxes(predictions[:, :2], ignore).any(axis=1)]
 
 
 def _epe(pred: np.ndarray, gt: np.ndarray, mask: np.ndarray) -> tuple[float, int]:
@@ -102,7 +112,7 @@ def predict(
                     FrameResult(
                         sequence=batch.sequences[b],
                         frame=batch.frame_numbers[b],
-                        predictions=detections.as_array(),
+                        predictions=outside_ignored(detections.as_array(), batch.ignore[b]),
                         ground_truth=batch.boxes[b],
                         epe_all=epe_all,
                         epe_foreground=epe_fg,

@@ -21,6 +21,7 @@ class Batch:
     poses: Tensor  # [B, T, 3] world poses (x, y, yaw)
     targets: dict[str, Tensor]  # rafd.data.targets.build_targets keys, each with a leading batch dim
     boxes: list[np.ndarray] = field(default_factory=list)  # per window [M, 5]: ALL GT boxes of the newest frame
+    ignore: list[np.ndarray] = field(default_factory=list)  # per window [K, 5]: the newest frame's ignore regions
     sequences: list[str] = field(default_factory=list)
     frame_numbers: list[int] = field(default_factory=list)  # newest frame's RADIATE number per window
 
@@ -34,6 +35,7 @@ class Batch:
             poses=self.poses.pin_memory(),
             targets={k: v.pin_memory() for k, v in self.targets.items()},
             boxes=self.boxes,
+            ignore=self.ignore,
             sequences=self.sequences,
             frame_numbers=self.frame_numbers,
         )
@@ -44,6 +46,7 @@ class Batch:
             poses=self.poses.to(device, non_blocking=True),
             targets={k: v.to(device, non_blocking=True) for k, v in self.targets.items()},
             boxes=self.boxes,
+            ignore=self.ignore,
             sequences=self.sequences,
             frame_numbers=self.frame_numbers,
         )
@@ -65,7 +68,9 @@ def window_targets(window: dict[str, Any], cfg: RaFDConfig) -> dict[str, np.ndar
     """One window's detection (newest frame) and flow (every consecutive pair) targets."""
     boxes = [np.asarray(b, dtype=np.float64).reshape(-1, 5) for b in window["boxes"]]
     ids = [np.asarray(i, dtype=np.int64).reshape(-1) for i in window["ids"]]
-    return build_targets(boxes, ids, np.asarray(window["poses"], dtype=np.float64), cfg)
+    ignore = window.get("ignore")
+    newest_ignore = None if ignore is None else np.asarray(ignore[-1], dtype=np.float64).reshape(-1, 5)
+    return build_targets(boxes, ids, np.asarray(window["poses"], dtype=np.float64), cfg, newest_ignore)
 
 
 class Collator:
@@ -77,7 +82,7 @@ class Collator:
     def __call__(self, windows: Sequence[dict[str, Any]]) -> Batch:
         if not windows:
             raise ValueError("cannot collate an empty list of windows")
-        frames, poses, boxes, sequences, numbers = [], [], [], [], []
+        frames, poses, boxes, ignore, sequences, numbers = [], [], [], [], [], []
         targets: dict[str, list[np.ndarray]] = {}
         for index, window in enumerate(windows):
             where = f"window {index} ({window.get('sequence', '?')})"
@@ -89,6 +94,8 @@ class Collator:
             for key, value in window_targets(window, self.cfg).items():
                 targets.setdefault(key, []).append(value)
             boxes.append(np.asarray(window["boxes"][-1], dtype=np.float64).reshape(-1, 5))
+            regions = window.get("ignore")
+            ignore.append(np.zeros((0, 5)) if regions is None else np.asarray(regions[-1], np.float64).reshape(-1, 5))
             sequences.append(str(window.get("sequence", "")))
             numbers.append(int(window.get("frame", -1)))
         return Batch(
@@ -96,6 +103,7 @@ class Collator:
             poses=torch.stack(poses),  # [B, T, 3]
             targets={k: torch.from_numpy(np.stack(v)) for k, v in targets.items()},
             boxes=boxes,
+            ignore=ignore,
             sequences=sequences,
             frame_numbers=numbers,
         )

@@ -26,11 +26,14 @@ class LossConfig:
     focal_beta: float = 4.0
 
 
-def focal_loss(logits: Tensor, target: Tensor, alpha: float = 2.0, beta: float = 4.0) -> Tensor:
+def focal_loss(
+    logits: Tensor, target: Tensor, alpha: float = 2.0, beta: float = 4.0, negative_weight: Tensor | None = None
+) -> Tensor:
     """CornerNet/CenterNet penalty-reduced focal loss: logits, target [B, 1, Hf, Wf] -> scalar.
 
     Positives are the cells where the Gaussian target is 1 (object centres); the sum over all
     cells is divided by the number of positives in the batch (at least 1), as in CenterNet.
+    `negative_weight` [B, 1, Hf, Wf] (0 in the labeller's ignore regions) scales the negatives.
     """
     logits = logits.float()
     target = target.float()
@@ -42,6 +45,8 @@ def focal_loss(logits: Tensor, target: Tensor, alpha: float = 2.0, beta: float =
     negative = 1.0 - positive
     positive_loss = -((1.0 - p) ** alpha) * log_p * positive
     negative_loss = -((1.0 - target) ** beta) * (p**alpha) * log_not_p * negative
+    if negative_weight is not None:
+        negative_loss = negative_loss * negative_weight.float()
     num_positive = positive.sum().clamp(min=1.0)
     return (positive_loss.sum() + negative_loss.sum()) / num_positive
 
@@ -83,7 +88,9 @@ class RaFDLoss(nn.Module):
         # Query slot m is GT object m (the model forces GT centres into the queries), so the box
         # terms compare slot by slot; K of the model and Kmax of the targets must agree.
         k = mask.shape[1]
-        heatmap = focal_loss(outputs["heatmap"], targets["heatmap"], cfg.focal_alpha, cfg.focal_beta)
+        heatmap = focal_loss(
+            outputs["heatmap"], targets["heatmap"], cfg.focal_alpha, cfg.focal_beta, targets.get("heatmap_weight")
+        )
         offset = masked_l1(outputs["pred_offset"][:, :k].float(), targets["offset"], mask)
         size = masked_l1(outputs["pred_log_size"][:, :k].float(), targets["log_size"], mask)
         rotation = masked_l1(outputs["pred_rotation"][:, :k].float(), targets["rotation"], mask)
