@@ -33,6 +33,7 @@ use the full scan for odometry where it is available.
 
 from __future__ import annotations
 
+import functools
 import logging
 import math
 from collections.abc import Iterable, Sequence
@@ -150,10 +151,13 @@ def _rotated(image: np.ndarray, yaw: float) -> np.ndarray:
     )
 
 
+@functools.lru_cache(maxsize=16)
 def _shift_offsets(size: int, radius: float) -> tuple[np.ndarray, np.ndarray]:
-    """([n] signed shift of each index of a wrapped correlation surface, [n, n] mask of shifts <= radius)."""
+    """([n] signed shift of each index of a wrapped correlation surface, [n, n] mask of shifts <= radius); cached."""
     offsets = np.fft.fftfreq(size, 1.0 / size)
-    return offsets, np.hypot(offsets[None, :], offsets[:, None]) <= radius
+    allowed = np.hypot(offsets[None, :], offsets[:, None]) <= radius
+    offsets.flags.writeable = allowed.flags.writeable = False  # shared by every call through the cache
+    return offsets, allowed
 
 
 def _vertex(left: float, mid: float, right: float) -> float:
@@ -268,16 +272,18 @@ class SweepTiming:
 
 
 class _SweepGrid:
-    """Per working pixel of a level: metres (x right, y forward) and azimuth clockwise from forward (cached)."""
+    """Per working pixel of a level: metres (x right, y forward), azimuth clockwise from forward, and the azimuth's
+    time under a uniform sweep (cached per geometry and sweep: the de-skew is a few multiply-adds per pixel)."""
 
     _cache: dict[tuple[int, float], _SweepGrid] = {}
 
     def __init__(self, size: int, resolution: float) -> None:
         centre = (size - 1) / 2.0
-        coords = (np.arange(size, dtype=np.float64) - centre) * resolution
-        self.x, self.y = np.meshgrid(coords, -coords, indexing="xy")  # [n, n] metres
+        coords = (np.arange(size, dtype=np.float32) - centre) * resolution
+        self.x, self.y = np.meshgrid(coords, -coords, indexing="xy")  # [n, n] metres, float32
         self.theta = np.mod(np.arctan2(self.x, self.y), 2.0 * np.pi)  # [n, n] clockwise from forward
         self.centre, self.resolution = centre, resolution
+        self._uniform: dict[tuple[float, float], np.ndarray] = {}
 
     @classmethod
     def get(cls, size: int, resolution: float) -> _SweepGrid:
@@ -286,25 +292,30 @@ class _SweepGrid:
             cls._cache[key] = cls(size, resolution)
         return cls._cache[key]
 
+    def offsets(self, timing: SweepTiming) -> np.ndarray:
+        """[n, n] seconds after the reference at which each pixel's azimuth was measured."""
+        if timing.azimuths is not None:  # a native scan's own timestamps: per scan
+            return timing.offsets(self.theta).astype(np.float32)
+        key = (timing.period_s, timing.reference_fraction)
+        if key not in self._uniform:
+            self._uniform[key] = timing.offsets(self.theta).astype(np.float32)
+        return self._uniform[key]
+
 
 def deskew(image: np.ndarray, resolution: float, velocity: np.ndarray, timing: SweepTiming) -> np.ndarray:
     """Undo the ego motion during the sweep: [n, n] level image -> the scene as seen from the pose at the reference
     time. `velocity` (vx, vy m/s in the ego frame, yaw rate rad/s) is taken constant over the sweep: a point measured
     tau seconds after the reference, at q in the sensor frame of that moment, lies at R(w tau) q + v tau in the
-    reference frame, so the de-skewed image at p samples the scan at q = R(-w tau)(p - v tau), with tau read at q's
-    azimuth (one fixed-point step from p's)."""
+    reference frame, so the de-skewed image at p samples the scan at q = R(-w tau)(p - v tau), tau read at p's azimuth
+    (q's differs by the motion over the sweep seen from the point: a fraction of a degree beyond a few metres)."""
     grid = _SweepGrid.get(image.shape[0], resolution)
     vx, vy, w = (float(v) for v in velocity)
-    q_x, q_y = grid.x, grid.y
-    tau = timing.offsets(grid.theta)
-    for _ in range(2):
-        angle = -w * tau
-        c, s = np.cos(angle), np.sin(angle)
-        p_x, p_y = grid.x - vx * tau, grid.y - vy * tau
-        q_x, q_y = c * p_x - s * p_y, s * p_x + c * p_y
-        tau = timing.offsets(np.mod(np.arctan2(q_x, q_y), 2.0 * np.pi))
-    map_x = (q_x / resolution + grid.centre).astype(np.float32)
-    map_y = (grid.centre - q_y / resolution).astype(np.float32)
+    tau = grid.offsets(timing)
+    angle = -w * tau
+    c, s = np.cos(angle), np.sin(angle)
+    p_x, p_y = grid.x - vx * tau, grid.y - vy * tau
+    map_x = (c * p_x - s * p_y) / resolution + grid.centre
+    map_y = grid.centre - (s * p_x + c * p_y) / resolution
     return cv2.remap(image, map_x, map_y, cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT, borderValue=0)
 
 
@@ -351,8 +362,11 @@ class Odometer:
         coarse, fine = self._levels(int(image.shape[0]))
         return PreparedScan(coarse.prepare(image), fine.prepare(image), int(image.shape[0]), timing)
 
-    def _deskewed(self, scan: PreparedScan, velocity: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    def _deskewed(self, scan: PreparedScan, velocity: np.ndarray, keep: bool = False) -> tuple[np.ndarray, np.ndarray]:
+        """The scan's levels with `velocity` undone; `keep`: a scan already de-skewed keeps its own velocity's."""
         assert scan.timing is not None
+        if keep and scan.deskewed is not None:
+            return scan.deskewed
         if scan.deskewed is None or scan.velocity is None or not np.array_equal(scan.velocity, velocity):
             coarse, fine = self._levels(scan.size)
             scan.velocity = np.array(velocity, dtype=np.float64)
@@ -408,15 +422,15 @@ class Odometer:
         assert dt is not None
         if prior is None:  # no motion known yet: the raw scans give the first estimate
             prior = self.register((previous.coarse, previous.fine), (current.coarse, current.fine), current.size)
+        # Each scan is de-skewed once, with its own velocity: the current one with the prior's (constant velocity),
+        # the previous one kept as it was de-skewed when it was the current one.
         used = np.asarray(prior, dtype=np.float64)
-        pose = self.register(
-            self._deskewed(previous, used / dt), self._deskewed(current, used / dt), current.size, float(used[2])
-        )
+        previous_levels = self._deskewed(previous, used / dt, keep=True)
+        pose = self.register(previous_levels, self._deskewed(current, used / dt), current.size, float(used[2]))
         change = pose - used
         if abs(np.rad2deg(change[2])) > REDESKEW_YAW_DEG or np.hypot(change[0], change[1]) > REDESKEW_SHIFT_M:
-            pose = self.register(
-                self._deskewed(previous, pose / dt), self._deskewed(current, pose / dt), current.size, float(pose[2])
-            )
+            # the motion changed within the pair (a turn begins, a hard brake): the current scan's own is the pair's
+            pose = self.register(previous_levels, self._deskewed(current, pose / dt), current.size, float(pose[2]))
         return pose
 
 
