@@ -154,7 +154,11 @@ class RadarWindowDataset(_Base):
         seed: int = 0,
         cache: str | Path | None = None,
         estimate_poses: bool = False,
+        warm_up: bool = False,
     ) -> None:
+        """`warm_up`: also the windows of each sequence's first T-1 frames, their old end padded by repeating the
+        oldest frame with its pose, as the service answers a stream's first frames (rafd.runtime.window_from_history):
+        every frame of a short sequence is scored (or trained on) by a T-frame model."""
         if cfg is None:
             raise ValueError("RadarWindowDataset needs cfg (input_size, num_frames, resolution)")
         if stride < 1:
@@ -182,10 +186,11 @@ class RadarWindowDataset(_Base):
         self.windows: list[tuple[int, int]] = []  # (sequence index, first frame position)
         span = cfg.num_frames
         skipped = 0
+        first = -(span - 1) if warm_up else 0
         for s, meta in enumerate(self.sequences):
-            for start in range(0, len(meta.numbers) - span + 1, self.stride):
-                numbers = meta.numbers[start : start + span]
-                if np.any(np.diff(numbers) != 1):
+            for start in range(first, len(meta.numbers) - span + 1, self.stride):
+                numbers = meta.numbers[self.positions(start)]
+                if np.any(np.diff(numbers) > 1):
                     skipped += 1  # the window would jump over missing frame numbers
                     continue
                 self.windows.append((s, start))
@@ -201,6 +206,10 @@ class RadarWindowDataset(_Base):
             root,
             "" if self.cache_root is None else f", scans from the cache {self.cache_root}",
         )
+
+    def positions(self, start: int) -> np.ndarray:
+        """Frame positions of the window starting at `start` (negative in a warm-up window: repeats the first)."""
+        return np.maximum(np.arange(start, start + self.cfg.num_frames), 0)
 
     def keep_newest_with_history(self, frames: int) -> int:
         """Keep only the windows whose newest frame has `frames` - 1 consecutive predecessors in its sequence: the
@@ -289,7 +298,7 @@ class RadarWindowDataset(_Base):
         """Window `index` with a given augmentation (identity by default)."""
         s, start = self.windows[index]
         meta = self.sequences[s]
-        span = range(start, start + self.cfg.num_frames)
+        span = self.positions(start)
         size, resolution = self.cfg.input_size, self.cfg.resolution
         frames = augmentation.intensity(np.stack([augmentation.image(self._scan(s, k), size) for k in span]))
         boxes, ids, classes, ignore = [], [], [], []
@@ -301,13 +310,13 @@ class RadarWindowDataset(_Base):
             ignore.append(g)
         return {
             "frames": frames,  # uint8 [T, S, S]
-            "poses": augmentation.poses(meta.poses[start : start + self.cfg.num_frames]),  # float64 [T, 3]
+            "poses": augmentation.poses(meta.poses[span]),  # float64 [T, 3]
             "boxes": boxes,
             "ids": ids,
             "classes": classes,
             "ignore": ignore,  # T x [K, 5] regions the labeller left undecided: neither rewarded nor penalised
             "sequence": meta.name,
-            "frame": int(meta.numbers[start + self.cfg.num_frames - 1]),
-            "timestamps": meta.timestamps[start : start + self.cfg.num_frames].copy(),
+            "frame": int(meta.numbers[span[-1]]),
+            "timestamps": meta.timestamps[span].copy(),
             "augmentation": augmentation.as_dict(),
         }

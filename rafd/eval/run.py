@@ -38,6 +38,7 @@ class EvalRun:
     max_windows: int | None = None
     like_frames: int | None = None
     past_as_newest: bool = False
+    warm_up_windows: bool = False  # also each sequence's first frames, in padded windows (as the service answers)
     threads: int | None = None
     progress: bool = True
 
@@ -195,6 +196,7 @@ def evaluate(run: EvalRun) -> dict[str, Any]:
             cache=run.cache,
             estimate_poses=run.estimate_poses,
             history=run.like_frames,
+            warm_up=run.warm_up_windows,
         )
     except (DatasetError, ValueError, RuntimeError) as error:
         raise EvalError(str(error)) from error

@@ -55,10 +55,12 @@ def open_windows(
     estimate_poses: bool = False,
     seed: int = 0,
     history: int | None = None,
+    warm_up: bool = False,
 ) -> RadarWindowDataset | WindowSubset:
     """Windows of cfg.num_frames frames at cfg.input_size from the sequences of `split` (one name, a comma-separated
     list or a list) under `root`, scans from a prepared `cache` when given. `history` N keeps only the windows whose
-    newest frame an N-frame model also scores (a model of fewer frames is then compared on equal frames)."""
+    newest frame an N-frame model also scores (a model of fewer frames is then compared on equal frames). `warm_up`:
+    also each sequence's first frames, in windows padded as the service pads a stream's first frames."""
     from rafd.data import RadarWindowDataset
     from rafd.data.cache import CacheError
     from rafd.data.dataset import MissingPosesError
@@ -70,7 +72,14 @@ def open_windows(
         raise DatasetError(f"data root {root} is not a directory")
     try:
         dataset = RadarWindowDataset(
-            root, split=split, cfg=cfg, augment=augment, cache=cache, estimate_poses=estimate_poses, seed=seed
+            root,
+            split=split,
+            cfg=cfg,
+            augment=augment,
+            cache=cache,
+            estimate_poses=estimate_poses,
+            seed=seed,
+            warm_up=warm_up,
         )
     except (MissingPosesError, CacheError) as error:
         raise DatasetError(str(error)) from error

@@ -65,6 +65,7 @@ class TrainRun:
     freeze: tuple[str, ...] = ()
     # data limits and validation
     max_windows: int | None = None
+    warm_up_windows: bool = False  # also the first frames of each sequence, padded (rafd.data.RadarWindowDataset)
     val_data: Path | None = None
     val_split: tuple[str, ...] | None = None
     val_cache: Path | None = None
@@ -218,6 +219,7 @@ def _prepare(run: TrainRun) -> _Prepared:
         cache=run.cache,
         estimate_poses=run.estimate_poses,
         seed=run.seed,
+        warm_up=run.warm_up_windows,
     )
     val_set = None
     if run.val_data is not None or run.val_split is not None:
@@ -230,6 +232,7 @@ def _prepare(run: TrainRun) -> _Prepared:
             run.max_val_windows,
             cache=val_cache,
             estimate_poses=run.estimate_poses,
+            warm_up=run.warm_up_windows,
         )
     torch.set_num_threads(run.threads or default_threads(local_world))
     ctx = init_distributed(run.device, train_cfg.dist_timeout_minutes)
