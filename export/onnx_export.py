@@ -26,6 +26,8 @@ from rafd.config import RaFDConfig
 from rafd.protocol import OPERATING_THRESHOLD_KEY, check_score_threshold
 from rafd.runtime import FORMS, graph_inputs, graph_outputs
 
+BATCH_MODES = ("static", "dynamic")
+
 
 class ExportError(RuntimeError):
     """The export cannot be done (bad output path, exporter failure, invalid graph)."""
@@ -75,6 +77,7 @@ def build_metadata(
     opset: int,
     exporter: str,
     operating_threshold: float | None = None,
+    batch: str = "static",
 ) -> dict[str, str]:
     """rafd.runtime.METADATA_KEYS (+ opset, exporter, and the checkpoint's operating threshold when it has one, chosen
     by `rafd-eval --calibrate`): everything the service needs besides the graph."""
@@ -99,6 +102,7 @@ def build_metadata(
         "feature_channels": str(channels),
         "opset": str(opset),
         "exporter": exporter,
+        "batch": batch,
     }
 
 
@@ -110,13 +114,16 @@ def _torch_export(
     form: str,
     opset: int,
     log: Callable[[str], None],
+    batch: str = "static",
 ) -> str:
-    """torch.onnx.export with static shapes: the TorchScript exporter first (robust with grid_sample), then dynamo."""
+    """torch.onnx.export with static shapes (batch "dynamic": a free first axis on every input and output, the rest
+    static): the TorchScript exporter first (robust with grid_sample), then dynamo."""
+    input_names, output_names = list(graph_inputs(form, cfg.num_frames)), list(graph_outputs(form, cfg.num_frames))
     names: dict[str, Any] = dict(  # keyword arguments of both exporters
-        input_names=list(graph_inputs(form, cfg.num_frames)),
-        output_names=list(graph_outputs(form, cfg.num_frames)),
-        opset_version=opset,
+        input_names=input_names, output_names=output_names, opset_version=opset
     )
+    if batch == "dynamic":
+        names["dynamic_axes"] = {name: {0: "batch"} for name in input_names + output_names}
     try:
         with warnings.catch_warnings():
             warnings.simplefilter("ignore")  # the TorchScript exporter's deprecation / tracer warnings
@@ -133,11 +140,17 @@ def _torch_export(
         raise ExportError(f"torch.onnx.export failed with both exporters: {type(error).__name__}: {error}") from error
 
 
-def _restore_unused_inputs(proto: onnx.ModelProto, names: tuple[str, ...], example: tuple[torch.Tensor, ...]) -> None:
+def _restore_unused_inputs(
+    proto: onnx.ModelProto, names: tuple[str, ...], example: tuple[torch.Tensor, ...], batch: str
+) -> None:
     """The exporters drop inputs the graph does not use (poses for T = 1); the contract keeps them."""
     present = {value.name: onnx.ValueInfoProto.FromString(value.SerializeToString()) for value in proto.graph.input}
+
+    def shape(tensor: torch.Tensor) -> list[int | str]:
+        return ["batch" if batch == "dynamic" and axis == 0 else size for axis, size in enumerate(tensor.shape)]
+
     inputs = [
-        present.get(name) or onnx.helper.make_tensor_value_info(name, onnx.TensorProto.FLOAT, list(tensor.shape))
+        present.get(name) or onnx.helper.make_tensor_value_info(name, onnx.TensorProto.FLOAT, shape(tensor))
         for name, tensor in zip(names, example)
     ]
     del proto.graph.input[:]
@@ -152,12 +165,16 @@ def export_onnx(
     verify: bool = True,
     log: Callable[[str], None] = print,
     gate: GateOptions | None = None,
+    batch: str = "static",
 ) -> ExportResult:
     """Export a checkpoint; the output appears (atomically) only when checker and verification passed.
 
     gate: also run the accuracy gate of every reduced precision this CPU runs (step form only) and record
     "gate_<precision>" = pass / fail (+ "gate_<precision>_figures", JSON) in the metadata, which is what lets
     rafd.runtime.create_runner pick that precision automatically.
+
+    batch: "static" (batch of one, the smallest graph) or "dynamic" (step form: a free first axis, so the service
+    can run several streams' steps as one batch, rafd.runtime.StreamRunner.step_many; verified batched as well).
 
     Raises rafd.checkpoint.CheckpointError (bad checkpoint), ExportError, export.verify.VerificationError.
     """
@@ -166,6 +183,10 @@ def export_onnx(
         raise ExportError(f"opset {opset} is too old: RaFD needs opset >= {MIN_OPSET}")
     if form not in FORMS:
         raise ExportError(f"form must be one of {FORMS}, got {form!r}")
+    if batch not in BATCH_MODES:
+        raise ExportError(f"batch must be one of {BATCH_MODES}, got {batch!r}")
+    if batch == "dynamic" and form != "step":
+        raise ExportError("a dynamic batch is for the step form (the service batches streams' steps)")
     if gate is not None and form != "step":
         raise ExportError("the accuracy gate streams the step form; export --form step to gate it")
     check_output_path(output)
@@ -183,10 +204,10 @@ def export_onnx(
             raw = Path(workdir, "raw.onnx")
             with torch.no_grad():
                 example = example_inputs(cfg, form, channels)
-                exporter = _torch_export(graph, example, raw, cfg, form, opset, log)
+                exporter = _torch_export(graph, example, raw, cfg, form, opset, log, batch)
             proto = onnx.load(str(raw))  # also pulls in external data, if the exporter wrote any
-        _restore_unused_inputs(proto, graph_inputs(form, cfg.num_frames), example)
-        metadata = build_metadata(cfg, sha, form, channels, opset, exporter, operating_threshold)
+        _restore_unused_inputs(proto, graph_inputs(form, cfg.num_frames), example, batch)
+        metadata = build_metadata(cfg, sha, form, channels, opset, exporter, operating_threshold, batch)
         del proto.metadata_props[:]
         for key, value in metadata.items():
             proto.metadata_props.add(key=key, value=value)

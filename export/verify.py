@@ -194,6 +194,32 @@ def verify_stream(
         compare_outputs(report, source, ort, torch_window(model, *window))
 
 
+def verify_batched(
+    runner: OnnxRunner, model: nn.Module, sequences: list[tuple[np.ndarray, np.ndarray]], report: Report
+) -> None:
+    """A batchable step graph: several streams, stream k starting k frames late, advanced together with
+    OnnxRunner.step_many (so one run mixes streams at different points of their warm-up); every frame of every
+    stream is compared with the padded window of its own history."""
+    T = runner.config.num_frames
+    states = [runner.new_state() for _ in sequences]
+    length = max(len(frames) for frames, _ in sequences) + len(sequences)
+    for tick in range(length):
+        active = [k for k, (frames, _) in enumerate(sequences) if 0 <= tick - k < len(frames)]
+        items = [
+            (states[k], np.ascontiguousarray(sequences[k][0][tick - k], np.float32), sequences[k][1][tick - k])
+            for k in active
+        ]
+        for k, (result, state) in zip(active, runner.step_many(items)):
+            n = tick - k
+            states[k] = state
+            if result.frames_used != min(n + 1, T):
+                raise VerificationError(f"batched stream {k}, frame {n}: frames_used {result.frames_used}")
+            frames, poses = sequences[k]
+            window = window_from_history(frames[: n + 1], poses[: n + 1], T)
+            ort = {"heatmap": result.heatmap, "boxes": result.boxes, "scores": result.scores, "flow": result.flow}
+            compare_outputs(report, "batched", ort, torch_window(model, *window))
+
+
 def verify_windows(
     runner: OnnxRunner, model: nn.Module, frames: np.ndarray, poses: np.ndarray, report: Report, source: str
 ) -> None:
@@ -274,6 +300,9 @@ def verify_export(
     model = model.eval()
     for source, (frames, poses) in sources.items():
         (verify_stream if form == "step" else verify_windows)(runner, model, frames, poses, report, source)
+    if runner.batchable:  # the dynamic batch axis: streams run together must answer as they do alone
+        batch_length = cfg.num_frames + 1  # two streams one frame apart: warm-up and steady state in one run
+        verify_batched(runner, model, [random_sequence(cfg, batch_length, seed=seed) for seed in (1, 2)], report)
     how = "streamed through OnnxRunner vs padded windows" if form == "step" else "windows"
     log(f"parity onnxruntime vs PyTorch ({how}):")
     for line in report.lines():

@@ -8,6 +8,15 @@ from pathlib import Path
 
 import pytest
 
+try:  # the tests' tensors are tiny: a second intra-op thread buys nothing, and where other processes share the
+    # cores OpenMP's waiting threads cost seconds per forward (a 64 px model: 2.2 s on 2 threads vs 0.03 s on 1,
+    # measured on a loaded 2-core machine). Tests about threads set their own counts.
+    import torch
+
+    torch.set_num_threads(1)
+except ImportError:  # the serving-only install has no torch
+    pass
+
 
 @pytest.fixture(scope="session")
 def radiate_sample() -> Path:

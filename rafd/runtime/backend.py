@@ -8,6 +8,7 @@ from typing import Protocol
 import numpy as np
 
 RUNTIMES = ("onnxruntime", "openvino")
+DYNAMIC = -1  # an input dimension the graph leaves free (the batch axis of a batchable export)
 PRECISIONS = ("fp32", "bf16")
 
 
@@ -19,7 +20,7 @@ class Backend(Protocol):
     threads: int  # threads one run uses
     concurrent_runs: int  # runs the backend is prepared to execute at once
     metadata: dict[str, str]  # the ONNX metadata_props (rafd.runtime.contract.METADATA_KEYS and more)
-    input_shapes: dict[str, tuple[int, ...]]  # graph inputs in graph order -> static shapes
+    input_shapes: dict[str, tuple[int, ...]]  # graph inputs in graph order -> shapes (DYNAMIC where left free)
     output_names: tuple[str, ...]  # graph outputs in graph order
 
     def run(self, feeds: dict[str, np.ndarray]) -> dict[str, np.ndarray]:

@@ -15,6 +15,8 @@ from typing import Any
 
 import numpy as np
 
+from rafd.runtime.backend import DYNAMIC
+
 OV_PRECISION = {"fp32": "f32", "bf16": "bf16"}
 
 
@@ -54,7 +56,10 @@ class OpenVinoBackend:
         info = model.get_rt_info()  # the ONNX frontend puts metadata_props under "framework"
         framework = info["framework"] if "framework" in info else {}
         self.metadata = {key: value.astype(str) for key, value in framework.items()}
-        self.input_shapes = {i.get_any_name(): tuple(i.get_shape()) for i in model.inputs}
+        self.input_shapes = {
+            i.get_any_name(): tuple(d.get_length() if d.is_static else DYNAMIC for d in i.get_partial_shape())
+            for i in model.inputs
+        }
         self.output_names = tuple(o.get_any_name() for o in model.outputs)
         # The threads are shared by the streams: each of `concurrent_runs` streams gets threads // streams.
         config = {

@@ -7,6 +7,8 @@ from pathlib import Path
 
 import numpy as np
 
+from rafd.runtime.backend import DYNAMIC
+
 
 class OrtBackend:
     """One InferenceSession; `run` is thread-safe (onnxruntime allows concurrent run() on one session)."""
@@ -36,7 +38,9 @@ class OrtBackend:
         except Exception as error:  # onnxruntime raises its own exception types
             raise ValueError(f"cannot load ONNX model {path}: {error}") from error
         self.metadata: dict[str, str] = dict(self.session.get_modelmeta().custom_metadata_map)
-        self.input_shapes = {i.name: tuple(i.shape) for i in self.session.get_inputs()}
+        self.input_shapes = {
+            i.name: tuple(d if isinstance(d, int) else DYNAMIC for d in i.shape) for i in self.session.get_inputs()
+        }
         self.output_names = tuple(o.name for o in self.session.get_outputs())
 
     def run(self, feeds: dict[str, np.ndarray]) -> dict[str, np.ndarray]:

@@ -12,7 +12,7 @@ from typing import Any, cast
 
 import numpy as np
 
-from rafd.runtime.backend import PRECISIONS, RUNTIMES, default_threads
+from rafd.runtime.backend import DYNAMIC, PRECISIONS, RUNTIMES, default_threads
 from rafd.runtime.ort_backend import OrtBackend
 from rafd.runtime.streaming import StreamRunner
 
@@ -118,7 +118,10 @@ def open_runner(
 def time_runner(runner: StreamRunner, repeats: int = 5, warmup: int = 2, seed: int = 0) -> float:
     """Median seconds of one graph run on random inputs of the graph's shapes (frames in [0, 1])."""
     rng = np.random.default_rng(seed)
-    feeds = {name: rng.random(shape, dtype=np.float32) for name, shape in runner.backend.input_shapes.items()}
+    feeds = {
+        name: rng.random(tuple(1 if d == DYNAMIC else d for d in shape), dtype=np.float32)
+        for name, shape in runner.backend.input_shapes.items()
+    }
     for _ in range(warmup):
         runner.run(feeds)
     samples = []

@@ -52,7 +52,7 @@ import numpy as np
 
 from rafd.config import RaFDConfig
 from rafd.geometry import relative_pose
-from rafd.runtime.backend import Backend
+from rafd.runtime.backend import DYNAMIC, Backend
 from rafd.runtime.contract import FORMS, graph_inputs, graph_outputs
 
 
@@ -235,8 +235,35 @@ class StreamRunner:
                 with self._in_flight_lock:
                     self._in_flight -= 1
 
-    def step(self, state: StreamState, frame: np.ndarray, pose: np.ndarray) -> tuple[StepResult, StreamState]:
-        """Add one frame (float32 [S, S] in [0, 1]) with its world pose [3] -> (result for its window, new state)."""
+    @property
+    def batchable(self) -> bool:
+        """Whether the graph takes a batch of frames of different streams in one run (a dynamic first axis, from
+        `rafd-export --batch dynamic`); step_many then runs streams' steady-state steps together."""
+        return self.form == "step" and self.backend.input_shapes["frame"][0] == DYNAMIC
+
+    def step_many(
+        self, items: Sequence[tuple[StreamState, np.ndarray, np.ndarray]]
+    ) -> list[tuple[StepResult, StreamState]]:
+        """Several streams' next frames -> each one's (result, new state), in order: step() for each, but the
+        streams past their first frame share one graph run when the graph is batchable (their caches stacked in,
+        split out). A stream's first frame (its warm-up runs) and a graph without a batch axis run one by one."""
+        out: list[tuple[StepResult, StreamState] | None] = [None] * len(items)
+        together = []
+        for index, (state, frame, pose) in enumerate(items):
+            if self.batchable and len(items) > 1 and state.frames_used > 0:
+                together.append((index, state, self._checked_frame(frame), self._checked_pose(pose)))
+            else:
+                out[index] = self.step(state, frame, pose)
+        if together:
+            feeds = [self._step_feeds(state, frame, pose) for _, state, frame, pose in together]
+            stacked = {name: np.concatenate([f[name] for f in feeds]) for name in feeds[0]}
+            batch = self.run(stacked)
+            for row, (index, state, _, pose) in enumerate(together):
+                own = {name: value[row : row + 1] for name, value in batch.items()}
+                out[index] = self._after_step(state, pose, own)
+        return [result for result in out if result is not None]
+
+    def _checked_frame(self, frame: np.ndarray) -> np.ndarray:
         size = self.config.input_size
         if not isinstance(frame, np.ndarray) or frame.dtype != np.float32 or frame.shape != (size, size):
             raise ValueError(
@@ -245,23 +272,41 @@ class StreamRunner:
             )
         if not (frame.min() >= 0.0 and frame.max() <= 1.0):  # also false for NaN
             raise ValueError("frame values must lie in [0, 1]")
+        return frame
+
+    @staticmethod
+    def _checked_pose(pose: np.ndarray) -> np.ndarray:
         pose = np.array(pose, dtype=np.float64)  # a copy: the state keeps it
         if pose.shape != (3,) or not np.all(np.isfinite(pose)):
             raise ValueError(f"pose must be 3 finite numbers, got {pose!r}")
-        _frozen(pose)
+        return _frozen(pose)
+
+    def step(self, state: StreamState, frame: np.ndarray, pose: np.ndarray) -> tuple[StepResult, StreamState]:
+        """Add one frame (float32 [S, S] in [0, 1]) with its world pose [3] -> (result for its window, new state)."""
+        frame, pose = self._checked_frame(frame), self._checked_pose(pose)
         if self.form == "window":
             return self._step_window(state, frame, pose)
         if self.config.num_frames == 1:
-            out = self.run({"frame": frame[None, None], "poses": np.zeros((1, 1, 3), np.float32)})
+            out = self.run(self._step_feeds(state, frame, pose))
             return self._result(out, 1), StreamState(frames_used=1)
         if state.frames_used == 0:
             return self._first_step(frame, pose)
-        return self._step(state, frame, pose)
+        return self._after_step(state, pose, self.run(self._step_feeds(state, frame, pose)))
 
     # ------------------------------------------------------------------ step form
-    def _step(self, state: StreamState, frame: np.ndarray, pose: np.ndarray) -> tuple[StepResult, StreamState]:
+    def _step_feeds(self, state: StreamState, frame: np.ndarray, pose: np.ndarray) -> dict[str, np.ndarray]:
+        """One steady-state step's graph inputs (batch of one)."""
+        if self.config.num_frames == 1:
+            return {"frame": frame[None, None], "poses": np.zeros((1, 1, 3), np.float32)}
+        return self._feeds(frame, state.poses + (pose,), state.features, state.flows, state.flow_features)
+
+    def _after_step(
+        self, state: StreamState, pose: np.ndarray, out: dict[str, np.ndarray]
+    ) -> tuple[StepResult, StreamState]:
+        """A steady-state step's outputs (batch of one) -> (its result, the stream's new state)."""
+        if self.config.num_frames == 1:
+            return self._result(out, 1), StreamState(frames_used=1)
         poses = state.poses + (pose,)
-        out = self._run_step(frame, poses, state.features, state.flows, state.flow_features)
         flows = state.flows
         if flows:  # T = 4: keep the newest T-2 pair flows (a copy: result.flow belongs to the caller)
             flows = flows[1:] + (_frozen(out["flow"][0, -1].copy()),)
@@ -302,6 +347,16 @@ class StreamRunner:
         flows: tuple[np.ndarray, ...],
         flow_features: tuple[np.ndarray, ...] = (),
     ) -> dict[str, np.ndarray]:
+        return self.run(self._feeds(frame, poses, features, flows, flow_features))
+
+    def _feeds(
+        self,
+        frame: np.ndarray,
+        poses: tuple[np.ndarray, ...],
+        features: tuple[np.ndarray, ...],
+        flows: tuple[np.ndarray, ...],
+        flow_features: tuple[np.ndarray, ...] = (),
+    ) -> dict[str, np.ndarray]:
         feeds = {
             "frame": frame[None, None],
             "poses": poses_in_newest_frame(np.stack(poses))[None],
@@ -311,7 +366,7 @@ class StreamRunner:
             feeds["past_flows"] = np.stack(flows)[None]
         if flow_features:
             feeds["past_flow_features"] = flow_features[0][None]
-        return self.run(feeds)
+        return feeds
 
     # ------------------------------------------------------------------ window form
     def _step_window(self, state: StreamState, frame: np.ndarray, pose: np.ndarray) -> tuple[StepResult, StreamState]:
