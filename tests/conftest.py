@@ -30,3 +30,13 @@ def radiate_polar_sample(radiate_sample: Path) -> Path:
             f"no polar RADIATE sample at {path} (set RAFD_RADIATE_POLAR_SAMPLE to shared/radiate/tiny_foggy_polar)"
         )
     return path
+
+
+@pytest.fixture(autouse=True)
+def _progress_bars_as_a_new_process_has_them():
+    """A command run with --quiet silences the process's progress bars (rafd.progress): a test that ran one must
+    not silence the next test's."""
+    from rafd import progress
+
+    yield
+    progress.set_quiet(False)
