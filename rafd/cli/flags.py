@@ -159,9 +159,7 @@ def add_out(
 
 def add_workers(parser: argparse.ArgumentParser | argparse._ArgumentGroup, default: int | None, what: str) -> None:
     """--workers N: parallel worker processes."""
-    parser.add_argument(
-        "--workers", type=positive_int, default=default, metavar="N", help=f"parallel worker processes: {what}"
-    )
+    parser.add_argument("--workers", type=int, default=default, metavar="N", help=f"parallel worker processes: {what}")
 
 
 def add_threads(parser: argparse.ArgumentParser | argparse._ArgumentGroup, default: int | None, what: str) -> None:
