@@ -1,5 +1,6 @@
 # The RaFD serving image: FastAPI + onnxruntime (+ OpenVINO), no torch (only the `serve` extra is installed).
 #   docker build -t rafd-serve .
+#   docker build --build-arg EXTRAS=serve,live -t rafd-serve-live .   # + the Foxglove live view (--foxglove-port)
 #   docker run --rm -p 8000:8000 --cpus 2 rafd-serve          # model threads follow --cpus (cgroup quota)
 #   docker run --rm --network host -e RAFD_PORT=8001 rafd-serve  # another port: server and health check follow
 #   docker run ... -e RAFD_MAX_STREAMS=512 -e RAFD_MODEL_PATH=/models/m.onnx -v $PWD/m.onnx:/models/m.onnx:ro rafd-serve
@@ -9,6 +10,8 @@
 # no build tree, no pip/setuptools, no torch checkpoint.
 
 FROM python:3.11-slim AS build
+# The extras installed: `serve` only by default; `serve,live` adds foxglove-sdk for the live view (+54 MB).
+ARG EXTRAS=serve
 ENV PIP_NO_CACHE_DIR=1 PIP_DISABLE_PIP_VERSION_CHECK=1
 WORKDIR /src
 COPY pyproject.toml README.md ./
@@ -17,7 +20,7 @@ COPY service ./service
 # The service runs the ONNX graph: the PyTorch checkpoint (rafd/assets/*.pt) is not needed in the image.
 RUN rm -f rafd/assets/*.pt \
  && python -m venv /opt/venv \
- && /opt/venv/bin/pip install ".[serve]" \
+ && /opt/venv/bin/pip install ".[${EXTRAS}]" \
  && /opt/venv/bin/pip uninstall -y -q pip setuptools
 # Checks, run from / so they see the INSTALLED package (not /src): no torch in the image, the service imports
 # none, both runtimes are there (onnxruntime fp32, OpenVINO for bf16), and the shipped default model is inside.

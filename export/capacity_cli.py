@@ -21,13 +21,14 @@ from typing import Any
 from rafd.bench.capacity import STAGES, encode_frames, find_capacity, looped_scans, run_level
 from rafd.bench.machine import machine_description
 from rafd.bench.server import start_server
+from rafd.cli import flags
 
 INPUTS = ("scans", "crops")
 
 
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(
-        prog="rafd-bench-capacity", description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
+        prog=flags.prog("bench capacity"), description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
     )
     parser.add_argument("sample", type=Path, help="a RADIATE sequence of real scans (tiny_foggy)")
     parser.add_argument("--configs", default="default", help="comma list of default, paper")
@@ -40,12 +41,13 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--multipart", action="store_true", help="post multipart files instead of JSON + base64")
     parser.add_argument("--seconds", type=float, default=10.0, help="seconds per load level")
     parser.add_argument("--budget-ms", type=float, default=250.0, help="p99 latency a level must stay within")
-    parser.add_argument("--max-streams", type=int, default=64)
-    parser.add_argument("--threads", type=int, help="the service's threads (default: its CPUs)")
+    parser.add_argument("--max-streams", type=int, default=64, help="the largest number of streams to try")
+    flags.add_quiet(parser)
+    flags.add_threads(parser, None, "the service's (default: its CPUs)")
     parser.add_argument(
         "--env", action="append", default=[], metavar="RAFD_X=V", help="extra service settings for the run (repeatable)"
     )
-    parser.add_argument("--json", type=Path, help="write every level here")
+    parser.add_argument("--json", type=Path, metavar="FILE", help="also write every level as JSON")
     return parser
 
 
@@ -63,6 +65,7 @@ def _model_for(config: str, work: Path, model: Path | None) -> Path:
 
 def main(argv: Sequence[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
+    flags.apply_quiet(args)
     logging.basicConfig(level=logging.WARNING, format="%(levelname)s %(name)s: %(message)s")
     configs = [c.strip() for c in args.configs.split(",") if c.strip()]
     inputs = [i.strip() for i in args.inputs.split(",") if i.strip()]
@@ -104,6 +107,7 @@ def main(argv: Sequence[str] | None = None) -> int:
                         with_poses,
                         args.multipart,
                         limit=args.max_streams,
+                        log=(lambda _: None) if args.quiet else print,
                     )
                     top = next((lv for lv in levels if lv.streams == held), alone)
                     rows.append((label, held, alone, top))

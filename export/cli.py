@@ -1,4 +1,8 @@
-"""rafd-export checkpoint.pt model.onnx [--opset N] [--form step|window] [--no-verify]"""
+"""rafd export: a checkpoint to ONNX, checked against PyTorch, with the accuracy gate of reduced precision.
+
+`rafd-export checkpoint.pt model.onnx` (the output positional) is kept as it always was; `--out model.onnx` is the
+same, in the shared vocabulary (docs/cli.md).
+"""
 
 from __future__ import annotations
 
@@ -6,6 +10,7 @@ import argparse
 import sys
 
 from export import MIN_OPSET
+from rafd.cli import flags
 
 
 def _opset(text: str) -> int:
@@ -17,13 +22,19 @@ def _opset(text: str) -> int:
 
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(
-        prog="rafd-export",
+        prog=flags.prog("export"),
         description="Export a RaFD checkpoint to ONNX (static shapes, metadata for the service) and verify it "
         "with onnxruntime against PyTorch (random inputs, plus real frames when RAFD_RADIATE_SAMPLE "
         "names a RADIATE sequence).",
     )
-    parser.add_argument("checkpoint", help="checkpoint written by rafd-train (rafd.checkpoint.save_checkpoint)")
-    parser.add_argument("output", help="ONNX file to write (replaced atomically, only after verification)")
+    flags.add_checkpoint(parser)
+    parser.add_argument(
+        "output",
+        nargs="?",
+        metavar="OUTPUT.onnx",
+        help="ONNX file to write (replaced atomically, only after verification); or --out",
+    )
+    flags.add_out(parser, "MODEL.onnx", "ONNX file to write (the same as the positional OUTPUT.onnx)", type=str)
     parser.add_argument(
         "--opset", type=_opset, default=MIN_OPSET, help=f"ONNX opset, >= {MIN_OPSET} (default %(default)s)"
     )
@@ -34,6 +45,13 @@ def build_parser() -> argparse.ArgumentParser:
         help="step: streaming step graph with feature/flow caches (the service's form); "
         "window: model.forward on a full window (default %(default)s)",
     )
+    parser.add_argument(
+        "--batch",
+        choices=("static", "dynamic"),
+        default="static",
+        help="static: a batch of one; dynamic (step form): a free first axis, so the service runs several streams' "
+        "steps as one batch (verified batched too) (default %(default)s)",
+    )
     parser.add_argument("--no-verify", action="store_true", help="skip the onnxruntime vs PyTorch parity check")
     gate = parser.add_argument_group(
         "accuracy gate",
@@ -43,7 +61,14 @@ def build_parser() -> argparse.ArgumentParser:
     )
     gate.add_argument("--gate", action="store_true", help="run the accuracy gate (step form)")
     gate.add_argument("--gate-sequences", type=_positive, default=12, help="simulated sequences (default %(default)s)")
-    gate.add_argument("--gate-frames", type=_positive, default=60, help="frames per sequence (default %(default)s)")
+    gate.add_argument(
+        "--gate-sequence-frames",
+        dest="gate_frames",
+        type=_positive,
+        default=60,
+        metavar="N",
+        help="frames per simulated sequence (default %(default)s)",
+    )
     gate.add_argument(
         "--gate-seed",
         type=int,
@@ -51,6 +76,8 @@ def build_parser() -> argparse.ArgumentParser:
         help="simulation seed; must be one the model was never trained or tested on "
         "(default: export.gate.DEFAULT_SEED)",
     )
+    flags.add_quiet(parser)
+    flags.deprecated(parser, "--gate-frames", "--gate-sequence-frames", "gate_frames", type=_positive, metavar="N")
     return parser
 
 
@@ -62,7 +89,12 @@ def _positive(text: str) -> int:
 
 
 def main(argv: list[str] | None = None) -> int:
-    args = build_parser().parse_args(argv)
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    if (args.output is None) == (args.out is None):
+        parser.error("give the ONNX file to write once: OUTPUT.onnx or --out MODEL.onnx")
+    output = args.output or args.out
+    flags.apply_quiet(args)
     # Heavy imports (torch, onnx) after argument parsing: --help stays fast.
     from export.gate import DEFAULT_SEED, GateOptions
     from export.onnx_export import ExportError, export_onnx
@@ -79,25 +111,27 @@ def main(argv: list[str] | None = None) -> int:
     try:
         result = export_onnx(
             args.checkpoint,
-            args.output,
+            output,
             opset=args.opset,
             form=args.form,
             verify=not args.no_verify,
             log=log,
             gate=gate,
+            batch=args.batch,
         )
     except CheckpointError as error:
-        print(f"rafd-export: error: bad checkpoint: {error}", file=sys.stderr)
+        print(f"{parser.prog}: error: bad checkpoint: {error}", file=sys.stderr)
         return 1
     except (ExportError, VerificationError) as error:
-        print(f"rafd-export: error: {error}", file=sys.stderr)
+        print(f"{parser.prog}: error: {error}", file=sys.stderr)
         return 1
     verified = "verified" if result.report is not None else "not verified (--no-verify)"
     gated = "".join(
         f", {precision} gate {'PASS' if report.ok else 'FAIL'}" for precision, report in result.gates.items()
     )
+    batch = ", dynamic batch" if result.metadata.get("batch") == "dynamic" else ""
     print(
-        f"wrote {result.path} ({result.size_bytes / 1e6:.2f} MB, {result.form} form, opset {result.opset}, "
+        f"wrote {result.path} ({result.size_bytes / 1e6:.2f} MB, {result.form} form{batch}, opset {result.opset}, "
         f"{result.exporter} exporter, {verified}{gated})"
     )
     return 0

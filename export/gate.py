@@ -14,7 +14,9 @@ candidate detection above the threshold within one feature cell; a detection wit
 side has "changed". Checks (GateThresholds), on all compared frames together (the real sample alone is too
 small for a 2% or p99 figure: one changed detection of its ~50 is 2%; its own figures are reported too):
 changed / reference detections, p99 centre shift and p99 |score difference| of matched pairs; on the labelled
-(simulated) frames: |mAP difference| at each IoU and |flow EPE difference|.
+(simulated) frames: |mAP difference| at each IoU and |flow EPE difference|. And the evidence itself: fewer than
+GATE_MIN_FRAMES compared windows or GATE_MIN_REFERENCE_DETECTIONS reference detections (rafd.protocol) is a FAIL
+("too little to judge"), never a PASS: a gate that compared nothing has shown nothing.
 """
 
 from __future__ import annotations
@@ -32,7 +34,14 @@ import numpy as np
 
 from rafd.config import RaFDConfig
 from rafd.detections import decode_detections
-from rafd.protocol import DEFAULT_SCORE_THRESHOLD, IOU_THRESHOLDS, warming_up
+from rafd.progress import bar
+from rafd.protocol import (
+    DEFAULT_SCORE_THRESHOLD,
+    GATE_MIN_FRAMES,
+    GATE_MIN_REFERENCE_DETECTIONS,
+    IOU_THRESHOLDS,
+    warming_up,
+)
 from rafd.runtime import StepResult, StreamRunner
 
 DEFAULT_SEED = 7100  # not a seed of rafd-bench-accuracy's data (1000 train, 2000 test); override if a model saw it
@@ -46,6 +55,9 @@ class GateThresholds:
     score_p99: float = 0.02
     map_points: float = 0.5  # per IoU threshold, in mAP points (percent)
     epe_m: float = 0.01
+    # the evidence needed before the gate judges at all (all sources together); lower only in tests of the checks
+    min_frames: int = GATE_MIN_FRAMES
+    min_reference_detections: int = GATE_MIN_REFERENCE_DETECTIONS
 
 
 @dataclass
@@ -111,6 +123,20 @@ class GateReport:
         out = [
             (
                 "all",
+                "compared windows (at least)",
+                float(all_frames.frames),
+                float(t.min_frames),
+                all_frames.frames >= t.min_frames,
+            ),
+            (
+                "all",
+                "reference detections (at least)",
+                float(all_frames.reference_detections),
+                float(t.min_reference_detections),
+                all_frames.reference_detections >= t.min_reference_detections,
+            ),
+            (
+                "all",
                 "changed detections (fraction)",
                 all_frames.changed_fraction,
                 t.changed_fraction,
@@ -170,12 +196,23 @@ class GateReport:
             out[name] = row
         return out
 
+    def too_little(self) -> str | None:
+        """Why the gate refused to judge (too few windows or detections), or None."""
+        short = [
+            f"{check.removesuffix(' (at least)')} {value:g} < {limit:g}"
+            for _, check, value, limit, ok in self.checks()[:2]
+            if not ok
+        ]
+        return "too little to judge: " + ", ".join(short) if short else None
+
     def lines(self) -> list[str]:
-        out = [f"accuracy gate {self.candidate} vs {self.reference}: {'PASS' if self.ok else 'FAIL'}"]
+        verdict = "PASS" if self.ok else "FAIL"
+        reason = self.too_little()
+        out = [f"accuracy gate {self.candidate} vs {self.reference}: {verdict}" + (f" ({reason})" if reason else "")]
         for name, figures in self.figures().items():
             out.append(f"  {name}: " + ", ".join(f"{k} {v}" for k, v in figures.items()))
         for source, check, value, limit, ok in self.checks():
-            out.append(f"  {'ok  ' if ok else 'FAIL'} {source:9s} {check:34s} {value:.4f} (limit {limit:g})")
+            out.append(f"  {'ok  ' if ok else 'FAIL'} {source:9s} {check:34s} {value:.4g} (limit {limit:g})")
         return out
 
 
@@ -270,6 +307,7 @@ def run_sequence(
     figures: SourceFigures,
     thresholds: GateThresholds,
     labelled: dict[str, list[Any]],
+    advance: Callable[[], object] = lambda: None,
 ) -> None:
     """Stream one sequence through both runners; compare every full window; collect labelled outputs."""
     from rafd.eval.metrics import end_point_error_terms
@@ -278,6 +316,7 @@ def run_sequence(
     for item in frames:
         ref, states[0] = reference.step(states[0], item.frame, item.pose)
         cand, states[1] = candidate.step(states[1], item.frame, item.pose)
+        advance()
         if warming_up(ref.frames_used, reference.config.num_frames):
             continue  # the window is padded
         compare_frame(figures, ref, cand, reference.config, thresholds.score_threshold)
@@ -297,8 +336,10 @@ def run_gate(
     sources: dict[str, Iterator[list[LabelledFrame]]],
     thresholds: GateThresholds = GateThresholds(),
     log: Callable[[str], None] = lambda _: None,
+    expected_frames: dict[str, int] | None = None,
 ) -> GateReport:
-    """sources: name -> sequences of frames (labelled or not). Returns the report (check .ok)."""
+    """sources: name -> sequences of frames (labelled or not); `expected_frames`: name -> frames, for the progress
+    bar's estimate. Returns the report (check .ok)."""
     from rafd.eval.metrics import mean_average_precision
 
     if reference.config != candidate.config:
@@ -315,8 +356,10 @@ def run_gate(
             "reference_epe": [],
             "candidate_epe": [],
         }
-        for frames in sequences:
-            run_sequence(reference, candidate, frames, figures, thresholds, labelled)
+        total = (expected_frames or {}).get(name)
+        with bar(desc=f"gate {report.candidate}: {name} frames", total=total, unit="frame") as progress:
+            for frames in sequences:
+                run_sequence(reference, candidate, frames, figures, thresholds, labelled, progress.update)
         if labelled["gt"]:
             for side in ("reference", "candidate"):
                 aps = mean_average_precision(labelled[side], labelled["gt"], IOU_THRESHOLDS)
@@ -350,9 +393,12 @@ def gate_model(
     sources: dict[str, Iterator[list[LabelledFrame]]] = {
         "simulated": simulated_sequences(reference.config, sequences, frames, seed)
     }
+    expected = {"simulated": sequences * frames}
     if radiate is not None:
-        sources["radiate"] = iter([radiate_frames(radiate, reference.config)])
-    return run_gate(reference, other, sources, thresholds, log)
+        real = radiate_frames(radiate, reference.config)
+        sources["radiate"] = iter([real])
+        expected["radiate"] = len(real)
+    return run_gate(reference, other, sources, thresholds, log, expected)
 
 
 # ----------------------------------------------------------------------------- rafd-export --gate

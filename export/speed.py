@@ -34,6 +34,7 @@ from rafd.bench.http_load import encode_png, load_streams
 from rafd.bench.server import rss_bytes, start_server
 from rafd.bench.timing import percentiles, time_calls, time_interleaved
 from rafd.preprocess import model_crop, to_model_input
+from rafd.progress import Stages
 
 log = logging.getLogger("rafd.bench")
 
@@ -114,8 +115,11 @@ def bench_model(
     gate: tuple[int, int] | None,
     peaks: dict[str, float],
     report: Report,
+    stages: Stages | None = None,
 ) -> dict[str, Any]:
-    """PyTorch window, ORT window, the streaming step on every runtime, concurrency and the gate -> rows + facts."""
+    """PyTorch window, ORT window, the streaming step on every runtime, concurrency and the gate -> rows + facts
+    (MODEL_STAGES stages, the gate's included, on `stages`)."""
+    begin = stages.begin if stages is not None else (lambda _: None)
     import onnxruntime as ort
     import torch
 
@@ -130,11 +134,14 @@ def bench_model(
     window = torch.from_numpy(np.stack(inputs[:frames_per_window]))[None, :, None]  # [1, T, 1, S, S]
     window_poses = torch.from_numpy(poses[:frames_per_window].astype(np.float32))[None]  # [1, T, 3]
 
+    begin(f"{name}: PyTorch eager window x {repeats}")
     with torch.no_grad():
         eager = time_calls(lambda _: model(window, window_poses), repeats)
     report.rows.append(Row(name, "pytorch eager, full window", *percentiles(eager), 1.0 / np.median(eager)))
 
+    begin(f"{name}: export the window and step graphs")
     forms = export_forms(checkpoint, work)
+    begin(f"{name}: onnxruntime window x {repeats}")
     options = ort.SessionOptions()
     options.intra_op_num_threads = threads
     options.graph_optimization_level = ort.GraphOptimizationLevel.ORT_ENABLE_ALL
@@ -146,6 +153,7 @@ def bench_model(
     )
     session = None  # frees the window graph's session before the step graphs load
 
+    begin(f"{name}: streaming steps on every runtime, interleaved, x {repeats}")
     step_flops = count_step_flops(model, cfg)
     window_flops = count_flops(model, window, window_poses)
     choices = supported_choices()
@@ -181,6 +189,7 @@ def bench_model(
             note += f"; {float(np.median(ort_window)) / median:.2f}x faster than the ORT window"
         report.rows.append(Row(name, f"streaming step, {key}", *percentiles(seconds), 1.0 / median, note))
 
+    begin(f"{name}: 1 against 8 streams through one runner")
     concurrency = {}
     for key in runners:
         runtime, precision = key.split("/")
@@ -207,6 +216,7 @@ def bench_model(
             )
 
     gates = {}
+    begin(f"{name}: accuracy gate" + ("" if gate is not None else " (skipped)"))
     if gate is not None:
         from export.gate import gate_model
 
@@ -241,6 +251,14 @@ def bench_model(
     return {"step_onnx": forms["step"], "cfg": cfg}
 
 
+MODEL_STAGES = 6  # the stages of bench_model
+
+
+def http_stages(concurrency: Sequence[int], full_scans: bool) -> int:
+    """The stages of bench_http: the server's start, each load, the memory fill."""
+    return 1 + len(concurrency) + int(full_scans) + 1
+
+
 def bench_http(
     name: str,
     model: Path,
@@ -252,9 +270,12 @@ def bench_http(
     precision: str,
     full_scans: bool,
     report: Report,
+    stages: Stages | None = None,
 ) -> None:
     import httpx
 
+    begin = stages.begin if stages is not None else (lambda _: None)
+    begin(f"{name}: start rafd serve ({runtime}/{precision})")
     images, poses = simulated_frames(max(FULL_SCAN, size) if full_scans else size, 16, seed=11)
     inputs = {"model-size": [encode_png(model_crop(image, size)) for image in images]}
     if full_scans:
@@ -275,6 +296,7 @@ def bench_http(
         label = f"{served['runtime']}/{served['precision']}"
         for kind, bodies in inputs.items():
             for streams in concurrency if kind == "model-size" else [1]:
+                begin(f"{name}: HTTP /detect, {label}, {kind}, {streams} stream(s) x {frames} frames")
                 result = load_streams(url, bodies, poses, streams, frames, f"{label}-{kind}")
                 p50, p95 = percentiles(result["latencies"])
                 timing = {
@@ -294,6 +316,7 @@ def bench_http(
                 report.rows.append(
                     Row(name, f"HTTP /detect, {label}, {streams} stream(s)", p50, p95, result["fps"], note)
                 )
+        begin(f"{name}: memory with 100 streams ({label})")
         before = rss_bytes(server.pid)
         bodies = inputs["model-size"]
         with httpx.Client(base_url=url, timeout=120.0) as http:
@@ -316,6 +339,78 @@ def bench_http(
         }
     finally:
         server.stop()
+
+
+LIVE_VIEW_ROUNDS = 3  # servers started with the live view off and on each, alternating
+
+
+def bench_live_view(
+    name: str,
+    model: Path,
+    size: int,
+    threads: int,
+    frames: int,
+    runtime: str,
+    precision: str,
+    report: Report,
+    stages: Stages | None = None,
+    full_scans: bool = True,
+) -> dict[str, Any]:
+    """HTTP /detect with the Foxglove live view off and on (a viewer subscribed to every channel), one stream, in
+    LIVE_VIEW_ROUNDS rounds of one server each, alternating off / on (and which goes first) so machine noise hits both
+    alike -> two rows
+    (median over the rounds of each round's p50 and frames/s) and facts["live_view"]."""
+    from rafd.bench.server import free_port
+
+    begin = stages.begin if stages is not None else (lambda _: None)
+    scan = max(FULL_SCAN, size) if full_scans else size
+    images, poses = simulated_frames(scan, 16, seed=11)
+    bodies = [encode_png(image) for image in images]  # full scans: the largest scan the live view publishes
+    env = {"RAFD_RUNTIME": runtime, "RAFD_PRECISION": precision, "RAFD_SCORE_THRESHOLD": "0.3"}
+    rounds: dict[str, list[dict[str, Any]]] = {"off": [], "on": []}
+    for index in range(LIVE_VIEW_ROUNDS):
+        for mode in (
+            ("off", "on") if index % 2 == 0 else ("on", "off")
+        ):  # each goes first as often (off, on, on, off, ...)
+            begin(f"{name}: live view {mode}, round {index + 1} of {LIVE_VIEW_ROUNDS}")
+            port = free_port()
+            extra = ["--foxglove-port", str(port)] if mode == "on" else []
+            server = start_server(model, threads, env=env, extra=extra)
+            viewer = None
+            try:
+                if mode == "on":
+                    try:
+                        from rafd.bench.live_viewer import SubscribeAll
+
+                        viewer = SubscribeAll(port)
+                    except ImportError:
+                        log.warning("no websockets package: the live view runs without a subscribed viewer")
+                tag = f"live-{mode}-{index}"
+                load_streams(server.url, bodies, poses, 1, 4, tag + "-warm")  # first runs, first channels
+                result = load_streams(server.url, bodies, poses, 1, frames, tag)
+                p50, _ = percentiles(result["latencies"])
+                received = viewer.stop() if viewer is not None else None
+                viewer = None
+                rounds[mode].append({"p50_ms": p50, "fps": result["fps"], "viewer_messages": received})
+            finally:
+                if viewer is not None:
+                    viewer.stop()
+                server.stop()
+    summary: dict[str, Any] = {"rounds": rounds}
+    for mode in ("off", "on"):
+        p50 = statistics.median(r["p50_ms"] for r in rounds[mode])
+        fps = statistics.median(r["fps"] for r in rounds[mode])
+        summary[mode] = {"p50_ms": round(p50, 2), "fps": round(fps, 2)}
+        note = f"{'full ' + str(scan) + ' px scans' if full_scans else 'model-size frames'}, 1 stream, median of "
+        note += f"{LIVE_VIEW_ROUNDS} servers' p50 and frames/s"
+        if mode == "on":
+            ratio = summary["on"]["fps"] / summary["off"]["fps"]
+            summary["on_over_off_fps"] = round(ratio, 3)
+            messages = [r["viewer_messages"] for r in rounds["on"]]
+            note += f"; {ratio:.3f}x the frames/s with it off; the viewer received {messages} messages"
+        report.rows.append(Row(name, f"HTTP /detect, {runtime}/{precision}, live view {mode}", p50, None, fps, note))
+    report.facts.setdefault(name, {})["live_view"] = summary
+    return summary
 
 
 # ----------------------------------------------------------------------------- table

@@ -1,5 +1,5 @@
-"""`rafd-bench-speed`: speed, accuracy drift and memory of every runtime and precision, side by side in one run
-(export.speed; README/docs "Performance")."""
+"""rafd bench speed: speed, accuracy drift and memory of every runtime and precision, side by side in one run
+(export.speed; docs "Performance")."""
 
 from __future__ import annotations
 
@@ -12,42 +12,99 @@ import tempfile
 from collections.abc import Sequence
 from pathlib import Path
 
-from export.speed import CONFIGS, Report, bench_http, bench_model, config_checkpoint, format_report
+from export.speed import (
+    CONFIGS,
+    LIVE_VIEW_ROUNDS,
+    MODEL_STAGES,
+    Report,
+    bench_http,
+    bench_live_view,
+    bench_model,
+    config_checkpoint,
+    format_report,
+    http_stages,
+)
 from rafd.bench.flops import matmul_peaks_gflops
 from rafd.bench.machine import machine_description
+from rafd.cli import flags
 from rafd.cli.common import renamed
+from rafd.progress import Stages
 
 log = logging.getLogger("rafd.bench")
 
 
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(
-        prog="rafd-bench-speed", description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
+        prog=flags.prog("bench speed"), description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
     )
-    parser.add_argument("--checkpoint", type=Path, help="default: the shipped model (rafd.assets)")
-    parser.add_argument("--configs", default="default,paper,paper-options", help=f"comma list of {', '.join(CONFIGS)}")
-    parser.add_argument("--threads", type=int, default=len(os.sched_getaffinity(0)))
-    parser.add_argument("--repeats", type=int, default=20, help="timed calls per model path")
+    flags.add_checkpoint(parser, nargs="?", what="the 'default' config's model (default: the shipped model)")
     parser.add_argument(
-        "--concurrency-frames", type=int, default=8, help="frames per stream in the 1-vs-8-streams runner comparison"
+        "--configs",
+        default="default,paper,paper-options",
+        help=f"comma list of the configs to measure, of {', '.join(CONFIGS)} (default %(default)s)",
     )
-    parser.add_argument("--gate-sequences", type=int, default=6, help="simulated sequences of the accuracy gate")
-    parser.add_argument("--gate-frames", type=int, default=40, help="frames per gate sequence")
+    flags.add_threads(
+        parser, len(os.sched_getaffinity(0)), "onnxruntime's / OpenVINO's threads per run (default: the CPUs)"
+    )
+    parser.add_argument("--repeats", type=int, default=20, help="timed calls per model path (default %(default)s)")
+    parser.add_argument(
+        "--concurrency-frames",
+        type=int,
+        default=8,
+        metavar="N",
+        help="frames per stream in the 1-vs-8-streams runner comparison (default %(default)s)",
+    )
+    parser.add_argument(
+        "--gate-sequences", type=int, default=6, help="simulated sequences of the accuracy gate (default %(default)s)"
+    )
+    parser.add_argument(
+        "--gate-sequence-frames",
+        dest="gate_frames",
+        type=int,
+        default=40,
+        metavar="N",
+        help="frames per simulated sequence of the accuracy gate (default %(default)s)",
+    )
     parser.add_argument("--no-gate", action="store_true", help="skip the accuracy gate")
-    parser.add_argument("--http-frames", type=int, default=40, help="frames per stream in the HTTP load")
-    parser.add_argument("--concurrency", default="1,8", help="comma list of concurrent HTTP streams")
+    parser.add_argument(
+        "--http-frames",
+        type=int,
+        default=40,
+        metavar="N",
+        help="frames per stream in the HTTP load (default %(default)s)",
+    )
+    parser.add_argument(
+        "--concurrency", default="1,8", help="comma list of concurrent HTTP streams (default %(default)s)"
+    )
     parser.add_argument(
         "--http-runtimes",
         default="onnxruntime/fp32,openvino/bf16",
         help="comma list of runtime/precision (or auto/auto) to serve over HTTP; unsupported ones are skipped",
     )
     parser.add_argument("--no-http", action="store_true", help="model paths only")
-    parser.add_argument("--json", type=Path, help="also write the figures as JSON")
+    parser.add_argument(
+        "--live-view",
+        action="store_true",
+        help="also time HTTP /detect with the Foxglove live view off and on (a viewer subscribed), alternating, "
+        "3 servers each (needs the live extra)",
+    )
+    parser.add_argument("--json", type=Path, metavar="FILE", help="also write the figures as JSON")
+    flags.add_quiet(parser)
+    flags.deprecated(
+        parser, "--checkpoint", "the positional CHECKPOINT", "checkpoint_option", type=Path, metavar="CKPT"
+    )
+    flags.deprecated(parser, "--gate-frames", "--gate-sequence-frames", "gate_frames", type=int, metavar="N")
     return parser
 
 
 def main(argv: Sequence[str] | None = None) -> int:
-    args = build_parser().parse_args(argv)
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    option = getattr(args, "checkpoint_option", None)
+    if option is not None and args.checkpoint is not None:
+        parser.error("give the checkpoint once: as the positional CHECKPOINT")
+    args.checkpoint = args.checkpoint or option
+    flags.apply_quiet(args)
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(levelname)s %(name)s: %(message)s")
     logging.getLogger("httpx").setLevel(logging.WARNING)  # one line per request would bury the table
     configs = [c.strip() for c in args.configs.split(",") if c.strip()]
@@ -77,7 +134,12 @@ def main(argv: Sequence[str] | None = None) -> int:
         "runtimes": sorted(supported - {"auto/auto"}),
     }
     gate = None if args.no_gate else (args.gate_sequences, args.gate_frames)
-    with tempfile.TemporaryDirectory(prefix="rafd-bench-") as tmp:
+    per_config = MODEL_STAGES + (0 if args.no_http else len(http_runtimes) * http_stages(concurrency, False))
+    total = len(configs) * per_config + (0 if args.no_http or "default" not in configs else len(http_runtimes))
+    if args.live_view:
+        total += LIVE_VIEW_ROUNDS * 2
+    stages = Stages("bench speed", total)
+    with stages, tempfile.TemporaryDirectory(prefix="rafd-bench-") as tmp:
         work = Path(tmp)
         for name in configs:
             if name == "default":
@@ -94,7 +156,16 @@ def main(argv: Sequence[str] | None = None) -> int:
                 return 2
             log.info("benchmarking %s (%s)", name, checkpoint)
             paths = bench_model(
-                name, Path(checkpoint), work, args.threads, args.repeats, args.concurrency_frames, gate, peaks, report
+                name,
+                Path(checkpoint),
+                work,
+                args.threads,
+                args.repeats,
+                args.concurrency_frames,
+                gate,
+                peaks,
+                report,
+                stages,
             )
             if not args.no_http:
                 for choice in http_runtimes:
@@ -110,7 +181,21 @@ def main(argv: Sequence[str] | None = None) -> int:
                         precision,
                         name == "default",
                         report,
+                        stages,
                     )
+            if args.live_view and name == "default":
+                runtime, precision = (http_runtimes[0] if http_runtimes else "onnxruntime/fp32").split("/")
+                bench_live_view(
+                    name,
+                    paths["step_onnx"],
+                    paths["cfg"].input_size,
+                    args.threads,
+                    args.http_frames,
+                    runtime,
+                    precision,
+                    report,
+                    stages,
+                )
         # measured again at the end: the peaks of the same run, before and after (the machine may be shared)
         after = matmul_peaks_gflops(args.threads)
         report.facts["machine"]["matmul_peak_gflops_at_end"] = {k: round(v, 1) for k, v in after.items()}

@@ -16,6 +16,7 @@ import torch
 from torch import nn
 
 from rafd.config import RaFDConfig
+from rafd.model_files import onnx_given_for_checkpoint
 
 if TYPE_CHECKING:  # the model code loads lazily
     from rafd.model import RaFD
@@ -61,11 +62,17 @@ def read_checkpoint(
     path = Path(path)
     if not path.is_file():
         raise CheckpointError(f"checkpoint {path} does not exist")
+    wrong_kind = onnx_given_for_checkpoint(path)
+    if wrong_kind:
+        raise CheckpointError(wrong_kind)
     try:
         payload = torch.load(path, map_location=map_location, weights_only=True)
     except Exception as error:  # torch raises several types for truncated, foreign or garbage files
+        # only the error's type: torch's message is advice for torch.load's callers (weights_only=False, "file an
+        # issue"), not for someone who passed the wrong file
         raise CheckpointError(
-            f"checkpoint {path} is not a readable torch file (corrupt or not a checkpoint): {error}"
+            f"{path} is not a readable RaFD checkpoint (a truncated or foreign file: torch.load raised "
+            f"{type(error).__name__}); pass the .pt file that `rafd train` writes"
         ) from error
     if not isinstance(payload, dict):
         raise CheckpointError(

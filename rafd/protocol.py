@@ -6,6 +6,10 @@
   lookup, range-checked, used by `rafd-eval`, the plots, the MCAP logs and the service.
 - How detections are scored: oriented-box IoU thresholds of the benchmark protocol (TempoRadar, SIRA, RaFD) and the
   centre-matching distance.
+- How much evidence the accuracy gate of a reduced precision needs (export/gate.py): fewer compared windows or
+  fewer reference detections than GATE_MIN_FRAMES / GATE_MIN_REFERENCE_DETECTIONS is a FAIL ("too little to
+  judge"), and the service (rafd.runtime.runners.gate_passed) never considers a precision whose recorded gate did
+  not pass on at least that much.
 - When a stream's answer is "warming up": fewer real frames than the model's window (the window is padded by
   repeating the oldest frame; rafd.runtime.streaming.window_from_history).
 """
@@ -20,6 +24,12 @@ DEFAULT_SCORE_THRESHOLD = 0.3  # a model exported or saved without an operating 
 IOU_THRESHOLDS = (0.3, 0.5, 0.7)  # mAP@0.3 / 0.5 / 0.7 on oriented boxes (polygon IoU, match when IoU > t)
 CENTRE_DISTANCE_M = 2.0  # centre matching: a detection counts when its centre is within this of an unmatched vehicle's
 OPERATING_THRESHOLD_KEY = "operating_threshold"  # checkpoint meta and ONNX metadata key
+# The accuracy gate judges on at least this many compared windows and reference detections (all sources together):
+# its "changed detections" check (at most 2 %) needs 50 detections before one change is under the limit, and its
+# p99 figures need about 100 matched pairs to mean more than the largest value. The default gate (12 simulated
+# sequences of 60 frames) compares about 700 windows and 1900 detections on the shipped model.
+GATE_MIN_FRAMES = 100
+GATE_MIN_REFERENCE_DETECTIONS = 100
 
 
 def check_score_threshold(value: Any, source: str) -> float:

@@ -2,7 +2,8 @@
 
 The model is loaded in the lifespan, in a background task, never at import: /health/live answers at
 once, /health/ready (and every model route) answers 503 until the model is loaded and warmed up.
-Middleware, outermost first: metrics (counts every answer, 401s and 413s included), API keys (401 before
+The interactive API pages (/docs, /redoc) load their assets from this process (/static-offline-docs/), not from
+the internet. Middleware, outermost first: metrics (counts every answer, 401s and 413s included), API keys (401 before
 anything is read), the body size limit (413), then the routes.
 """
 
@@ -16,13 +17,15 @@ from collections.abc import AsyncIterator, Callable
 from typing import Any
 
 from fastapi import FastAPI
+from fastapi_offline import FastAPIOffline
 from starlette.concurrency import run_in_threadpool
 
 from rafd import __version__
 from service.auth import OPEN_PATHS, ApiKeyMiddleware, load_api_keys
 from service.detector import DetectService, Executors
-from service.errors import ERRORS, error_responses, install_error_handlers
+from service.errors import ERRORS, error_responses, expand_codes, install_error_handlers
 from service.limits import BodySizeLimitMiddleware
+from service.live import LiveView
 from service.loading import check_buffer_length, open_runner, warm_up
 from service.metrics import MetricsMiddleware, ServiceMetrics
 from service.penalty import RefusalPenalty
@@ -38,7 +41,7 @@ ANY_ROUTE_ERRORS = (
     'Every error is `{"error": {"code", "message"}}`. Besides each route\'s own errors, any route may answer: '
     + "; ".join(
         f"{ERRORS[code].status} `{code}`: {ERRORS[code].meaning}"
-        for code in ("unauthorized", "not_found", "method_not_allowed", "request_too_large", "http_error")
+        for code in expand_codes(("unauthorized", "not_found", "method_not_allowed", "request_too_large", "http_error"))
     )
     + "."
 )
@@ -57,6 +60,7 @@ def create_app(
     settings = settings or get_settings()
     service_metrics = ServiceMetrics()
     api_keys = load_api_keys(settings)
+    live = LiveView.from_settings(settings, service_metrics)  # ValueError naming the extra when foxglove is absent
 
     async def load(app: FastAPI) -> None:
         try:
@@ -76,6 +80,9 @@ def create_app(
             app.state.service = DetectService(
                 loaded, settings, store, service_metrics, odometry, Executors.from_settings(settings, service_metrics)
             )
+            if live is not None:
+                live.resolution = loaded.config.resolution
+                app.state.service.on_answer = live.offer
             log.info("model ready: %s", loaded.metadata.get("version", "unknown"))
         except Exception as exc:  # readiness reports it; the process stays up for inspection
             log.exception("model failed to load")
@@ -85,10 +92,14 @@ def create_app(
     async def lifespan(app: FastAPI) -> AsyncIterator[None]:
         app.state.service = None
         app.state.load_error = None
+        if live is not None:
+            live.start()
         task = asyncio.create_task(load(app))
         try:
             yield
         finally:
+            if live is not None:
+                live.stop()
             task.cancel()
             with contextlib.suppress(asyncio.CancelledError):
                 await task
@@ -96,10 +107,13 @@ def create_app(
                 app.state.service.executors.shutdown()
             app.state.service = None
 
-    app = FastAPI(
+    # /docs (Swagger UI) and /redoc with their JavaScript and CSS served by this process (fastapi-offline ships them,
+    # under /static-offline-docs/), never from a CDN: the pages work on a network without internet.
+    app = FastAPIOffline(
         title="RaFD radar detection service", version=__version__, lifespan=lifespan, description=ANY_ROUTE_ERRORS
     )
     app.state.settings = settings
+    app.state.live = live
     app.state.refusal_penalty = RefusalPenalty(settings.refusal_penalty_s, settings.refusal_penalty_after)
     app.state.metrics = service_metrics
     app.state.service = None

@@ -95,7 +95,8 @@ def presented_key(scope: Scope) -> str | None:
 
 
 class ApiKeyMiddleware:
-    """401 before anything is read when keys are configured and none valid is presented; else records the name."""
+    """401 before anything is read when keys are configured and none valid is presented (missing_api_key without a
+    key, invalid_api_key with a wrong one); else records the key's name."""
 
     def __init__(self, app: ASGIApp, keys: ApiKeys) -> None:
         self.app = app
@@ -105,14 +106,18 @@ class ApiKeyMiddleware:
         if scope["type"] != "http" or not self.keys.enabled or scope["path"] in OPEN_PATHS:
             await self.app(scope, receive, send)
             return
-        name = self.keys.identify(presented_key(scope))
+        presented = presented_key(scope)
+        name = self.keys.identify(presented)
         if name is None:
-            body = json.dumps(
-                error_body(
-                    "unauthorized",
+            # Two answers, one for each mistake, and neither says anything about the keys that exist.
+            if presented:
+                code, message = "invalid_api_key", "the API key sent is not valid for this service"
+            else:
+                code, message = (
+                    "missing_api_key",
                     "this service requires an API key: send it as 'X-API-Key: KEY' or 'Authorization: Bearer KEY'",
                 )
-            ).encode()
+            body = json.dumps(error_body(code, message)).encode()
             await send(
                 {
                     "type": "http.response.start",

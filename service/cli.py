@@ -1,7 +1,8 @@
-"""`rafd-serve [--model model.onnx] [--host 127.0.0.1] [--port 8000]`: one uvicorn process serving the model.
+"""rafd serve: one uvicorn process serving the model over HTTP.
 
-Other settings come from RAFD_* environment variables (see service/settings.py). Scale out with more
-processes/containers, routing each stream id to one replica (a stream's buffer lives in its process).
+Every service setting (service/settings.py) is a flag (service/flags.py generates them from the Settings model)
+and an RAFD_* environment variable; a flag wins over the variable. Scale out with more processes/containers,
+routing each stream id to one replica (a stream's buffer lives in its process).
 """
 
 from __future__ import annotations
@@ -14,24 +15,26 @@ from typing import Any
 
 from pydantic import ValidationError
 
+from rafd.cli.flags import prog
+from rafd.model_files import checkpoint_given_for_onnx
+from service.flags import add_settings_flags, settings_overrides
+
 
 def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(prog="rafd-serve", description="Serve RaFD radar detection over HTTP.")
-    parser.add_argument(
-        "--model",
-        type=Path,
-        default=None,
-        help="ONNX model from rafd-export (default: RAFD_MODEL_PATH, else the model shipped in the package)",
+    parser = argparse.ArgumentParser(
+        prog=prog("serve"),
+        description="Serve RaFD radar detection over HTTP. Without --model (RAFD_MODEL_PATH) it serves the model "
+        "shipped in the package.",
     )
     parser.add_argument("--host", default="127.0.0.1", help="interface to bind (0.0.0.0 in a container)")
-    parser.add_argument("--port", type=int, default=8000)
+    parser.add_argument("--port", type=int, default=8000, help="TCP port to listen on (default %(default)s)")
     parser.add_argument(
-        "--threads",
-        type=int,
-        default=None,
-        help="onnxruntime intra-op threads (default: the CPUs this process may use)",
+        "--log-level",
+        default="info",
+        choices=["critical", "error", "warning", "info", "debug"],
+        help="log level of the service and uvicorn (default %(default)s)",
     )
-    parser.add_argument("--log-level", default="info", choices=["critical", "error", "warning", "info", "debug"])
+    add_settings_flags(parser)
     return parser
 
 
@@ -39,11 +42,7 @@ def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     from service.settings import Settings
 
-    overrides: dict[str, Any] = {}  # Settings field -> value (of that field's type)
-    if args.model is not None:
-        overrides["model_path"] = args.model
-    if args.threads is not None:
-        overrides["threads"] = args.threads
+    overrides: dict[str, Any] = settings_overrides(args)  # Settings field -> the flag's text
     try:
         settings = Settings(**overrides)
     except ValidationError as exc:
@@ -61,6 +60,10 @@ def main(argv: list[str] | None = None) -> int:
             return 2
     if not Path(settings.model_path).is_file():
         print(f"rafd-serve: model file {settings.model_path} does not exist", file=sys.stderr)
+        return 2
+    wrong_kind = checkpoint_given_for_onnx(settings.model_path)
+    if wrong_kind:
+        print(f"rafd-serve: {wrong_kind}", file=sys.stderr)
         return 2
 
     import uvicorn

@@ -13,6 +13,7 @@ from __future__ import annotations
 import asyncio
 import base64
 import time
+from collections.abc import Callable
 from dataclasses import dataclass
 from typing import TYPE_CHECKING, Any, Literal
 
@@ -103,6 +104,8 @@ class DetectService:
         self._odometry = odometry
         # RAFD_SCORE_THRESHOLD when set, else the model's documented operating threshold (rafd.protocol)
         self.score_threshold = operating_threshold(runner.metadata, settings.score_threshold)
+        # Given every answer once it is complete (the live view's queue, service/live.py); must not block.
+        self.on_answer: Callable[[dict[str, Any], DecodedFrame], None] | None = None
 
     @property
     def accepted_sizes(self) -> tuple[int, ...]:
@@ -182,6 +185,8 @@ class DetectService:
             "post_ms": _ms(done - model_done),
             "total_ms": _ms(done - start),
         }
+        if self.on_answer is not None:
+            self.on_answer(answer, decoded)
         return answer
 
     async def _read(self, request: Request, stream_hint: str | None, check: Any) -> tuple[DetectFields, Any]:

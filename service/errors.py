@@ -42,7 +42,8 @@ ERRORS: Mapping[str, ErrorCode] = {
     "empty_body": ErrorCode(400, "the request body is empty"),
     "invalid_json": ErrorCode(400, "the body is not valid JSON (NaN, Infinity and out-of-range numbers included)"),
     "invalid_multipart": ErrorCode(400, "the multipart/form-data body cannot be parsed (boundary, part headers)"),
-    "unauthorized": ErrorCode(401, "API keys are configured and the request has no valid key"),
+    "missing_api_key": ErrorCode(401, "API keys are configured and the request carries none"),
+    "invalid_api_key": ErrorCode(401, "API keys are configured and the request's key is not one of them"),
     "stream_forbidden": ErrorCode(403, "the stream was created with another API key"),
     "not_found": ErrorCode(404, "no such route"),
     "stream_not_found": ErrorCode(404, "no such stream (never seen, deleted or expired)"),
@@ -103,6 +104,17 @@ class ApiError(Exception):
         self.headers = dict(headers or {})
 
 
+def timestamp_error(stream_id: str, reason: str) -> ApiError:
+    """409 timestamp_not_increasing naming the stream and the two ways out (a second run of the same frames, e.g.
+    `rafd client` again with the same --stream-id, lands here)."""
+    return ApiError(
+        "timestamp_not_increasing",
+        f"stream {stream_id!r}: {reason}; timestamps must increase in arrival order within a stream. To send these "
+        f"frames again, start the stream over with DELETE /streams/{stream_id} (rafd client --reset), or post them "
+        "to a new stream id",
+    )
+
+
 def cap_message(message: str, limit: int = MAX_MESSAGE_CHARS) -> str:
     return message if len(message) <= limit else message[: limit - 15] + " ... (truncated)"
 
@@ -128,12 +140,21 @@ def format_validation_errors(errors: Sequence[Mapping[str, Any]]) -> str:
     return "; ".join(parts)
 
 
+# A name for codes answered by one check, usable in a route's `responses`: the API key middleware answers either.
+CODE_GROUPS: Mapping[str, tuple[str, ...]] = {"unauthorized": ("missing_api_key", "invalid_api_key")}
+
+
+def expand_codes(codes: Sequence[str]) -> list[str]:
+    """Codes with every group name (CODE_GROUPS) replaced by its codes."""
+    return [member for code in codes for member in CODE_GROUPS.get(code, (code,))]
+
+
 def error_responses(*codes: str) -> dict[int | str, dict[str, Any]]:
     """OpenAPI `responses` for a route: one entry per status, its description listing the codes it can carry."""
     from service.schemas import ErrorResponse  # schemas imports nothing from here; keep the import local anyway
 
     by_status: dict[int, list[str]] = {}
-    for code in codes:
+    for code in expand_codes(codes):
         by_status.setdefault(ERRORS[code].status, []).append(code)
     return {
         status: {

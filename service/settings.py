@@ -66,6 +66,15 @@ class Settings(BaseSettings):
     # reference path.
     runtime: Literal["auto", "onnxruntime", "openvino"] = "auto"
     precision: Literal["auto", "fp32", "bf16"] = "auto"
+    # The live view (service/live.py): publish every answered frame to a Foxglove WebSocket server on this port
+    # (0: any free port, logged), in the MCAP logs' channels, one topic prefix per stream; off when unset. Needs the
+    # `live` extra (foxglove-sdk).
+    foxglove_port: int | None = Field(default=None, ge=0, le=65535)
+    # Interface of the live view's WebSocket server (0.0.0.0 to reach it from other machines).
+    foxglove_host: str = "127.0.0.1"
+    # Answered frames waiting to be published to the live view; beyond it a frame is dropped (counted), never waited
+    # for.
+    foxglove_queue_frames: int = Field(default=32, ge=1)
     # Live streams held at once; beyond it the least recently used stream is evicted.
     max_streams: int = Field(default=256, ge=1)
     # A stream idle for longer than this is forgotten (its next frame starts a new buffer).

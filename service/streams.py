@@ -27,7 +27,7 @@ from typing import Any
 
 import numpy as np
 
-from service.errors import ApiError
+from service.errors import ApiError, timestamp_error
 
 
 @dataclass(eq=False)
@@ -183,7 +183,7 @@ class StreamStore:
         ticket.timestamp = timestamp
         reason = ticket.entry.out_of_order(ticket)
         if reason:
-            raise ApiError("timestamp_not_increasing", f"{reason}; timestamps must increase in arrival order")
+            raise timestamp_error(ticket.entry.stream_id, reason)
         ticket.entry.wake_all()  # frames behind it with older timestamps can now be refused
 
     async def wait_turn(self, ticket: Ticket) -> None:
@@ -195,7 +195,7 @@ class StreamStore:
                 raise _reset_error(entry)
             reason = entry.out_of_order(ticket)
             if reason:
-                raise ApiError("timestamp_not_increasing", f"{reason}; timestamps must increase in arrival order")
+                raise timestamp_error(entry.stream_id, reason)
             if entry.queue[0] is ticket:
                 return
             await ticket.wake.wait()

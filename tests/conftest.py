@@ -52,3 +52,13 @@ def oxford_sample() -> Path:
     if not (sample / "radar").is_dir():
         pytest.skip(f"RAFD_OXFORD_SAMPLE={path} holds no radar/ folder of native scans")
     return sample
+
+
+@pytest.fixture(autouse=True)
+def _progress_bars_as_a_new_process_has_them():
+    """A command run with --quiet silences the process's progress bars (rafd.progress): a test that ran one must
+    not silence the next test's."""
+    from rafd import progress
+
+    yield
+    progress.set_quiet(False)

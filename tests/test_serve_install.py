@@ -89,3 +89,41 @@ def test_serve_extra_installs_without_torch_and_answers_detect(serve_venv: Path,
     finally:
         server.terminate()
         server.wait(timeout=30)
+
+
+@pytest.mark.slow
+def test_the_installed_rafd_command_finds_its_commands_through_entry_points(serve_venv: Path, tmp_path: Path):
+    """A real (non-editable) install: `rafd --help` lists every command from the installed entry points, and
+    `rafd serve` reaches the service; the serve-only install has no foxglove-sdk, so --foxglove-port names the
+    extra to install."""
+    rafd = str(serve_venv / "bin" / "rafd")
+    listed = subprocess.run([rafd, "--help"], capture_output=True, text=True, cwd=tmp_path)
+    assert listed.returncode == 0, listed.stderr
+    for command in ("serve", "client", "export", "train", "eval", "simulate", "odometry", "prepare", "polar"):
+        assert f"\n  {command} " in listed.stdout, (command, listed.stdout)
+    for bench in ("bench speed", "bench accuracy", "bench training"):
+        assert f"\n  {bench} " in listed.stdout
+    python = str(serve_venv / "bin" / "python")
+    found = subprocess.run(
+        [
+            python,
+            "-c",
+            "from importlib.metadata import entry_points; print(sorted(e.name for e in "
+            "entry_points(group='rafd.commands')))",
+        ],
+        capture_output=True,
+        text=True,
+        cwd=tmp_path,
+        check=True,
+    )
+    from rafd.cli.main import COMMANDS
+
+    assert found.stdout.strip() == str(sorted(c.name for c in COMMANDS))
+    served = subprocess.run([rafd, "serve", "--help"], capture_output=True, text=True, cwd=tmp_path)
+    assert served.returncode == 0 and served.stdout.startswith("usage: rafd serve")
+    assert "--max-streams" in served.stdout and "--foxglove-port" in served.stdout
+    env = {k: v for k, v in os.environ.items() if not k.startswith("RAFD_")}
+    live = subprocess.run(
+        [rafd, "serve", "--foxglove-port", "0"], capture_output=True, text=True, cwd=tmp_path, env=env, timeout=120
+    )
+    assert live.returncode == 2 and "pip install 'rafd[live]'" in live.stderr, live.stderr

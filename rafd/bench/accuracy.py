@@ -12,6 +12,7 @@ from pathlib import Path
 from typing import Any
 
 from rafd.bench.variants import DEFAULT_VARIANTS, VARIANTS
+from rafd.progress import is_quiet, stage
 
 log = logging.getLogger("rafd.benchmark")
 
@@ -156,7 +157,7 @@ def run_benchmark(bench: BenchmarkRun) -> list[dict[str, Any]]:
     bench.out_dir.mkdir(parents=True, exist_ok=True)
     cache = bench.data_root / manifest["cache"] if manifest.get("cache") else None
     rows = []
-    for name in bench.variants:
+    for position, name in enumerate(bench.variants):
         variant = VARIANTS[name]
         ckpt = bench.out_dir / name / "model.pt"
         base = TrainRun(
@@ -173,7 +174,7 @@ def run_benchmark(bench: BenchmarkRun) -> list[dict[str, Any]]:
             lr=bench.lr,
             input_size=manifest["input_size"],
             val_every=0,
-            progress=False,
+            progress=not is_quiet(),  # one bar per epoch, titled with the epoch
             max_windows=bench.max_windows,
             max_steps_per_epoch=bench.max_steps_per_epoch,
         )
@@ -191,7 +192,7 @@ def run_benchmark(bench: BenchmarkRun) -> list[dict[str, Any]]:
                     f"variant {name} starts from {init_ckpt}: train variant {variant.init} into {bench.out_dir} first"
                 )
             run = replace(run, init=init_ckpt)
-        log.info("variant %s: training", name)
+        stage(f"variant {name} ({position + 1} of {len(bench.variants)}): training")
         start = time.perf_counter()
         train(run)
         seconds = time.perf_counter() - start
@@ -204,7 +205,7 @@ def run_benchmark(bench: BenchmarkRun) -> list[dict[str, Any]]:
             split=(manifest["test_split"],),
             cache=cache,
             device=bench.device,
-            progress=False,
+            progress=not is_quiet(),
             like_frames=SCORED_HISTORY,
         )
         report = evaluate(

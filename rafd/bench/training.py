@@ -1,15 +1,14 @@
-"""The training-speed benchmark (`rafd-bench-training`): what training at RADIATE scale costs, measured side by
+"""The training-speed benchmark (`rafd bench training`): what training at RADIATE scale costs, measured side by
 side in one run.
 
-rafd-bench-training loader [--sequences N --frames M --windows W --workers 1,2]
-    A RADIATE-scale simulated root in RADIATE's format (1152 px scans, no pose files) through
-    `rafd-odometry ROOT` and `rafd-prepare ROOT CACHE`, then windows per second per worker process (dataset
-    + augmentation + targets + collate, the work one DataLoader worker does) from the cache and from the PNGs,
-    and a DataLoader with several workers over the cache.
-rafd-bench-training precision [--steps N --curve-steps M]
-    Training step time (forward, loss, backward, optimizer) in fp32 and bf16 autocast, interleaved, for the tiny
-    config at 256 px and the paper config at batch 1; then the loss curves of a short fp32 and bf16 run from the
-    same seed and data, every 10 steps side by side.
+loader: a RADIATE-scale simulated root in RADIATE's format (1152 px scans, no pose files) through `rafd odometry`
+and `rafd prepare`, then windows per second per worker process (dataset + augmentation + targets + collate, the
+work one DataLoader worker does) from the cache and from the PNGs, and a DataLoader with several workers over the
+cache.
+
+precision: training step time (forward, loss, backward, optimizer) in fp32 and bf16 autocast, interleaved, for the
+tiny config at 256 px and the paper config at batch 1; then the loss curves of a short fp32 and bf16 run from the
+same seed and data, every 10 steps side by side.
 """
 
 from __future__ import annotations
@@ -24,6 +23,8 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Any, cast
 
 import numpy as np
+
+from rafd.progress import is_quiet, stage
 
 if TYPE_CHECKING:  # torch loads lazily
     from torch.utils.data import Dataset
@@ -94,11 +95,11 @@ def run_loader(
     total = sequences * frames
     rows.append(("simulate (not part of training)", f"{total / (time.perf_counter() - start):.1f} frames/s"))
     start = time.perf_counter()
-    _, failures = write_poses(select_sequences(root, None)[0], prepare_workers)
+    _, failures = write_poses(select_sequences(root, None)[0], prepare_workers)  # its own progress bar
     if failures:
         raise RuntimeError(f"odometry failed: {failures[0]}")
     rows.append(
-        (f"rafd-odometry ROOT ({prepare_workers} processes)", f"{total / (time.perf_counter() - start):.1f} frames/s")
+        (f"rafd odometry ROOT ({prepare_workers} processes)", f"{total / (time.perf_counter() - start):.1f} frames/s")
     )
     start = time.perf_counter()
     prepared = prepare_root(root, cache, workers=prepare_workers)
@@ -106,7 +107,7 @@ def run_loader(
         raise RuntimeError(f"preparing the cache failed: {prepared.failures[0]}")
     rows.append(
         (
-            f"rafd-prepare ROOT CACHE ({prepare_workers} processes)",
+            f"rafd prepare ROOT --out CACHE ({prepare_workers} processes)",
             f"{total / (time.perf_counter() - start):.1f} frames/s",
         )
     )
@@ -117,6 +118,7 @@ def run_loader(
     rng = np.random.default_rng(0)
     for source, cache_root, count in (("cache", cache, windows), ("PNG", None, max(8, windows // 10))):
         for augment in (False, True):
+            stage(f"time {count} windows, 1 worker, {source}, {'flip + rotation' if augment else 'no augmentation'}")
             dataset = RadarWindowDataset(root, cfg=cfg, augment=augment, cache=cache_root)
             keys = [(0, int(i)) for i in rng.integers(0, len(dataset), count)]  # shuffled: no decode cache helps
             rate = windows_per_second(dataset, keys, collate)
@@ -128,6 +130,7 @@ def run_loader(
             )
     dataset = RadarWindowDataset(root, cfg=cfg, augment=True, cache=cache)
     for count in workers:
+        stage(f"time {windows} windows through a DataLoader with {count} workers")
         rate = dataloader_windows_per_second(dataset, collate, count, windows)
         rows.append(
             (
@@ -163,6 +166,7 @@ def step_times(cfg, batch_size: int, steps: int) -> dict[str, float]:
     from rafd.train.distributed import DistContext
     from rafd.train.trainer import TrainConfig, Trainer
 
+    stage(f"time {steps} training steps of {cfg.input_size} px, batch {batch_size}, in fp32 and bf16")
     batch = _training_batch(cfg, batch_size)
     trainers = {
         precision: Trainer(
@@ -198,6 +202,7 @@ def loss_curves(steps: int, log_every: int) -> dict[str, list[dict]]:
         simulate_dataset(folder, 4, 30, seed=12, split="train", size=256)
         dataset = open_windows(folder, "train", cfg, augment=True)
         for precision in ("fp32", "bf16"):
+            stage(f"loss curve: {steps} steps in {precision}")
             train_cfg = TrainConfig(
                 epochs=1,
                 batch_size=4,
@@ -207,7 +212,7 @@ def loss_curves(steps: int, log_every: int) -> dict[str, list[dict]]:
                 max_steps_per_epoch=steps,
                 log_every=log_every,
                 device="cpu",
-                progress=False,
+                progress=not is_quiet(),
                 val_every=0,
                 seed=0,
             )

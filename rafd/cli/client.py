@@ -1,4 +1,4 @@
-"""`rafd-client SEQ_DIR --url URL [--out DIR] [--mcap FILE]`: stream a RADIATE-format sequence to a running rafd-serve.
+"""rafd client: stream a RADIATE-format sequence to a running rafd serve.
 
 Posts every radar frame in timestamp order (with its pose from ego_poses.csv when present, else the
 service estimates ego motion). A folder with only the sensor's polar scans (Navtech_Polar/) posts them as
@@ -6,8 +6,12 @@ they are (the service converts them with the same rafd.polar conversion the clie
 converted first when meta.json asks for another size or resolution. With --out: each frame's picture
 (rafd.viz.answer: the model's crop zoomed, predictions with scores, ground truth where labelled, flow,
 legend), the answers as JSON lines and an MP4. With --mcap: a Foxglove/MCAP log of scans, poses, boxes, flow and
-ground truth
-(rafd.viz.mcap, `logs` extra). Uses only the standard library for HTTP.
+ground truth (rafd.viz.mcap, `logs` extra). Uses only the standard library for HTTP.
+
+Every run starts its stream fresh, so a run repeats: by default each run posts to a new stream, named after the
+sequence plus a short run id (`tiny_foggy-3fa9c2`); `--stream-id ID` names the stream yourself, and `--reset`
+deletes that stream on the service first (a second run with the same --stream-id and no --reset is refused with
+409: the service already holds later timestamps of that stream).
 """
 
 from __future__ import annotations
@@ -16,8 +20,11 @@ import argparse
 import base64
 import json
 import os
+import re
+import secrets
 import sys
 import urllib.error
+import urllib.parse
 import urllib.request
 from dataclasses import dataclass
 from pathlib import Path
@@ -26,6 +33,8 @@ from typing import Any
 import cv2
 import numpy as np
 
+from rafd import progress
+from rafd.cli import flags
 from rafd.data.native_folder import NativeSource
 from rafd.data.reader import RadarFrame
 from rafd.geometry import RADIATE_RESOLUTION, RADIATE_SCAN_SIZE
@@ -102,7 +111,52 @@ def read_frames(sequence_dir: Path) -> ClientSequence:
 
 
 class ServiceError(RuntimeError):
-    pass
+    def __init__(self, message: str, code: str | None = None) -> None:
+        super().__init__(message)
+        self.code = code  # the service's error code, when it answered one
+
+
+STREAM_ID_UNSAFE = re.compile(r"[^A-Za-z0-9._~:@+-]")
+RUN_ID_HEX = 6  # characters of the run id appended to the sequence name
+
+
+def new_stream_id(sequence_name: str) -> str:
+    """The stream of one run: the sequence's name (characters a stream id may not hold replaced) plus a fresh run
+    id, so running the same sequence again starts a new stream instead of colliding with the last run's."""
+    run_id = secrets.token_hex(RUN_ID_HEX // 2)
+    return STREAM_ID_UNSAFE.sub("_", sequence_name)[: 128 - RUN_ID_HEX - 1] + "-" + run_id
+
+
+def _headers(api_key: str | None) -> dict[str, str]:
+    return {"x-api-key": api_key} if api_key else {}
+
+
+def _error_of(exc: urllib.error.HTTPError) -> tuple[str | None, str]:
+    """(code, message) of a service error answer; (None, the HTTP reason) when the body is not one."""
+    try:
+        error = json.loads(exc.read())["error"]
+        return str(error["code"]), str(error["message"])
+    except (ValueError, KeyError, TypeError):
+        return None, str(exc.reason)
+
+
+def reset_stream(url: str, stream_id: str, timeout: float, api_key: str | None = None) -> bool:
+    """DELETE /streams/{id}: True when the service held the stream, False when it did not (404); ServiceError else."""
+    request = urllib.request.Request(
+        f"{url.rstrip('/')}/streams/{urllib.parse.quote(stream_id, safe='')}",
+        headers=_headers(api_key),
+        method="DELETE",
+    )
+    try:
+        with urllib.request.urlopen(request, timeout=timeout):
+            return True
+    except urllib.error.HTTPError as exc:
+        code, message = _error_of(exc)
+        if exc.code == 404 and code == "stream_not_found":
+            return False
+        raise ServiceError(f"--reset: DELETE /streams/{stream_id}: HTTP {exc.code}: {message}", code) from exc
+    except urllib.error.URLError as exc:
+        raise ServiceError(f"cannot reach {url}: {exc.reason}") from exc
 
 
 def post_frame(
@@ -116,9 +170,7 @@ def post_frame(
     }
     if use_pose and frame.pose is not None:
         body["pose"] = {"x": float(frame.pose[0]), "y": float(frame.pose[1]), "yaw": float(frame.pose[2])}
-    headers = {"content-type": "application/json"}
-    if api_key:
-        headers["x-api-key"] = api_key
+    headers = {"content-type": "application/json", **_headers(api_key)}
     request = urllib.request.Request(
         f"{url.rstrip('/')}/detect", data=json.dumps(body).encode(), headers=headers, method="POST"
     )
@@ -126,11 +178,8 @@ def post_frame(
         with urllib.request.urlopen(request, timeout=timeout) as response:
             return json.loads(response.read())
     except urllib.error.HTTPError as exc:
-        try:
-            reason = json.loads(exc.read())["error"]["message"]
-        except (ValueError, KeyError, TypeError):
-            reason = exc.reason
-        raise ServiceError(f"frame {frame.number}: HTTP {exc.code}: {reason}") from exc
+        code, reason = _error_of(exc)
+        raise ServiceError(f"frame {frame.number}: HTTP {exc.code}: {reason}", code) from exc
     except urllib.error.URLError as exc:
         raise ServiceError(f"cannot reach {url}: {exc.reason}") from exc
 
@@ -146,34 +195,19 @@ def logged_frame(
     frame: ClientFrame, scan: np.ndarray, png: bytes, answer: dict[str, Any], resolution: float, annotated: bool
 ):
     """One answer -> rafd.viz.mcap.LoggedFrame (boxes, polygons and flow as the service answered them)."""
-    from rafd.viz.answer import flow_arrows
-    from rafd.viz.mcap import LoggedFrame
+    from rafd.viz.mcap import frame_from_answer
 
-    size, offset, model_size = scan.shape[0], answer["input"]["crop_offset_px"], answer["input"]["model_size"]
-    boxes = np.array(
-        [[b[k] for k in ("x", "y", "width", "length", "yaw")] for b in answer["boxes"]], dtype=np.float64
-    ).reshape(-1, 5)
-    heads = motions = None
-    if answer.get("flow"):
-        heads_px, motions = flow_arrows(answer["flow"], min_m=0.05)
-        heads = np.stack([(heads_px[:, 0] - size / 2.0) * resolution, (size / 2.0 - heads_px[:, 1]) * resolution], -1)
+    offset, model_size = answer["input"]["crop_offset_px"], answer["input"]["model_size"]
     truth = None
     if annotated:
         truth = np.array([o.box for o in frame.source.objects], dtype=np.float64).reshape(-1, 5)
-    return LoggedFrame(
-        timestamp_ns=frame.source.timestamp_ns,
-        scan_png=png,
-        scan_size=size,
-        resolution=resolution,
-        crop=(offset, model_size),
-        crop_pixels=scan[offset : offset + model_size, offset : offset + model_size],
-        pose=np.array([answer["pose"][k] for k in ("x", "y", "yaw")], dtype=np.float64),
-        boxes=boxes,
-        scores=np.array([b["score"] for b in answer["boxes"]], dtype=np.float64),
-        classes=[b["class"] for b in answer["boxes"]],
-        polygons=np.array([b["polygon"] for b in answer["boxes"]], dtype=np.float64).reshape(-1, 4, 2),
-        flow_heads=heads,
-        flow_motions=motions,
+    return frame_from_answer(
+        answer,
+        png,
+        scan.shape[0],
+        resolution,
+        scan[offset : offset + model_size, offset : offset + model_size],
+        frame.source.timestamp_ns,
         truth_boxes=truth,
         truth_polygons=truth_polygons(frame, annotated),
     )
@@ -188,18 +222,33 @@ def frame_rate(frames: list[ClientFrame]) -> float:
 
 
 def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(prog="rafd-client", description=__doc__.splitlines()[0])
+    parser = argparse.ArgumentParser(
+        prog=flags.prog("client"), description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
+    )
     parser.add_argument(
         "sequence",
         type=Path,
+        metavar="SEQ_DIR",
         help="RADIATE-format sequence folder (Navtech_Cartesian/ + .txt, or Navtech_Polar/ + .txt)",
     )
     parser.add_argument("--url", required=True, help="service base URL, e.g. http://127.0.0.1:8000")
-    parser.add_argument("--out", type=Path, default=None, help="where to write frames/, answers.jsonl, sequence.mp4")
-    parser.add_argument("--mcap", type=Path, default=None, help="write a Foxglove/MCAP log of the run to this file")
-    parser.add_argument("--stream-id", default=None, help="stream id (default: the sequence name)")
+    flags.add_out(parser, "DIR", "folder receiving frames/ (one picture per answer), answers.jsonl and sequence.mp4")
+    parser.add_argument(
+        "--mcap", type=Path, default=None, metavar="FILE", help="write a Foxglove/MCAP log of the run to this file"
+    )
+    parser.add_argument(
+        "--stream-id",
+        default=None,
+        metavar="ID",
+        help="post to this stream (default: a new stream per run, the sequence name plus a run id)",
+    )
+    parser.add_argument(
+        "--reset",
+        action="store_true",
+        help="delete the stream on the service first (DELETE /streams/ID), so a run with the same --stream-id repeats",
+    )
     parser.add_argument("--no-pose", action="store_true", help="do not send ego_poses.csv: the service uses odometry")
-    parser.add_argument("--limit", type=int, default=None, help="only the first N frames")
+    parser.add_argument("--limit", type=int, default=None, metavar="N", help="only the first N frames")
     parser.add_argument(
         "--flow-scale",
         type=float,
@@ -207,18 +256,32 @@ def build_parser() -> argparse.ArgumentParser:
         help="draw flow arrows this many times their true length (default: 1, or more when zoomed out)",
     )
     parser.add_argument("--flow-step", type=int, default=2, help="draw every n-th flow cell (default 2)")
-    parser.add_argument("--view", type=int, default=768, help="side in pixels of the zoomed model view (default 768)")
-    parser.add_argument("--timeout", type=float, default=30.0, help="seconds per request")
+    parser.add_argument(
+        "--view", type=int, default=768, metavar="PX", help="side in pixels of the zoomed model view (default 768)"
+    )
+    parser.add_argument("--timeout", type=float, default=30.0, help="seconds per request (default 30)")
     parser.add_argument(
         "--api-key",
         default=os.environ.get("RAFD_API_KEY"),
         help="key for a service run with RAFD_API_KEYS (default: $RAFD_API_KEY; sent as X-API-Key)",
     )
+    flags.add_quiet(parser)
     return parser
+
+
+def repeat_hint(stream_id: str, chosen: bool) -> str:
+    """What to do after a 409 on timestamps: the two ways out."""
+    if chosen:
+        return (
+            f"stream {stream_id!r} already holds frames at or after these timestamps (an earlier run?): add --reset "
+            f"to delete it first, or leave out --stream-id so that this run gets a new stream"
+        )
+    return f"stream {stream_id!r} refused the frame's timestamp: add --reset, or pass another --stream-id"
 
 
 def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
+    flags.apply_quiet(args)
     try:
         sequence = read_frames(args.sequence)
         from rafd.viz.answer import AnswerView, draw_answer
@@ -234,9 +297,10 @@ def main(argv: list[str] | None = None) -> int:
     if args.mcap is not None and not args.mcap.parent.is_dir():
         print(f"rafd-client: folder of --mcap {args.mcap} does not exist", file=sys.stderr)
         return 2
-    stream_id = args.stream_id or "".join(c if c.isalnum() or c in "._-" else "_" for c in sequence.name)[:128]
+    stream_id = args.stream_id or new_stream_id(sequence.name)
     out = args.out
-    writer = answers = log = last_answer = None
+    writer = answers = log = last_answer = bar = None
+    boxes = 0
     if out is not None:
         (out / "frames").mkdir(parents=True, exist_ok=True)
         answers = (out / "answers.jsonl").open("w")
@@ -247,15 +311,30 @@ def main(argv: list[str] | None = None) -> int:
             except ImportError as exc:
                 raise ServiceError(f"--mcap needs the logs extra (pip install 'rafd[logs]'): {exc}") from exc
             log = RadarMcapLog(args.mcap)
+        if args.reset:
+            existed = reset_stream(args.url, stream_id, args.timeout, args.api_key)
+            print(f"stream {stream_id}: {'deleted on the service' if existed else 'not on the service'} (--reset)")
+        print(f"posting {len(frames)} frames of {sequence.name} to stream {stream_id} at {args.url}")
+        bar = progress.bar(desc=f"post {stream_id}", total=len(frames), unit="frame")
+        boxes = 0
         for frame in frames:
             scan, png = frame.scan_and_png()
-            answer = last_answer = post_frame(
-                args.url, stream_id, frame, frame.posted_png(png), not args.no_pose, args.timeout, args.api_key
-            )
-            print(
-                f"frame {frame.number:06d} t={frame.timestamp:.3f}: {len(answer['boxes'])} boxes, "
-                f"frames_used {answer['frames_used']}, pose {answer['pose_source']}, "
-                f"{answer['timing']['total_ms']:.1f} ms"
+            try:
+                answer = last_answer = post_frame(
+                    args.url, stream_id, frame, frame.posted_png(png), not args.no_pose, args.timeout, args.api_key
+                )
+            except ServiceError as exc:
+                if exc.code == "timestamp_not_increasing":
+                    raise ServiceError(
+                        f"{exc}\n{repeat_hint(stream_id, args.stream_id is not None)}", exc.code
+                    ) from exc
+                raise
+            boxes += len(answer["boxes"])
+            bar.update()
+            bar.set_postfix_str(
+                f"{len(answer['boxes'])} boxes, {answer['frames_used']} frames used, "
+                f"{answer['timing']['total_ms']:.0f} ms",
+                refresh=False,
             )
             if log is not None:
                 log.write(logged_frame(frame, scan, png, answer, sequence.resolution, sequence.annotated))
@@ -282,6 +361,8 @@ def main(argv: list[str] | None = None) -> int:
         print(f"rafd-client: {exc}", file=sys.stderr)
         return 1
     finally:
+        if bar is not None:
+            bar.close()
         if writer is not None:
             writer.release()
         if answers is not None:
@@ -300,6 +381,7 @@ def main(argv: list[str] | None = None) -> int:
                     },
                 )
             log.close()
+    print(f"stream {stream_id}: {len(frames)} frames answered, {boxes} boxes in all")
     if out is not None:
         print(f"wrote {len(frames)} frames, answers.jsonl and sequence.mp4 to {out}")
     if log is not None:

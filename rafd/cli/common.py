@@ -1,14 +1,13 @@
-"""What the commands share: reading flags into the library's values."""
+"""What the commands share besides their flags (rafd.cli.flags): the old command names."""
 
 from __future__ import annotations
 
 import sys
 from collections.abc import Callable, Sequence
 
+from rafd.cli.flags import split_names
 
-def split_names(values: Sequence[str]) -> tuple[str, ...]:
-    """--split given repeated and/or comma-separated -> the split names in order."""
-    return tuple(name.strip() for value in values for name in value.split(",") if name.strip())
+__all__ = ["renamed", "split_names"]
 
 
 def renamed(old: str, new: str, main: Callable[[Sequence[str] | None], int]) -> Callable[[Sequence[str] | None], int]:

@@ -1,4 +1,4 @@
-"""rafd-eval: mAP@0.3/0.5/0.7 and flow EPE of a checkpoint on a split, overall and per sequence, with plots."""
+"""rafd eval: mAP@0.3/0.5/0.7 and flow EPE of a checkpoint on a split, overall and per sequence, with plots."""
 
 from __future__ import annotations
 
@@ -9,25 +9,20 @@ import sys
 from collections.abc import Sequence
 from pathlib import Path
 
-from rafd.cli.common import split_names
+from rafd.cli import flags
 from rafd.eval.run import EvalRun
 
 
 def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(prog="rafd-eval", description=__doc__)
-    parser.add_argument("checkpoint", type=Path, help="checkpoint written by rafd-train")
-    parser.add_argument("--data", required=True, type=Path, help="data root holding sequence folders")
-    parser.add_argument(
-        "--split",
-        required=True,
-        action="append",
-        help="meta.json 'set'(s) to evaluate, e.g. test (repeat or comma-separate)",
-    )
-    parser.add_argument("--cache", type=Path, help="scan cache written by rafd-prepare (default: decode the PNGs)")
+    parser = argparse.ArgumentParser(prog=flags.prog("eval"), description=__doc__)
+    flags.add_checkpoint(parser)
+    parser.add_argument("data", nargs="?", type=Path, metavar="ROOT", help="data root holding sequence folders")
+    flags.add_split(parser, "the splits to evaluate, e.g. test", required=True)
+    parser.add_argument("--cache", type=Path, help="scan cache written by rafd prepare (default: decode the PNGs)")
     parser.add_argument(
         "--estimate-poses",
         action="store_true",
-        help="run radar odometry for sequences without ego_poses.csv (slow; prefer rafd-odometry)",
+        help="run radar odometry for sequences without ego_poses.csv (slow; prefer rafd odometry)",
     )
     parser.add_argument("--precision", choices=("fp32", "bf16", "fp16"), default="fp32", help="inference autocast")
     parser.add_argument(
@@ -39,8 +34,9 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument(
         "--score-threshold",
         type=float,
-        help="operating threshold for recall and false positives per frame (default: the "
-        "checkpoint's documented operating threshold, else 0.3)",
+        metavar="T",
+        help="operating threshold for recall, false positives per frame and the boxes drawn in --plots (default: "
+        "the checkpoint's operating threshold, else 0.3: what the service would answer)",
     )
     parser.add_argument(
         "--calibrate",
@@ -48,23 +44,35 @@ def build_parser() -> argparse.ArgumentParser:
         metavar="FP_PER_FRAME",
         help="choose the checkpoint's operating threshold on this data: the lowest score threshold "
         "with at most FP_PER_FRAME false positives per frame (centre matching), written into "
-        "the checkpoint's meta (rafd-export carries it into the ONNX; the service uses it). "
+        "the checkpoint's meta (rafd export carries it into the ONNX; the service uses it). "
         "Use a validation split, never test data",
     )
-    parser.add_argument("--json", type=Path, help="write the metrics here")
+    parser.add_argument("--json", type=Path, metavar="FILE", help="write the metrics here")
     parser.add_argument(
         "--detections",
         type=Path,
         metavar="NPZ",
         help="write every frame's detections and ground truth here, for a paired comparison of two "
-        "models on the same frames (rafd-bench-accuracy compare)",
+        "models on the same frames (rafd bench accuracy compare)",
     )
-    parser.add_argument("--plots", type=Path, help="folder for the precision-recall plot and example frames")
-    parser.add_argument("--examples", type=int, default=4, help="example frames drawn into --plots")
-    parser.add_argument("--mcap", type=Path, help="folder for Foxglove/MCAP logs, one <sequence>.mcap per sequence")
-    parser.add_argument("--batch-size", type=int, default=8)
-    parser.add_argument("--device", default="auto", help="cpu | cuda | cuda:N | auto")
+    parser.add_argument(
+        "--plots",
+        type=Path,
+        metavar="DIR",
+        help="folder for the precision-recall plot and example frames (boxes at or above the operating threshold)",
+    )
+    parser.add_argument("--examples", type=int, default=4, help="example frames drawn into --plots (default 4)")
+    parser.add_argument(
+        "--mcap-dir",
+        dest="mcap",
+        type=Path,
+        metavar="DIR",
+        help="folder for Foxglove/MCAP logs, one <sequence>.mcap each",
+    )
+    parser.add_argument("--batch-size", type=int, default=8, help="windows per forward (default 8)")
+    flags.add_device(parser)
     parser.add_argument("--max-windows", type=int, help="evaluate at most N (evenly spaced) windows")
+    flags.add_warm_up_windows(parser)
     parser.add_argument(
         "--like-frames",
         type=int,
@@ -77,21 +85,39 @@ def build_parser() -> argparse.ArgumentParser:
         action="store_true",
         help="temporal ablation: replace every past frame of a window by the newest one (same pose), "
         "so a multi-frame model sees only what a single-frame model sees; compare with the true "
-        "windows (rafd-bench-accuracy compare on both --detections) to measure what the past adds",
+        "windows (rafd bench accuracy compare on both --detections) to measure what the past adds",
     )
-    parser.add_argument("--threads", type=int, help="torch CPU threads")
-    parser.add_argument("--no-progress", dest="progress", action="store_false", help="no tqdm bar")
+    flags.add_threads(parser, None, "torch's CPU threads (default: torch's)")
+    flags.add_quiet(parser)
+    flags.deprecated(parser, "--data", "the positional ROOT", "data_option", type=Path, metavar="ROOT")
+    flags.deprecated(
+        parser, "--mcap", "--mcap-dir (--mcap names one file, in rafd client)", "mcap", type=Path, metavar="DIR"
+    )
+    flags.deprecated(parser, "--no-progress", "--quiet", "quiet", kind="store_true")
     return parser
+
+
+def parse(argv: Sequence[str] | None = None) -> argparse.Namespace:
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    option = getattr(args, "data_option", None)
+    if option is not None and args.data is not None:
+        parser.error("give the data root once: as the positional ROOT")
+    args.data = args.data or option
+    if args.data is None:
+        parser.error("the data root ROOT is required")
+    return args
 
 
 def eval_run(args: argparse.Namespace) -> EvalRun:
     """The flags as an EvalRun (one flag per field)."""
-    values = {f.name: getattr(args, f.name) for f in dataclasses.fields(EvalRun)}
-    return EvalRun(**{**values, "split": split_names(args.split)})
+    values = {f.name: getattr(args, f.name) for f in dataclasses.fields(EvalRun) if f.name != "progress"}
+    return EvalRun(**{**values, "split": flags.split_names(args.split), "progress": not args.quiet})
 
 
 def main(argv: Sequence[str] | None = None) -> int:
-    args = build_parser().parse_args(argv)
+    args = parse(argv)
+    flags.apply_quiet(args)
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(levelname)s %(name)s: %(message)s")
     from rafd.eval.run import CalibrationError, EvalError, evaluate
     from rafd.eval.table import format_table

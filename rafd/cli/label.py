@@ -1,20 +1,15 @@
-"""rafd-label: label vehicles on a few scans of your own radar (docs/labelling.md has the protocol).
+"""rafd label: label vehicles on a few scans of your own radar (docs/labelling.md has the protocol).
 
-rafd-label propose SEQ --out DIR [--frames 1,2] [--radius 40]
-    per scan: DIR/<frame>_overview.png (the scan with its candidate returns numbered), one sheet per candidate
-    (DIR/<frame>_c<k>.png: previous, current and next scans around it, the neighbours moved into the current
-    ego frame so the static world stands still) and DIR/<frame>_candidates.txt (one line per candidate, in the
-    box text format, ready to keep, edit or delete)
-rafd-label apply SEQ BOXES.txt --out LABELS.json
-    the boxes you kept (text, metres in the ego frame) -> RADIATE's annotation format keyed by scan timestamps
-rafd-label render SEQ LABELS.json --out DIR
-    every labelled scan with its boxes drawn, to check them
-rafd-label compare REFERENCE.json CANDIDATE.json SEQ
-    agreement of two label sets on the same scans: found / missed / extra (centres within 2 m), centre distance
-    and IoU of the matched boxes
-rafd-label link SEQ LABELS.json OUT --split NAME [--frames 1,2]
-    a sequence folder OUT that reads SEQ's scans (symlinks) with these labels and meta.json's split, for
-    rafd-train / rafd-eval --data
+propose: per scan, DIR/<frame>_overview.png (the scan with its candidate returns numbered), one sheet per candidate
+(DIR/<frame>_c<k>.png: previous, current and next scans around it, the neighbours moved into the current ego frame
+so the static world stands still) and DIR/<frame>_candidates.txt (one line per candidate, in the box text format,
+ready to keep, edit or delete).
+apply: the boxes you kept (text, metres in the ego frame) -> RADIATE's annotation format keyed by scan timestamps.
+render: every labelled scan with its boxes drawn, to check them.
+compare: agreement of two label sets on the same scans: found / missed / extra (centres within 2 m), centre
+distance and IoU of the matched boxes.
+link: a sequence folder OUT that reads SEQ's scans (symlinks) with these labels and meta.json's split, for
+rafd train / rafd eval.
 """
 
 from __future__ import annotations
@@ -28,10 +23,12 @@ from pathlib import Path
 import cv2
 import numpy as np
 
+from rafd.cli import flags
 from rafd.data.candidates import propose
 from rafd.data.labels import IGNORE_CLASS, parse_box_lines, to_annotations, write_annotations
 from rafd.data.native_folder import MVDNET_LABELS
 from rafd.data.reader import RadarSequence, read_sequence
+from rafd.progress import track
 from rafd.viz.labelling import candidate_sheet, into_frame, overview
 
 
@@ -55,7 +52,7 @@ def run_propose(args: argparse.Namespace) -> int:
     sequence = read_sequence(args.sequence, estimate_poses=True)
     args.out.mkdir(parents=True, exist_ok=True)
     assert sequence.poses is not None
-    for number in _frames(args.frames, len(sequence)):
+    for number in track(_frames(args.frame_numbers, len(sequence)), desc="propose", unit="scan"):
         k = sequence.frame_index(number)
         current = sequence.load_image(k)
         neighbours = [
@@ -121,7 +118,7 @@ def _labelled(sequence_dir: Path, labels: Path) -> RadarSequence:
 def run_render(args: argparse.Namespace) -> int:
     sequence = _labelled(args.sequence, args.labels)
     args.out.mkdir(parents=True, exist_ok=True)
-    for frame in sequence.frames:
+    for frame in track(sequence.frames, desc="render", unit="scan"):
         if not frame.objects:
             continue
         boxes = np.stack([o.box for o in frame.objects])
@@ -220,39 +217,44 @@ def link_folder(
 
 
 def run_link(args: argparse.Namespace) -> int:
+    names = flags.split_names(args.split)
+    if len(names) != 1:
+        raise ValueError(f"link writes one split: give --split once with one name, got {list(names)}")
+    split = names[0]
     out = link_folder(
-        args.sequence, args.labels, args.out, args.split, _frames(args.frames, 10**6) if args.frames else None
+        args.sequence, args.labels, args.out, split, _frames(args.frame_numbers, 10**6) if args.frame_numbers else None
     )
-    print(f"{out}: {len(read_sequence(out, estimate_poses=False))} scans, split {args.split}")
+    print(f"{out}: {len(read_sequence(out, estimate_poses=False))} scans, split {split}")
     return 0
 
 
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(
-        prog="rafd-label",
-        description=__doc__.splitlines()[0],
+        prog=flags.prog("label"),
+        description=__doc__,
         formatter_class=argparse.RawDescriptionHelpFormatter,
-        epilog=__doc__,
     )
     commands = parser.add_subparsers(dest="command", required=True)
     p = commands.add_parser("propose", help="candidate returns and their sheets for each scan")
     p.add_argument("sequence", type=Path, help="sequence folder (RADIATE, polar-only or native)")
-    p.add_argument("--out", type=Path, required=True, help="folder for the pictures and the candidate lists")
-    p.add_argument("--frames", help="frame numbers, e.g. 1,3-5 (default: all)")
+    flags.add_out(p, "DIR", "folder for the pictures and the candidate lists", required=True)
+    p.add_argument("--frame-numbers", metavar="LIST", help="frame numbers, e.g. 1,3-5 (default: all)")
     p.add_argument("--radius", type=float, default=40.0, help="metres around the radar to propose in")
+    flags.add_quiet(p)
     a = commands.add_parser("apply", help="box text -> a label file")
-    a.add_argument("sequence", type=Path)
+    a.add_argument("sequence", type=Path, help="the labelled sequence folder (RADIATE, polar-only or native)")
     a.add_argument("boxes", type=Path, help="text: timestamp track class x y width length yaw_deg per line")
-    a.add_argument("--out", type=Path, required=True, help="label file to write (JSON)")
+    flags.add_out(a, "JSON", "label file to write", required=True)
     r = commands.add_parser("render", help="draw a label file's boxes on its scans")
-    r.add_argument("sequence", type=Path)
-    r.add_argument("labels", type=Path)
-    r.add_argument("--out", type=Path, required=True)
-    r.add_argument("--radius", type=float, default=40.0)
+    r.add_argument("sequence", type=Path, help="the labelled sequence folder")
+    r.add_argument("labels", type=Path, help="label file (JSON, rafd label apply)")
+    flags.add_out(r, "DIR", "folder for the pictures", required=True)
+    r.add_argument("--radius", type=float, default=40.0, help="metres around the radar to draw")
+    flags.add_quiet(r)
     c = commands.add_parser("compare", help="agreement of two label files on the same scans")
     c.add_argument("reference", type=Path, help="label file (JSON), or a folder of MVDNet label_2d files")
     c.add_argument("candidate", type=Path, help="the same, whose ignore regions excuse misses")
-    c.add_argument("sequence", type=Path)
+    c.add_argument("sequence", type=Path, help="the sequence folder both label sets describe")
     c.add_argument(
         "--distance",
         type=float,
@@ -261,23 +263,25 @@ def build_parser() -> argparse.ArgumentParser:
         help="centre distances (m) that count as the same vehicle (one result line each)",
     )
     k = commands.add_parser("link", help="a labelled sequence folder over a native folder's scans")
-    k.add_argument("sequence", type=Path)
-    k.add_argument("labels", type=Path)
-    k.add_argument("out", type=Path)
-    k.add_argument("--split", required=True, help="meta.json set, e.g. train or val")
-    k.add_argument("--frames", help="frame numbers to keep (default: all)")
+    k.add_argument("sequence", type=Path, help="the native (or RADIATE) folder holding the scans")
+    k.add_argument("labels", type=Path, help="label file (JSON, rafd label apply)")
+    k.add_argument("out", type=Path, metavar="OUT", help="the sequence folder to write")
+    flags.add_split(k, "the meta.json set of the written folder, e.g. train or val (one name)", required=True)
+    k.add_argument("--frame-numbers", metavar="LIST", help="frame numbers to keep, e.g. 1-11 (default: all)")
     return parser
 
 
 def main(argv: list[str] | None = None) -> int:
-    args = build_parser().parse_args(argv)
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    flags.apply_quiet(args)
     run = {"propose": run_propose, "apply": run_apply, "render": run_render, "compare": run_compare, "link": run_link}[
         args.command
     ]
     try:
         return run(args)
     except (FileNotFoundError, ValueError) as error:
-        print(f"rafd-label: error: {error}", file=sys.stderr)
+        print(f"{parser.prog}: error: {error}", file=sys.stderr)
         return 2
 
 

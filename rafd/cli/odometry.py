@@ -1,13 +1,9 @@
-"""rafd-odometry: prepare ego poses by radar odometry for every sequence of a data root (ego_poses.csv).
+"""rafd odometry: prepare ego poses by radar odometry for every sequence of a data root (ego_poses.csv).
 
-    rafd-odometry ROOT [ROOT ...] [--split NAME ...] [--workers N] [--force]
-                                   write ego_poses.csv into every sequence folder at or under each ROOT that has
-                                   none (resumable: run it again after an interruption), in parallel processes
-    rafd-odometry SEQ_DIR --out CSV [--force]
-                                   write one sequence's poses elsewhere
-    rafd-odometry ROOT... --evaluate
-                                   compare estimates with each sequence's ego_poses.csv (e.g. the simulator's true
-                                   poses): per-pair translation (m) and yaw (deg) errors and ms per pair; writes nothing
+Writes ego_poses.csv into every sequence folder at or under each ROOT that has none, in parallel processes
+(resumable: run it again after an interruption; --force re-estimates). With one sequence, --out CSV writes its poses
+elsewhere. --evaluate compares the estimates with each sequence's ego_poses.csv (e.g. the simulator's true poses):
+per-pair translation (m) and yaw (deg) errors and ms per pair; it writes nothing.
 
 Training and evaluation never run odometry themselves (unless asked with --estimate-poses): prepare once here.
 Exit status 0 on success, 2 on bad input, 1 when a sequence failed (the others are still written).
@@ -23,15 +19,17 @@ from pathlib import Path
 
 import numpy as np
 
+from rafd.cli import flags
 from rafd.data.dataset import select_sequences
 from rafd.data.ego_motion import consecutive_pairs, error_summary, estimate, signed_errors, write_poses
 from rafd.data.parallel import default_workers
 from rafd.data.poses import POSES_FILE
+from rafd.progress import track
 
 
 def _parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(
-        prog="rafd-odometry", description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
+        prog=flags.prog("odometry"), description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
     )
     parser.add_argument(
         "roots",
@@ -40,9 +38,9 @@ def _parser() -> argparse.ArgumentParser:
         metavar="ROOT",
         help="data root(s) or sequence folder(s) (Navtech_Cartesian/ + .txt)",
     )
-    parser.add_argument("--split", action="append", help="only sequences of these meta.json splits")
-    parser.add_argument("--workers", type=int, default=default_workers(), help="parallel processes (default: CPUs)")
-    parser.add_argument("--out", type=Path, help=f"output CSV (default SEQ_DIR/{POSES_FILE}; one sequence only)")
+    flags.add_split(parser, "only sequences of these splits")
+    flags.add_workers(parser, default_workers(), "sequences estimated at once (default: the CPUs)")
+    flags.add_out(parser, "CSV", f"the poses of one sequence to this CSV (default SEQ_DIR/{POSES_FILE})")
     parser.add_argument("--force", action="store_true", help="re-estimate sequences that already have poses")
     parser.add_argument(
         "--evaluate",
@@ -55,6 +53,7 @@ def _parser() -> argparse.ArgumentParser:
         action="store_true",
         help="with --evaluate: also print every pair's signed error (x right, y forward, yaw CCW)",
     )
+    flags.add_quiet(parser)
     return parser
 
 
@@ -65,7 +64,7 @@ def _fail(message: str) -> int:
 
 def _evaluate(folders: list[Path], per_pair: bool) -> int:
     all_translation, all_yaw, all_seconds = [], [], []
-    for seq_dir in folders:
+    for seq_dir in track(folders, desc="odometry evaluated", unit="seq"):
         try:
             numbers, stamps, _, relatives, seconds = estimate(seq_dir)
             error = signed_errors(seq_dir, numbers, relatives)
@@ -93,6 +92,7 @@ def _evaluate(folders: list[Path], per_pair: bool) -> int:
 def main(argv: list[str] | None = None) -> int:
     """Parse arguments, then prepare (in parallel) or evaluate; 0 on success, 2 on bad input, 1 on failures."""
     args = _parser().parse_args(argv)
+    flags.apply_quiet(args)
     logging.basicConfig(level=logging.WARNING, format="%(levelname)s %(name)s: %(message)s")
     if args.workers < 1:
         return _fail("--workers must be >= 1")
@@ -101,7 +101,7 @@ def main(argv: list[str] | None = None) -> int:
         if not root.is_dir():
             return _fail(f"{root} is not a directory")
         try:
-            chosen, _ = select_sequences(root, args.split)
+            chosen, _ = select_sequences(root, list(flags.split_names(args.split)) or None)
         except (FileNotFoundError, ValueError) as error:
             return _fail(str(error))
         folders += chosen
@@ -117,7 +117,7 @@ def main(argv: list[str] | None = None) -> int:
         if not args.out.parent.is_dir():
             return _fail(f"folder of --out does not exist: {args.out.parent}")
     start = time.perf_counter()
-    results, failures = write_poses(folders, args.workers, args.force, args.out, progress=len(folders) > 1)
+    results, failures = write_poses(folders, args.workers, args.force, args.out)
     counts, frames = {"written": 0, "skipped": 0}, 0
     for folder, (status, count, ms_per_pair) in results:
         counts[status] += 1

@@ -1,15 +1,11 @@
-"""rafd-polar: convert a sequence's polar scans to RADIATE's Cartesian grid; compare with RADIATE's own images.
+"""rafd polar: convert a sequence's polar scans to RADIATE's Cartesian grid; compare with RADIATE's own images.
 
-rafd-polar POLAR_SEQ --compare CARTESIAN_SEQ    per frame: mean absolute grey difference and correlation
-                                                inside the disc, RADIATE's conventions vs bin centres
-rafd-polar POLAR_SEQ --compare CARTESIAN_SEQ --fit
-                                                also search, frame by frame, the sample offsets and the
-                                                radar's pixel that best reproduce RADIATE's image (how
-                                                RADIATE_POLAR was set: frame 1's values, rounded)
-rafd-polar POLAR_SEQ --out DIR                  write DIR/Navtech_Cartesian/NNNNNN.png (+ the timestamps)
-rafd-polar NATIVE_SEQ --out DIR                 the same for native scans (Oxford Radar RobotCar, Boreas:
-                                                radar/<microseconds>.png), and DIR/ego_poses.csv from the
-                                                ground-truth odometry when the folder has it
+With --compare CARTESIAN_SEQ: per frame, the mean absolute grey difference and the correlation inside the disc, for
+RADIATE's conventions and for bin centres; with --fit as well, a search, frame by frame, of the sample offsets and
+the radar's pixel that best reproduce RADIATE's image (how RADIATE_POLAR was set: frame 1's values, rounded). With
+--out DIR: the converted scans as DIR/Navtech_Cartesian/NNNNNN.png and their timestamps. A native folder
+(Oxford Radar RobotCar, Boreas: radar/<microseconds>.png) converts the same way, with DIR/ego_poses.csv from its
+ground-truth odometry when the folder has it.
 """
 
 from __future__ import annotations
@@ -24,6 +20,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 
+from rafd.cli import flags
 from rafd.data.native_folder import NativeSource, is_native_folder
 from rafd.data.poses import POSES_FILE, write_ego_poses
 from rafd.data.reader import POLAR_DIR, POLAR_TIMESTAMPS_FILE, load_image, read_sequence, read_timestamps
@@ -31,6 +28,7 @@ from rafd.geometry import RADIATE_SCAN_SIZE
 from rafd.native import read_native_scan
 from rafd.native import to_cartesian as native_to_cartesian
 from rafd.polar import NOMINAL_POLAR, RADIATE_POLAR, PolarConventions, polar_to_cartesian, scan_agreement
+from rafd.progress import track
 
 FIT_STEPS = (0.25, 0.25, 0.5, 0.5)  # first step of (azimuth offset, range offset, centre u, centre v)
 FIT_HALVINGS = 6  # final step 1/64 of the first: below 0.01 bins / pixels
@@ -75,21 +73,25 @@ def fit_conventions(
 
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(
-        prog="rafd-polar",
-        description=__doc__.splitlines()[0],
-        formatter_class=argparse.RawDescriptionHelpFormatter,
-        epilog=__doc__,
+        prog=flags.prog("polar"), description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
     )
     parser.add_argument(
         "sequence",
         type=Path,
+        metavar="POLAR_SEQ",
         help=f"folder holding {POLAR_DIR}/ and {POLAR_TIMESTAMPS_FILE}, or a native folder (radar/<microseconds>.png)",
     )
-    parser.add_argument("--compare", type=Path, help="RADIATE folder with the same frames' Navtech_Cartesian/")
+    parser.add_argument(
+        "--compare", type=Path, metavar="CARTESIAN_SEQ", help="RADIATE folder with the same frames' Navtech_Cartesian/"
+    )
     parser.add_argument("--fit", action="store_true", help="with --compare: fit the conventions on each frame")
-    parser.add_argument("--out", type=Path, help="write the converted scans as DIR/Navtech_Cartesian/ + .txt")
-    parser.add_argument("--size", type=int, default=None, help="Cartesian side in pixels (default: the whole disc)")
+    flags.add_out(parser, "DIR", "write the converted scans as DIR/Navtech_Cartesian/ + Navtech_Cartesian.txt")
+    parser.add_argument(
+        "--scan-size", type=int, default=None, metavar="PX", help="Cartesian side in pixels (default: the whole disc)"
+    )
     parser.add_argument("--repeats", type=int, default=20, help="conversions timed per run (median reported)")
+    flags.add_quiet(parser)
+    flags.deprecated(parser, "--size", "--scan-size", "scan_size", type=int, metavar="PX")
     return parser
 
 
@@ -109,7 +111,7 @@ def convert_native(args: argparse.Namespace) -> int:
         source = sequence.frames[0].polar
         assert isinstance(source, NativeSource)  # a native folder's frames convert through one
         first = read_native_scan(sequence.frames[0].image_path, source.fmt)
-        size = args.size or RADIATE_SCAN_SIZE
+        size = args.scan_size or RADIATE_SCAN_SIZE
         scans = {
             frame.number: native_to_cartesian(read_native_scan(frame.image_path, first.fmt), size)
             for frame in sequence.frames
@@ -147,12 +149,13 @@ def convert_native(args: argparse.Namespace) -> int:
 
 def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
+    flags.apply_quiet(args)
     if is_native_folder(args.sequence):
         return convert_native(args)
     try:
         listed = read_timestamps(args.sequence / POLAR_TIMESTAMPS_FILE)
         polars = {number: load_image(args.sequence / POLAR_DIR / f"{number:06d}.png") for number, _, _ in listed}
-        scans = {number: polar_to_cartesian(polar, args.size) for number, polar in polars.items()}
+        scans = {number: polar_to_cartesian(polar, args.scan_size) for number, polar in polars.items()}
     except (OSError, ValueError) as error:
         return _fail(str(error))
     if args.compare is not None:
@@ -164,17 +167,17 @@ def main(argv: list[str] | None = None) -> int:
             except (OSError, ValueError) as error:
                 return _fail(str(error))
             if reference.shape != scans[number].shape:
-                return _fail(f"{path} is {reference.shape}, the converted scan {scans[number].shape}: pass --size")
+                return _fail(f"{path} is {reference.shape}, the converted scan {scans[number].shape}: pass --scan-size")
             for name, conventions in (("radiate", RADIATE_POLAR), ("bin centres", NOMINAL_POLAR)):
                 mad, correlation = scan_agreement(
-                    polar_to_cartesian(polar, args.size, conventions=conventions), reference
+                    polar_to_cartesian(polar, args.scan_size, conventions=conventions), reference
                 )
                 print(f"{number:>6} {name:>12} {mad:>9.3f} {correlation:>12.4f}")
         if args.fit:
-            for number, polar in polars.items():
+            for number, polar in track(polars.items(), desc="fit the conventions", total=len(polars), unit="frame"):
                 reference = load_image(args.compare / "Navtech_Cartesian" / f"{number:06d}.png")
                 fitted = fit_conventions(polar, reference)
-                converted = polar_to_cartesian(polar, args.size, conventions=fitted)
+                converted = polar_to_cartesian(polar, args.scan_size, conventions=fitted)
                 mad, correlation = scan_agreement(converted, reference)
                 print(
                     f"{number:>6} {'fitted':>12} {mad:>9.3f} {correlation:>12.4f}   azimuth_offset "
@@ -187,7 +190,7 @@ def main(argv: list[str] | None = None) -> int:
     seconds = []
     for _ in range(max(1, args.repeats)):
         start = time.perf_counter()
-        polar_to_cartesian(first, args.size)
+        polar_to_cartesian(first, args.scan_size)
         seconds.append(time.perf_counter() - start)
     print(
         f"conversion {first.shape[0]}x{first.shape[1]} -> {scans[listed[0][0]].shape[0]} px: "

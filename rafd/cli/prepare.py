@@ -1,8 +1,6 @@
-"""rafd-prepare ROOT CACHE: decode every scan of a data root once into memory-mapped centre crops (rafd.data.cache).
+"""rafd prepare: decode every scan of a data root once into memory-mapped centre crops (rafd.data.cache).
 
-    rafd-prepare ROOT CACHE [--split NAME ...] [--crop PX] [--workers N] [--force]
-
-Training and evaluation then read windows from CACHE (`rafd-train --cache CACHE`, `rafd-eval --cache CACHE`)
+Training and evaluation then read windows from the cache (`rafd train --cache CACHE`, `rafd eval --cache CACHE`)
 instead of decoding four full 1152 px PNGs per window. Sequences are prepared in parallel processes; a sequence
 whose cache is complete (CACHE/<sequence>/cache.json) and matches its frames is skipped, so an interrupted run is
 resumed by running the same command again. Exit status 0 on success, 2 on bad input, 1 if a sequence failed.
@@ -15,6 +13,7 @@ import logging
 import sys
 from pathlib import Path
 
+from rafd.cli import flags
 from rafd.data.cache import DEFAULT_CROP
 from rafd.data.parallel import default_workers
 from rafd.data.prepare import prepare_root
@@ -22,37 +21,49 @@ from rafd.data.prepare import prepare_root
 
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(
-        prog="rafd-prepare", description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
+        prog=flags.prog("prepare"), description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
     )
-    parser.add_argument("root", type=Path, help="data root holding RADIATE sequence folders (or one sequence)")
-    parser.add_argument("cache", type=Path, help="cache root to write (mirrors the sequence folders)")
-    parser.add_argument("--split", action="append", help="only these meta.json splits (repeat or comma-separate)")
     parser.add_argument(
-        "--crop",
+        "root", type=Path, metavar="ROOT", help="data root holding RADIATE sequence folders (or one sequence)"
+    )
+    flags.add_out(parser, "CACHE", "cache root to write (mirrors the sequence folders)")
+    flags.add_split(parser, "only sequences of these splits")
+    parser.add_argument(
+        "--crop-size",
         type=int,
         default=DEFAULT_CROP,
-        help=f"centre crop side in pixels (default {DEFAULT_CROP}: a 256 px input turned by any angle)",
+        metavar="PX",
+        help=f"side in pixels of the cached centre crop (default {DEFAULT_CROP}: a 256 px input turned by any angle)",
     )
-    parser.add_argument("--workers", type=int, default=default_workers(), help="parallel processes (default: CPUs)")
+    flags.add_workers(parser, default_workers(), "sequences prepared at once (default: the CPUs)")
     parser.add_argument("--force", action="store_true", help="rebuild complete caches too")
+    flags.add_quiet(parser)
+    parser.add_argument("cache", nargs="?", type=Path, metavar="CACHE", help="deprecated: use --out CACHE")
+    flags.deprecated(parser, "--crop", "--crop-size", "crop_size", type=int, metavar="PX")
     return parser
 
 
 def main(argv: list[str] | None = None) -> int:
-    args = build_parser().parse_args(argv)
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    flags.deprecated_positional(parser, args, "cache", "--out", "out")
+    if args.out is None:
+        parser.error("the cache to write is required: --out CACHE")
+    flags.apply_quiet(args)
     logging.basicConfig(level=logging.WARNING, format="%(levelname)s %(name)s: %(message)s")
     try:
-        done = prepare_root(args.root, args.cache, args.split, args.crop, args.workers, args.force)
+        split = list(flags.split_names(args.split)) or None
+        done = prepare_root(args.root, args.out, split, args.crop_size, args.workers, args.force)
     except (FileNotFoundError, ValueError) as error:
-        print(f"rafd-prepare: error: {error}", file=sys.stderr)
+        print(f"{parser.prog}: error: {error}", file=sys.stderr)
         return 2
     print(
-        f"{args.cache}: {done.prepared} sequences prepared ({done.frames} frames, "
+        f"{args.out}: {done.prepared} sequences prepared ({done.frames} frames, "
         f"{done.frames / max(done.seconds, 1e-9):.0f} frames/s), {done.skipped} already complete, in "
         f"{done.seconds:.1f} s"
     )
     for failure in done.failures:
-        print(f"rafd-prepare: error: {failure}", file=sys.stderr)
+        print(f"{parser.prog}: error: {failure}", file=sys.stderr)
     return 1 if done.failures else 0
 
 

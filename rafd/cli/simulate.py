@@ -1,4 +1,4 @@
-"""rafd-simulate: write synthetic Navtech sequences in RADIATE's format, or a sim-vs-real preview."""
+"""rafd simulate: write synthetic Navtech sequences in RADIATE's format, or a sim-vs-real preview."""
 
 from __future__ import annotations
 
@@ -9,6 +9,7 @@ import sys
 import time
 from pathlib import Path
 
+from rafd.cli import flags
 from rafd.geometry import RADIATE_SCAN_SIZE
 from rafd.sim.api import simulate_dataset
 from rafd.sim.preview import render_preview
@@ -17,20 +18,29 @@ from rafd.sim.sensor import WEATHER_PROBABILITIES, WEATHERS, Difficulty
 
 def _parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(
-        prog="rafd-simulate",
+        prog=flags.prog("simulate"),
         description="Simulate RADIATE-format radar sequences (Navtech_Cartesian/, annotations, meta.json, "
-        "ego_poses.csv).",
+        "ego_poses.csv) into --out DIR; with --realism, compare simulated with real scans; with --preview, draw a "
+        "simulated scan beside a real one.",
     )
-    parser.add_argument("out_dir", nargs="?", type=Path, help="folder receiving sim_<seed>_<k>/ sequence folders")
+    flags.add_out(parser, "DIR|PNG", "folder receiving sim_<seed>_<k>/ sequence folders (with --preview: the PNG)")
     parser.add_argument("--sequences", type=int, default=1, help="number of sequences (default 1)")
-    parser.add_argument("--frames", type=int, default=50, help="frames per sequence (default 50)")
+    flags.add_sequence_frames(parser, 50)
     parser.add_argument(
         "--seed", type=int, default=0, help="dataset seed; sequence k uses a seed derived from (seed, k)"
     )
-    parser.add_argument(
-        "--split", default="train_good_weather", help="meta.json 'set' value (default train_good_weather)"
+    flags.add_split(
+        parser,
+        "meta.json 'set' of the written sequences (default train_good_weather); several: the sequences are dealt "
+        "to them in turn",
     )
-    parser.add_argument("--size", type=int, default=RADIATE_SCAN_SIZE, help="scan side in pixels, even (default 1152)")
+    parser.add_argument(
+        "--scan-size",
+        type=int,
+        default=RADIATE_SCAN_SIZE,
+        metavar="PX",
+        help=f"side in pixels of the written scans, even (default {RADIATE_SCAN_SIZE}: RADIATE's)",
+    )
     parser.add_argument("--clutter", type=float, default=1.0, help="clutter strength (1 = matched to real scans)")
     parser.add_argument("--ghosts", type=float, default=1.0, help="multipath ghost strength (1 = default)")
     parser.add_argument("--noise", type=float, default=1.0, help="noise floor power (1 = matched to real scans)")
@@ -50,7 +60,7 @@ def _parser() -> argparse.ArgumentParser:
     parser.add_argument(
         "--no-poses",
         action="store_true",
-        help="write no ego_poses.csv, like a real RADIATE sequence (prepare with rafd-odometry)",
+        help="write no ego_poses.csv, like a real RADIATE sequence (prepare with rafd odometry)",
     )
     parser.add_argument(
         "--polar", action="store_true", help="also write the polar scans (Navtech_Polar/, RADIATE's layout)"
@@ -67,15 +77,41 @@ def _parser() -> argparse.ArgumentParser:
     parser.add_argument(
         "--realism-sim",
         type=Path,
+        metavar="ROOT",
         help="with --realism: take the simulated scans from this data root instead of simulating",
     )
-    parser.add_argument("--json", type=Path, help="with --realism: also write the table as JSON here")
+    parser.add_argument("--json", type=Path, metavar="FILE", help="with --realism: also write the table as JSON here")
     parser.add_argument("--realism-steps", type=int, default=400, help="with --realism: classifier training steps")
-    parser.add_argument("--preview", type=Path, help="write a simulated-vs-real side-by-side PNG here instead")
     parser.add_argument(
-        "--sample", type=Path, help="real RADIATE sequence for --preview (default $RAFD_RADIATE_SAMPLE)"
+        "--preview",
+        action="store_true",
+        help="instead of writing sequences: draw a simulated scan beside a real one into --out PNG",
     )
+    parser.add_argument(
+        "--sample",
+        type=Path,
+        metavar="REAL_SEQ",
+        help="real RADIATE sequence for --preview (default $RAFD_RADIATE_SAMPLE)",
+    )
+    flags.add_quiet(parser)
+    parser.add_argument("out_dir", nargs="?", type=Path, metavar="OUT_DIR", help="deprecated: use --out DIR")
+    flags.deprecated(parser, "--frames", "--sequence-frames", "frames", type=int, metavar="N")
+    flags.deprecated(parser, "--size", "--scan-size", "scan_size", type=int, metavar="PX")
     return parser
+
+
+def parse(argv: list[str] | None = None) -> argparse.Namespace:
+    """The flags, old spellings moved to the new ones: OUT_DIR -> --out, --preview FILE -> --preview --out FILE."""
+    parser = _parser()
+    argv = list(sys.argv[1:] if argv is None else argv)
+    for i, token in enumerate(argv[:-1]):  # the old `--preview FILE.png`: --preview took the file
+        if token == "--preview" and not argv[i + 1].startswith("-"):
+            flags.warn(parser.prog, f"--preview {argv[i + 1]} is deprecated, use --preview --out {argv[i + 1]}")
+            argv = [*argv[:i], "--preview", "--out", argv[i + 1], *argv[i + 2 :]]
+            break
+    args = parser.parse_args(argv)
+    flags.deprecated_positional(parser, args, "out_dir", "--out", "out")
+    return args
 
 
 def _fail(message: str) -> int:
@@ -85,7 +121,8 @@ def _fail(message: str) -> int:
 
 def main(argv: list[str] | None = None) -> int:
     """Parse arguments, simulate, print what was written; 0 on success, 2 on bad input."""
-    args = _parser().parse_args(argv)
+    args = parse(argv)
+    flags.apply_quiet(args)
     logging.basicConfig(level=logging.INFO, format="%(levelname)s %(name)s: %(message)s")
     try:
         difficulty = Difficulty(clutter=args.clutter, ghosts=args.ghosts, noise=args.noise)
@@ -93,7 +130,9 @@ def main(argv: list[str] | None = None) -> int:
         return _fail(str(error))
     if args.realism is not None:
         return _realism(args, difficulty)
-    if args.preview is not None:
+    if args.preview:
+        if args.out is None:
+            return _fail("--preview needs --out FILE.png")
         sample = args.sample or (
             Path(os.environ["RAFD_RADIATE_SAMPLE"]) if os.environ.get("RAFD_RADIATE_SAMPLE") else None
         )
@@ -101,37 +140,37 @@ def main(argv: list[str] | None = None) -> int:
             return _fail("--preview needs a real sequence: pass --sample DIR or set RAFD_RADIATE_SAMPLE")
         if not (sample / "Navtech_Cartesian").is_dir():
             return _fail(f"{sample} is not a RADIATE sequence folder (needs Navtech_Cartesian/)")
-        if not args.preview.parent.is_dir():
-            return _fail(f"folder of --preview does not exist: {args.preview.parent}")
+        if not args.out.parent.is_dir():
+            return _fail(f"folder of --out does not exist: {args.out.parent}")
         try:
-            path = render_preview(args.preview, sample, seed=args.seed, difficulty=difficulty)
+            path = render_preview(args.out, sample, seed=args.seed, difficulty=difficulty)
         except OSError as error:
             return _fail(str(error))
         print(f"wrote {path}")
         return 0
-    if args.out_dir is None:
-        return _fail("OUT_DIR is required (or use --preview OUT.png)")
+    if args.out is None:
+        return _fail("--out DIR is required (the folder receiving the sequences)")
     if args.sequences < 1:
         return _fail(f"--sequences must be >= 1, got {args.sequences}")
     if args.frames < 1:
-        return _fail(f"--frames must be >= 1, got {args.frames}")
-    if args.size < 16 or args.size % 2:
-        return _fail(f"--size must be an even number of pixels >= 16, got {args.size}")
+        return _fail(f"--sequence-frames must be >= 1, got {args.frames}")
+    if args.scan_size < 16 or args.scan_size % 2:
+        return _fail(f"--scan-size must be an even number of pixels >= 16, got {args.scan_size}")
     try:
-        args.out_dir.mkdir(parents=True, exist_ok=True)
+        args.out.mkdir(parents=True, exist_ok=True)
     except OSError as error:
-        return _fail(f"cannot create OUT_DIR {args.out_dir}: {error}")
-    if not os.access(args.out_dir, os.W_OK | os.X_OK):
-        return _fail(f"OUT_DIR {args.out_dir} is not writable")
+        return _fail(f"cannot create --out {args.out}: {error}")
+    if not os.access(args.out, os.W_OK | os.X_OK):
+        return _fail(f"--out {args.out} is not writable")
     start = time.perf_counter()
     try:
         paths = simulate_dataset(
-            args.out_dir,
+            args.out,
             args.sequences,
             args.frames,
             args.seed,
-            args.split,
-            args.size,
+            flags.split_names(args.split) or "train_good_weather",
+            args.scan_size,
             difficulty,
             ambiguous=not args.exact_labels,
             poses=not args.no_poses,
@@ -146,7 +185,7 @@ def main(argv: list[str] | None = None) -> int:
     return 0
 
 
-REALISM_DRIVES = 12  # simulated drives of --realism (3 frames each unless --frames is smaller)
+REALISM_DRIVES = 12  # simulated drives of --realism (3 frames each unless --sequence-frames is smaller)
 
 
 def _sequences_of(root: Path) -> list[list]:

@@ -1,7 +1,7 @@
 """Prepared scan cache: each sequence's scans decoded once into one memory-mapped uint8 array of centre crops.
 
 A RADIATE scan is a 1152 x 1152 PNG (~25 ms to decode) of which training keeps a 256 px centre crop; decoding four
-full scans per window starves a GPU. `rafd-prepare ROOT CACHE` decodes every scan once and keeps the centre
+full scans per window starves a GPU. `rafd prepare ROOT --out CACHE` decodes every scan once and keeps the centre
 `crop` pixels (rafd.preprocess.model_crop) -- large enough for the window augmentation's rotations
 (required_crop) -- in CACHE/<sequence path under ROOT>/crops.npy, [N, crop, crop] uint8, opened with mmap.
 CACHE/<sequence>/cache.json is written last and marks the sequence complete (so `rafd-prepare` is resumable);
@@ -59,7 +59,7 @@ def read_cached(folder: Path, numbers: np.ndarray, image_size: int, min_crop: in
     """The cache of one sequence, checked against the sequence's frames; CacheError naming the fix otherwise."""
     marker = folder / CACHE_FILE
     if not marker.is_file():
-        raise CacheError(f"{folder}: not prepared (no {CACHE_FILE}); run `rafd-prepare DATA_ROOT CACHE_ROOT`")
+        raise CacheError(f"{folder}: not prepared (no {CACHE_FILE}); run `rafd prepare DATA_ROOT --out CACHE_ROOT`")
     try:
         info = json.loads(marker.read_text())
         cached = CachedSequence(
@@ -67,17 +67,17 @@ def read_cached(folder: Path, numbers: np.ndarray, image_size: int, min_crop: in
         )
         version = info["version"]
     except (OSError, ValueError, KeyError, TypeError) as error:
-        raise CacheError(f"{marker}: unreadable cache record ({error}); rerun `rafd-prepare ... --force`") from error
+        raise CacheError(f"{marker}: unreadable cache record ({error}); rerun `rafd prepare ... --force`") from error
     if version != CACHE_VERSION:
-        raise CacheError(f"{marker}: cache version {version}, this rafd reads {CACHE_VERSION}; rerun rafd-prepare")
+        raise CacheError(f"{marker}: cache version {version}, this rafd reads {CACHE_VERSION}; rerun rafd prepare")
     if not np.array_equal(cached.numbers, numbers) or cached.image_size != image_size:
         raise CacheError(
-            f"{folder}: prepared from other frames than the sequence now holds; rerun `rafd-prepare ... --force`"
+            f"{folder}: prepared from other frames than the sequence now holds; rerun `rafd prepare ... --force`"
         )
     if cached.crop < min_crop:
         raise CacheError(
             f"{folder}: crops of {cached.crop} px, this run needs {min_crop} px "
-            f"(rerun `rafd-prepare ... --crop {min_crop} --force`)"
+            f"(rerun `rafd prepare ... --crop-size {min_crop} --force`)"
         )
     return cached
 

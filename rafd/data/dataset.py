@@ -11,7 +11,7 @@ further. Each selected sequence's metadata (frames, timestamps, boxes, ids, pose
 Ego poses come from each sequence's ego_poses.csv, prepared once by `rafd-odometry ROOT`; a sequence without one is
 an error naming that command, unless estimate_poses=True asks for radar odometry here (slow: ~150 ms per frame).
 
-Scans: from a prepared cache (`rafd-prepare ROOT CACHE`, rafd.data.cache: centre crops in one memory-mapped array
+Scans: from a prepared cache (`rafd prepare ROOT --out CACHE`, rafd.data.cache: centre crops in one memory-mapped array
 per sequence, no PNG decode per window) when `cache` is given, else decoded from the PNGs per window (slow).
 
 Augmentation (augment=True or an AugmentConfig): one rafd.data.augment.Augmentation per window, applied to the scans

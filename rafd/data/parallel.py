@@ -8,7 +8,7 @@ from concurrent.futures import ProcessPoolExecutor, as_completed
 from pathlib import Path
 from typing import Any
 
-from tqdm import tqdm
+from rafd.progress import bar
 
 
 def default_workers() -> int:
@@ -25,8 +25,8 @@ def run_per_sequence(
     results, failures = [], []
     with ProcessPoolExecutor(max_workers=min(workers, len(folders))) as pool:
         jobs = {pool.submit(job, folder): folder for folder in folders}
-        for done in tqdm(
-            as_completed(jobs), total=len(jobs), desc=desc, unit="seq", dynamic_ncols=True, disable=not progress
+        for done in bar(
+            as_completed(jobs), total=len(jobs), desc=f"{desc} {len(jobs)} sequences", unit="seq", enabled=progress
         ):
             try:
                 results.append((jobs[done], done.result()))

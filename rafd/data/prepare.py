@@ -59,7 +59,7 @@ def prepare_root(
     ValueError for a bad crop or worker count, or when no sequence is selected; FileNotFoundError for a bad root."""
     workers = default_workers() if workers is None else workers
     if crop < 16 or crop % 2:
-        raise ValueError(f"--crop must be an even number of pixels >= 16, got {crop}")
+        raise ValueError(f"--crop-size must be an even number of pixels >= 16, got {crop}")
     if workers < 1:
         raise ValueError("--workers must be >= 1")
     folders, seen = select_sequences(root, list(splits) if splits else None)

@@ -15,7 +15,6 @@ from typing import Any
 
 import numpy as np
 import torch
-from tqdm import tqdm
 
 from rafd.config import RaFDConfig
 from rafd.data.dataset import _protocol
@@ -23,6 +22,7 @@ from rafd.eval.predict import FrameResult, outside_ignored
 from rafd.eval.tiled import TileGrid, merge_tiles, tile_poses
 from rafd.model import RaFD, relative_pose_torch
 from rafd.preprocess import to_model_input
+from rafd.progress import bar as progress_bar
 from rafd.train.precision import autocast
 
 
@@ -69,7 +69,7 @@ def predict_full_scan(
                 outputs.append(function(*(t[start : start + tiles_per_batch] for t in tensors)))
         return torch.cat(outputs)
 
-    bar = tqdm(total=len(wanted), desc="full scans", disable=not progress, dynamic_ncols=True)
+    bar = progress_bar(total=len(wanted), desc="predict full scans", unit="scan", enabled=progress)
     for s, meta in enumerate(dataset.sequences):
         features: deque = deque(maxlen=frames_per_window)  # per frame: [n, C, Hf, Wf]
         flows: deque = deque(maxlen=max(frames_per_window - 1, 1))  # per pair: [n, 2, Hf, Wf]

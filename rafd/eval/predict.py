@@ -11,12 +11,12 @@ import numpy as np
 import torch
 from torch import nn
 from torch.utils.data import DataLoader, Dataset
-from tqdm import tqdm
 
 from rafd.config import RaFDConfig
 from rafd.detections import decode_detections
 from rafd.eval.metrics import end_point_error, match_centres, mean_average_precision
 from rafd.geometry import points_in_boxes
+from rafd.progress import bar
 from rafd.protocol import CENTRE_DISTANCE_M, IOU_THRESHOLDS
 from rafd.train.collate import Collator
 
@@ -83,7 +83,7 @@ def predict(
     )
     results: list[FrameResult] = []
     try:
-        for batch in tqdm(loader, desc="predict", disable=not progress, dynamic_ncols=True):
+        for batch in bar(loader, desc="predict windows", unit="batch", enabled=progress):
             batch = batch.to(device)
             frames, poses = batch.frames, batch.poses  # [B, T, 1, S, S], [B, T, 3]
             if past_as_newest:

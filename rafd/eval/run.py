@@ -111,9 +111,18 @@ def calibrate(run: EvalRun, results: list[Any], cfg: Any, model: Any, meta: dict
 
 
 def write_plots(
-    folder: Path, model: Any, cfg: Any, dataset: Any, results: Sequence[Any], examples: int, device: Any
+    folder: Path,
+    model: Any,
+    cfg: Any,
+    dataset: Any,
+    results: Sequence[Any],
+    examples: int,
+    device: Any,
+    score_threshold: float = DEFAULT_SCORE_THRESHOLD,
 ) -> list[Path]:
-    """Precision-recall plot of all frames and a few example frames (GT green, predictions red, flow)."""
+    """Precision-recall plot of all frames and a few example frames (GT green, predictions red, flow). The examples
+    draw what the service would answer: the boxes at or above `score_threshold` (the operating threshold, or
+    --score-threshold), stated in each picture's legend."""
     import cv2
     import numpy as np
     from torch.utils.data import Subset
@@ -141,9 +150,7 @@ def write_plots(
         for index, result in zip(picks, example_results):
             window = dataset[index]
             image = np.asarray(window["frames"])[-1].squeeze()  # [H, W] newest frame
-            shown = result.predictions[
-                result.predictions[:, 5] >= DEFAULT_SCORE_THRESHOLD
-            ]  # AP keeps all K; a picture cannot
+            shown = result.predictions[result.predictions[:, 5] >= score_threshold]  # AP keeps all K; the service not
             canvas = draw_detections(
                 image,
                 gt_boxes=result.ground_truth,
@@ -152,6 +159,7 @@ def write_plots(
                 resolution=cfg.resolution,
                 flow=result.flow,
                 upscale=4,  # 128 px crops are too small to read the boxes at 1:1
+                score_threshold=score_threshold,
             )
             path = folder / f"example_{result.sequence}_{result.frame:06d}.png"
             if not cv2.imwrite(str(path), canvas):
@@ -243,7 +251,8 @@ def evaluate(run: EvalRun) -> dict[str, Any]:
         }
     )
     if run.plots is not None:
-        report["plots"] = [str(p) for p in write_plots(run.plots, model, cfg, dataset, results, run.examples, device)]
+        written = write_plots(run.plots, model, cfg, dataset, results, run.examples, device, threshold)
+        report["plots"] = [str(p) for p in written]
     if run.mcap is not None:
         report["mcap"] = [str(p) for p in write_evaluation_logs(run.mcap, dataset, results, cfg, str(run.checkpoint))]
     if run.detections is not None:

@@ -3,6 +3,7 @@ picks the fastest runtime and precision this CPU supports by timing them on the 
 
 from __future__ import annotations
 
+import json
 import logging
 import os
 import statistics
@@ -12,6 +13,8 @@ from typing import Any, cast
 
 import numpy as np
 
+from rafd.model_files import checkpoint_given_for_onnx
+from rafd.protocol import GATE_MIN_FRAMES, GATE_MIN_REFERENCE_DETECTIONS
 from rafd.runtime.backend import DYNAMIC, PRECISIONS, RUNTIMES, default_threads
 from rafd.runtime.ort_backend import OrtBackend
 from rafd.runtime.streaming import StreamRunner
@@ -24,8 +27,28 @@ GATE_KEY = "gate_{precision}"
 
 
 def gate_passed(metadata: dict[str, str], precision: str) -> bool:
-    """fp32, or a reduced precision whose accuracy gate passed for this model."""
-    return precision == "fp32" or metadata.get(GATE_KEY.format(precision=precision)) == "pass"
+    """fp32, or a reduced precision whose accuracy gate passed for this model on enough evidence: a "pass" verdict
+    whose recorded figures (GATE_KEY + "_figures") compared at least rafd.protocol.GATE_MIN_FRAMES windows and
+    GATE_MIN_REFERENCE_DETECTIONS reference detections (a file gated before the gate refused to judge too little
+    may say "pass" on nothing)."""
+    if precision == "fp32":
+        return True
+    key = GATE_KEY.format(precision=precision)
+    if metadata.get(key) != "pass":
+        return False
+    frames, detections = gate_evidence(metadata.get(key + "_figures"))
+    return frames >= GATE_MIN_FRAMES and detections >= GATE_MIN_REFERENCE_DETECTIONS
+
+
+def gate_evidence(figures_json: str | None) -> tuple[int, int]:
+    """(compared windows, reference detections) of all sources together from a gate's recorded figures; (0, 0)
+    when absent or unreadable."""
+    try:
+        figures = json.loads(figures_json or "")["figures"]
+        pooled = figures["all"] if "all" in figures else next(iter(figures.values()))
+        return int(pooled["frames"]), int(pooled["reference_detections"])
+    except (ValueError, KeyError, TypeError, StopIteration):
+        return 0, 0
 
 
 def crowd_threads(threads: int, concurrent_runs: int) -> int | None:
@@ -102,6 +125,9 @@ def open_runner(
     concurrent_runs: int = 1,
 ) -> StreamRunner:
     """One explicit (runtime, precision)."""
+    wrong_kind = checkpoint_given_for_onnx(model_path)
+    if wrong_kind:
+        raise ValueError(wrong_kind)
     if runtime == "onnxruntime":
         if precision != "fp32":
             raise ValueError(f"onnxruntime runs RaFD in fp32 only, not {precision!r} (use runtime openvino)")

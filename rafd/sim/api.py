@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from pathlib import Path
 
 import numpy as np
@@ -45,24 +46,31 @@ def simulate_dataset(
     sequences: int,
     frames: int,
     seed: int,
-    split: str = "train_good_weather",
+    split: str | Sequence[str] = "train_good_weather",
     size: int = RADIATE_SCAN_SIZE,
     difficulty: Difficulty = Difficulty(),
     ambiguous: bool = True,
     poses: bool = True,
     polar: bool = False,
     weather: str | None = None,
+    progress: bool = True,
 ) -> list[Path]:
-    """Write `sequences` folders root/sim_<seed>_<k>, each simulated from sequence_seed(seed, k)."""
+    """Write `sequences` folders root/sim_<seed>_<k>, each simulated from sequence_seed(seed, k); with several
+    splits, sequence k goes to split k mod len(split). A progress bar over the sequences (rafd.progress)."""
+    from rafd.progress import track
+
     if sequences < 1:
         raise ValueError(f"sequences must be >= 1, got {sequences}")
+    splits = (split,) if isinstance(split, str) else tuple(split)
+    if not splits:
+        raise ValueError("at least one split")
     root = Path(root)
     return [
         simulate_sequence(
             root / f"sim_{seed}_{k}",
             sequence_seed(seed, k),
             frames,
-            split,
+            splits[k % len(splits)],
             size,
             difficulty,
             ambiguous,
@@ -70,5 +78,5 @@ def simulate_dataset(
             polar,
             weather,
         )
-        for k in range(sequences)
+        for k in track(range(sequences), desc=f"simulate {sequences} x {frames} frames", unit="seq", enabled=progress)
     ]

@@ -31,9 +31,9 @@ import numpy as np
 import torch
 from torch import nn
 from torch.utils.data import DataLoader, Dataset
-from tqdm import tqdm
 
 from rafd.config import FREEZABLE, RaFDConfig
+from rafd.progress import bar as progress_bar
 from rafd.train.collate import Batch, Collator
 from rafd.train.distributed import (
     DEFAULT_TIMEOUT_MINUTES,
@@ -318,11 +318,11 @@ class Trainer:
         interval_sum = torch.zeros_like(epoch_sum)
         interval, curve, windows = 0, [], 0
         start = time.perf_counter()
-        bar = tqdm(
+        bar = progress_bar(
             total=steps,
-            desc=f"epoch {epoch + 1}/{self.cfg.epochs}",
-            disable=not (self.cfg.progress and self.ctx.is_main),
-            dynamic_ncols=True,
+            desc=f"train epoch {epoch + 1}/{self.cfg.epochs}",
+            unit="step",
+            enabled=self.cfg.progress and self.ctx.is_main,
         )
         for index, group in enumerate(self._groups(self.loader)):
             if index >= steps:

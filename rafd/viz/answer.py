@@ -68,9 +68,11 @@ def decode_flow(flow: dict[str, Any]) -> np.ndarray:
     return values.astype(np.float64)
 
 
-def flow_arrows(flow: dict[str, Any], step: int = 1, min_m: float = 0.0) -> tuple[np.ndarray, np.ndarray]:
+def flow_arrows(
+    flow: dict[str, Any], step: int = 1, min_m: float = 0.0, keep: np.ndarray | None = None
+) -> tuple[np.ndarray, np.ndarray]:
     """Cells of the answer's flow grid -> (heads [P, 2] posted pixels of the cell centres, motions [P, 2] metres
-    x right / y forward) for every `step`-th cell moving more than `min_m`."""
+    x right / y forward) for every `step`-th cell moving more than `min_m` (and marked in `keep` [Hf, Wf])."""
     values = decode_flow(flow)  # [2, Hf, Wf]
     grid = flow["grid"]
     rows, cols = np.meshgrid(np.arange(grid["height"]), np.arange(grid["width"]), indexing="ij")  # [Hf, Wf]
@@ -79,6 +81,8 @@ def flow_arrows(flow: dict[str, Any], step: int = 1, min_m: float = 0.0) -> tupl
     heads = np.stack([u, v], -1)[::step, ::step].reshape(-1, 2)  # [P, 2]
     motions = np.moveaxis(values, 0, -1)[::step, ::step].reshape(-1, 2)  # [P, 2]
     moving = np.hypot(motions[:, 0], motions[:, 1]) > min_m
+    if keep is not None:
+        moving &= np.asarray(keep, dtype=bool)[::step, ::step].reshape(-1)
     return heads[moving], motions[moving]
 
 

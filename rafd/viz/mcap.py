@@ -13,8 +13,11 @@ Topics (every message stamped with the scan's own time, so the file replays at t
     /radar/ground_truth/image   foxglove.ImageAnnotations  ground-truth outlines on /radar/scan
 
 Each SceneUpdate first deletes everything older on its topic, so a frame shows exactly its own boxes.
-Needs the `logs` extra (foxglove-sdk; reading back: mcap + mcap-protobuf-support): import this module only
-when a log is asked for.
+`RadarChannels` holds these channels on any foxglove Context: an MCAP file (`RadarMcapLog`), or the service's live
+view (service/live.py: a WebSocket server, one topic prefix per stream, the same channels and schemas).
+`frame_from_answer` turns one /detect answer into a LoggedFrame (rafd client and the live view).
+Needs foxglove-sdk (the `logs` extra; the live view's `live` extra; reading back: mcap + mcap-protobuf-support):
+import this module only when a log or the live view is asked for.
 """
 
 from __future__ import annotations
@@ -22,6 +25,7 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 import foxglove
 import numpy as np
@@ -106,6 +110,60 @@ def _colour(rgba: tuple[float, float, float, float]) -> Color:
     return Color(r=rgba[0], g=rgba[1], b=rgba[2], a=rgba[3])
 
 
+class RadarChannels:
+    """The radar topics (TOPICS, each under `prefix`) on a foxglove Context; log(frame) writes one frame on all."""
+
+    def __init__(self, context: foxglove.Context, prefix: str = "") -> None:
+        self._context, self.prefix = context, prefix.rstrip("/")
+        self._scan = channels.CompressedImageChannel(self.topic("scan"), context=context)
+        self._grid = channels.GridChannel(self.topic("grid"), context=context)
+        self._tf = channels.FrameTransformChannel(self.topic("tf"), context=context)
+        self._detections = channels.SceneUpdateChannel(self.topic("detections"), context=context)
+        self._detections_image = channels.ImageAnnotationsChannel(self.topic("detections_image"), context=context)
+        self._flow = channels.SceneUpdateChannel(self.topic("flow"), context=context)
+        # created on the first labelled frame
+        self._truth: channels.SceneUpdateChannel | None = None
+        self._truth_image: channels.ImageAnnotationsChannel | None = None
+        self.frames = 0
+
+    def topic(self, key: str) -> str:
+        return self.prefix + TOPICS[key]
+
+    def log(self, frame: LoggedFrame) -> None:
+        """Log one frame on every topic (flow only when given, ground truth only when labelled)."""
+        time_ns = int(frame.timestamp_ns)
+        stamp = _timestamp(time_ns)
+        self._scan.log(
+            CompressedImage(timestamp=stamp, frame_id=FRAME_IMAGE, data=frame.scan_png, format="png"), log_time=time_ns
+        )
+        self._grid.log(_grid(frame, stamp), log_time=time_ns)
+        self._tf.log(_transform(frame.pose, stamp), log_time=time_ns)
+        labels = [f"{c} {s:.2f}" for c, s in zip(frame.classes, np.asarray(frame.scores, np.float64))]
+        self._detections.log(_cubes(frame.boxes, labels, "pred", _PRED_RGBA, stamp), log_time=time_ns)
+        self._detections_image.log(_outlines(frame.polygons, labels, _PRED_RGBA, stamp), log_time=time_ns)
+        if frame.flow_heads is not None and frame.flow_motions is not None:
+            self._flow.log(_arrows(frame.flow_heads, frame.flow_motions, stamp), log_time=time_ns)
+        if frame.truth_boxes is not None:
+            if self._truth is None or self._truth_image is None:  # both or neither
+                self._truth = channels.SceneUpdateChannel(self.topic("truth"), context=self._context)
+                self._truth_image = channels.ImageAnnotationsChannel(self.topic("truth_image"), context=self._context)
+            truth_polygons = frame.truth_polygons if frame.truth_polygons is not None else np.zeros((0, 4, 2))
+            names = ["truth"] * len(frame.truth_boxes)
+            self._truth.log(_cubes(frame.truth_boxes, names, "truth", _TRUTH_RGBA, stamp), log_time=time_ns)
+            self._truth_image.log(
+                _outlines(truth_polygons, [""] * len(truth_polygons), _TRUTH_RGBA, stamp), log_time=time_ns
+            )
+        self.frames += 1
+
+    def close(self) -> None:
+        """Close the channels (a live viewer sees them unadvertised)."""
+        for channel in (self._scan, self._grid, self._tf, self._detections, self._detections_image, self._flow):
+            channel.close()
+        for labels in (self._truth, self._truth_image):
+            if labels is not None:
+                labels.close()
+
+
 class RadarMcapLog:
     """An MCAP file of one radar stream. Use as a context manager; write(frame) per frame in time order."""
 
@@ -117,17 +175,11 @@ class RadarMcapLog:
         self._writer: MCAPWriter | None = foxglove.open_mcap(
             self.path, allow_overwrite=allow_overwrite, context=self._context
         )
-        ctx = self._context
-        self._scan = channels.CompressedImageChannel(TOPICS["scan"], context=ctx)
-        self._grid = channels.GridChannel(TOPICS["grid"], context=ctx)
-        self._tf = channels.FrameTransformChannel(TOPICS["tf"], context=ctx)
-        self._detections = channels.SceneUpdateChannel(TOPICS["detections"], context=ctx)
-        self._detections_image = channels.ImageAnnotationsChannel(TOPICS["detections_image"], context=ctx)
-        self._flow = channels.SceneUpdateChannel(TOPICS["flow"], context=ctx)
-        # created on the first labelled frame
-        self._truth: channels.SceneUpdateChannel | None = None
-        self._truth_image: channels.ImageAnnotationsChannel | None = None
-        self.frames = 0
+        self._channels = RadarChannels(self._context)
+
+    @property
+    def frames(self) -> int:
+        return self._channels.frames
 
     def __enter__(self) -> RadarMcapLog:
         return self
@@ -150,29 +202,69 @@ class RadarMcapLog:
         """Log one frame on every topic (flow only when given, ground truth only when labelled)."""
         if self._writer is None:
             raise RuntimeError(f"{self.path} is closed")
-        time_ns = int(frame.timestamp_ns)
-        stamp = _timestamp(time_ns)
-        self._scan.log(
-            CompressedImage(timestamp=stamp, frame_id=FRAME_IMAGE, data=frame.scan_png, format="png"), log_time=time_ns
-        )
-        self._grid.log(_grid(frame, stamp), log_time=time_ns)
-        self._tf.log(_transform(frame.pose, stamp), log_time=time_ns)
-        labels = [f"{c} {s:.2f}" for c, s in zip(frame.classes, np.asarray(frame.scores, np.float64))]
-        self._detections.log(_cubes(frame.boxes, labels, "pred", _PRED_RGBA, stamp), log_time=time_ns)
-        self._detections_image.log(_outlines(frame.polygons, labels, _PRED_RGBA, stamp), log_time=time_ns)
-        if frame.flow_heads is not None and frame.flow_motions is not None:
-            self._flow.log(_arrows(frame.flow_heads, frame.flow_motions, stamp), log_time=time_ns)
-        if frame.truth_boxes is not None:
-            if self._truth is None or self._truth_image is None:  # both or neither
-                self._truth = channels.SceneUpdateChannel(TOPICS["truth"], context=self._context)
-                self._truth_image = channels.ImageAnnotationsChannel(TOPICS["truth_image"], context=self._context)
-            truth_polygons = frame.truth_polygons if frame.truth_polygons is not None else np.zeros((0, 4, 2))
-            names = ["truth"] * len(frame.truth_boxes)
-            self._truth.log(_cubes(frame.truth_boxes, names, "truth", _TRUTH_RGBA, stamp), log_time=time_ns)
-            self._truth_image.log(
-                _outlines(truth_polygons, [""] * len(truth_polygons), _TRUTH_RGBA, stamp), log_time=time_ns
+        self._channels.log(frame)
+
+
+def frame_from_answer(
+    answer: dict[str, Any],
+    scan_png: bytes,
+    scan_size: int,
+    resolution: float,
+    crop_pixels: np.ndarray,
+    timestamp_ns: int,
+    scan_offset: int = 0,
+    truth_boxes: np.ndarray | None = None,
+    truth_polygons: np.ndarray | None = None,
+    min_flow_m: float = 0.05,
+    meaningful_flow_of: np.ndarray | None = None,
+) -> LoggedFrame:
+    """One /detect answer -> LoggedFrame (boxes, polygons and flow as the service answered them).
+
+    `scan_png` is a square scan centred on the radar, `scan_size` px a side, whose top-left corner is the posted
+    scan's pixel (`scan_offset`, `scan_offset`): the posted scan itself (offset 0) or its centre (the live view).
+    Flow cells moving less than `min_flow_m` get no arrow; with `meaningful_flow_of` (the scan as uint8 pixels),
+    neither do cells without returns that are not near a box (rafd.viz.plots.meaningful_cells)."""
+    from rafd.viz.answer import flow_arrows  # opencv: loaded with the picture code
+    from rafd.viz.plots import NEAR_BOX_M, meaningful_cells
+
+    offset, model_size = answer["input"]["crop_offset_px"], answer["input"]["model_size"]
+    boxes = np.array(
+        [[b[k] for k in ("x", "y", "width", "length", "yaw")] for b in answer["boxes"]], dtype=np.float64
+    ).reshape(-1, 5)
+    polygons = np.array([b["polygon"] for b in answer["boxes"]], dtype=np.float64).reshape(-1, 4, 2) - scan_offset
+    heads = motions = None
+    if answer.get("flow"):
+        keep = None
+        if meaningful_flow_of is not None:
+            grid = answer["flow"]["grid"]
+            keep = meaningful_cells(
+                meaningful_flow_of,
+                (grid["height"], grid["width"]),
+                grid["stride_px"],
+                (grid["origin_px"][0] - scan_offset, grid["origin_px"][1] - scan_offset),
+                polygons.mean(axis=1) if len(polygons) else None,
+                NEAR_BOX_M / resolution,
             )
-        self.frames += 1
+        heads_px, motions = flow_arrows(answer["flow"], min_m=min_flow_m, keep=keep)
+        posted_half = answer["input"]["posted_size"] / 2.0
+        heads = np.stack([(heads_px[:, 0] - posted_half) * resolution, (posted_half - heads_px[:, 1]) * resolution], -1)
+    return LoggedFrame(
+        timestamp_ns=int(timestamp_ns),
+        scan_png=scan_png,
+        scan_size=scan_size,
+        resolution=resolution,
+        crop=(offset - scan_offset, model_size),
+        crop_pixels=crop_pixels,
+        pose=np.array([answer["pose"][k] for k in ("x", "y", "yaw")], dtype=np.float64),
+        boxes=boxes,
+        scores=np.array([b["score"] for b in answer["boxes"]], dtype=np.float64),
+        classes=[b["class"] for b in answer["boxes"]],
+        polygons=polygons,
+        flow_heads=heads,
+        flow_motions=motions,
+        truth_boxes=truth_boxes,
+        truth_polygons=truth_polygons,
+    )
 
 
 def _transform(pose: np.ndarray, stamp: Timestamp) -> FrameTransform:

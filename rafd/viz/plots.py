@@ -162,15 +162,20 @@ class Legend:
     flow_px_per_m: float | None = None  # canvas pixels per metre of motion, the exaggeration included
     flow_scale: float = 1.0  # how many times longer than the true motion arrows are drawn
     font_scale: float = 0.45
+    score_threshold: float | None = None  # the threshold boxes were drawn at (stated), None: not stated
+    flow_where: str | None = None  # where arrows are drawn when not everywhere (stated)
 
 
 def _legend_items(legend: Legend) -> list[tuple[str, tuple[int, int, int], str, int]]:
     """(text, colour, sample kind, sample width px)."""
-    items = [("prediction (score)", PRED_COLOUR, "box", 22)]
+    shown = "score" if legend.score_threshold is None else f"score >= {legend.score_threshold:.2f}, operating threshold"
+    items = [(f"prediction ({shown})", PRED_COLOUR, "box", 22)]
     if legend.truth:
         items.append(("ground truth", GT_COLOUR, "box", 22))
     if legend.flow_px_per_m is not None:
         text = "flow, arrow = 1 m" + ("" if legend.flow_scale == 1 else f" (drawn x{legend.flow_scale:g})")
+        if legend.flow_where:
+            text += f", at {legend.flow_where}"
         items.append((text, FLOW_COLOUR, "arrow", max(8, int(round(legend.flow_px_per_m)))))
     return items
 
@@ -209,17 +214,76 @@ def draw_legend(canvas: np.ndarray, origin: tuple[int, int], width: int, legend:
     return origin[1] + height
 
 
+SCALE_BAR_GAP_PX = 4  # clear pixels between the scale bar (ticks and outline included) and its label
+
+
+def scale_bar_layout(
+    canvas_shape: tuple[int, ...], px_per_m: float, font_scale: float = 0.45
+) -> tuple[int, Rect, Rect]:
+    """(metres, bar rect, label rect) of the distance bar, bottom left: the longest of 1, 2, 5, 10, 20, 50 m that
+    fits a quarter of the width; the label above the bar, SCALE_BAR_GAP_PX clear of its ticks and outlines. Rects
+    are (x, y, width, height) of the pixels drawn, outlines included."""
+    height, width = canvas_shape[0], canvas_shape[1]
+    metres = max((m for m in (1, 2, 5, 10, 20, 50) if m * px_per_m <= width / 4), default=1)
+    x0, y0 = 10, height - 12
+    x1 = int(round(x0 + metres * px_per_m))
+    outline = 2  # half the outline's 4 px line width
+    bar = (x0 - outline, y0 - 4 - outline, x1 - x0 + 2 * outline + 1, 8 + 2 * outline + 1)
+    (text_width, text_height), baseline = cv2.getTextSize(f"{metres} m", FONT, font_scale, 3)
+    text_bottom = bar[1] - SCALE_BAR_GAP_PX  # the label's lowest pixel (its outline's) is above this row
+    label = (x0 - 1, text_bottom - text_height - baseline - 1, text_width + 2, text_height + baseline + 1)
+    return metres, bar, label
+
+
 def draw_scale_bar(canvas: np.ndarray, px_per_m: float, font_scale: float = 0.45) -> None:
-    """A distance bar, bottom left: the longest of 1, 2, 5, 10, 20, 50 m that fits a quarter of the width."""
-    metres = max((m for m in (1, 2, 5, 10, 20, 50) if m * px_per_m <= canvas.shape[1] / 4), default=1)
+    """A distance bar, bottom left (scale_bar_layout): its label never touches the bar."""
+    metres, bar, label = scale_bar_layout(canvas.shape, px_per_m, font_scale)
     x0, y0 = 10, canvas.shape[0] - 12
     x1 = int(round(x0 + metres * px_per_m))
     for colour, thickness in (((0, 0, 0), 4), (TEXT_COLOUR, 2)):  # outlined: readable on bright returns too
         cv2.line(canvas, (x0, y0), (x1, y0), colour, thickness)
         for x in (x0, x1):
             cv2.line(canvas, (x, y0 - 4), (x, y0 + 4), colour, thickness)
+    baseline_y = label[1] + label[3] - cv2.getTextSize(f"{metres} m", FONT, font_scale, 3)[1] - 1
     for colour, thickness in (((0, 0, 0), 3), (TEXT_COLOUR, 1)):
-        cv2.putText(canvas, f"{metres} m", (x0, y0 - 8), FONT, font_scale, colour, thickness, cv2.LINE_AA)
+        cv2.putText(canvas, f"{metres} m", (x0, baseline_y), FONT, font_scale, colour, thickness, cv2.LINE_AA)
+
+
+# ---------------------------------------------------------------- where the flow means something
+RETURNS_PERCENTILE = 95.0  # a cell holds returns when its brightest pixel reaches the image's 95th percentile ...
+MIN_RETURN_LEVEL = 60  # ... and at least this grey level (a dark scan's percentile is still noise)
+NEAR_BOX_M = 3.0  # cells whose centre is within this of a box centre (predicted or labelled) are drawn too
+
+
+def meaningful_cells(
+    image: np.ndarray,
+    shape: tuple[int, int],
+    stride: int,
+    origin: tuple[float, float] = (0.0, 0.0),
+    centres: np.ndarray | None = None,
+    near_px: float = 0.0,
+) -> np.ndarray:
+    """[Hf, Wf] bool: the flow cells worth an arrow. A cell's flow is estimated everywhere, but it means something
+    only where the scan has returns to follow or near an object; elsewhere (empty sky, the crop's padded edges) it is
+    the network's extrapolation. `image`: the scan the grid lies on (uint8); cell (i, j) covers image pixels
+    [origin_u + j*stride, +stride) x [origin_v + i*stride, +stride); `centres`: [N, 2] box centres (u, v) in image
+    pixels, cells within `near_px` of one kept whatever their returns."""
+    height, width = shape
+    pixels = np.asarray(image, dtype=np.float32)
+    level = max(float(np.percentile(pixels, RETURNS_PERCENTILE)), float(MIN_RETURN_LEVEL))
+    u0, v0 = int(round(origin[0])), int(round(origin[1]))
+    keep = np.zeros((height, width), dtype=bool)
+    if u0 >= 0 and v0 >= 0:
+        block = pixels[v0 : v0 + height * stride, u0 : u0 + width * stride]
+        if block.shape == (height * stride, width * stride):
+            keep |= block.reshape(height, stride, width, stride).max(axis=(1, 3)) >= level
+    if centres is not None and len(centres) and near_px > 0:
+        u = origin[0] + (np.arange(width) + 0.5) * stride
+        v = origin[1] + (np.arange(height) + 0.5) * stride
+        grid = np.stack(np.meshgrid(u, v), -1)  # [Hf, Wf, 2] (u, v)
+        distance = np.linalg.norm(grid[:, :, None, :] - np.asarray(centres, np.float64)[None, None], axis=-1)
+        keep |= distance.min(axis=-1) <= near_px
+    return keep
 
 
 # ---------------------------------------------------------------- a model-frame picture (evaluation examples)
@@ -232,8 +296,10 @@ def _draw_flow(
     scale: float,
     min_flow: float,
     upscale: int,
+    keep: np.ndarray | None = None,
 ) -> None:
-    """Arrows for every `step`-th cell of a [2, Hf, Wf] metre flow whose magnitude exceeds `min_flow`."""
+    """Arrows for every `step`-th cell of a [2, Hf, Wf] metre flow whose magnitude exceeds `min_flow` (and, with
+    `keep` [Hf, Wf], only the cells it marks)."""
     if flow.ndim != 3 or flow.shape[0] != 2 or flow.shape[1] != flow.shape[2]:
         raise ValueError(f"flow must be [2, Hf, Hf] (square feature map), got {flow.shape}")
     centres = feature_cell_centres(flow.shape[1], image_size, resolution)  # [Hf, Wf, 2] metres, now
@@ -241,6 +307,8 @@ def _draw_flow(
     heads = metres_to_pixels(centres, image_size, resolution)[::step, ::step].reshape(-1, 2)  # [P, 2]
     tails = metres_to_pixels(centres - scale * vectors, image_size, resolution)[::step, ::step].reshape(-1, 2)
     moving = np.linalg.norm(vectors[::step, ::step].reshape(-1, 2), axis=-1) > min_flow  # [P]
+    if keep is not None:
+        moving &= np.asarray(keep, dtype=bool)[::step, ::step].reshape(-1)
     for tail, head in zip(tails[moving] * upscale, heads[moving] * upscale):
         draw_arrow(canvas, tuple(tail), tuple(head), FLOW_COLOUR)
 
@@ -256,12 +324,17 @@ def draw_detections(
     flow_scale: float = 2.0,
     min_flow: float = 1e-3,
     upscale: int = 1,
+    score_threshold: float | None = None,
+    all_flow: bool = False,
 ) -> np.ndarray:
     """Radar scan uint8 [S, S] (centred on the radar) -> BGR uint8 [S*upscale + legend, S*upscale, 3] with boxes,
     flow, non-overlapping score labels, a distance bar and a legend strip below the scan.
 
-    Boxes are [N, 5] metres; flow is [2, Hf, Wf] metres in this frame's grid, drawn `flow_scale` times
-    longer than the true motion for every `flow_step`-th cell moving more than `min_flow` metres.
+    Boxes are [N, 5] metres; `score_threshold`: the threshold the predictions were chosen by, stated in the legend
+    (the caller passes only boxes at or above it). Flow is [2, Hf, Wf] metres in this frame's grid, drawn
+    `flow_scale` times longer than the true motion for every `flow_step`-th cell moving more than `min_flow`
+    metres, and (unless `all_flow`) only where it means something: cells with returns or near a box
+    (meaningful_cells).
     """
     image = np.asarray(image)
     if image.dtype != np.uint8 or image.ndim not in (2, 3) or image.shape[0] != image.shape[1]:
@@ -276,9 +349,22 @@ def draw_detections(
     pred_scores = np.asarray(pred_scores, dtype=np.float64).reshape(-1)
     if len(pred_boxes) != len(pred_scores):
         raise ValueError(f"{len(pred_boxes)} predicted boxes but {len(pred_scores)} scores")
+    gt_boxes = np.asarray(gt_boxes, dtype=np.float64).reshape(-1, 5)
     if flow is not None:
-        _draw_flow(view, np.asarray(flow, dtype=np.float64), size, resolution, flow_step, flow_scale, min_flow, upscale)
-    gt_polygons = box_polygons_pixels(np.asarray(gt_boxes, dtype=np.float64).reshape(-1, 5), size, resolution)
+        flow = np.asarray(flow, dtype=np.float64)
+        keep = None
+        if not all_flow:
+            grey = image if image.ndim == 2 else cv2.cvtColor(image, cv2.COLOR_BGR2GRAY)
+            boxes = np.concatenate([pred_boxes, gt_boxes])[:, :2]
+            keep = meaningful_cells(
+                grey,
+                (flow.shape[1], flow.shape[2]),
+                size // flow.shape[1],
+                centres=metres_to_pixels(boxes, size, resolution) if len(boxes) else None,
+                near_px=NEAR_BOX_M / resolution,
+            )
+        _draw_flow(view, flow, size, resolution, flow_step, flow_scale, min_flow, upscale, keep)
+    gt_polygons = box_polygons_pixels(gt_boxes, size, resolution)
     draw_polygons(view, gt_polygons, GT_COLOUR, upscale)
     polygons = box_polygons_pixels(pred_boxes, size, resolution)  # [N, 4, 2]
     draw_polygons(view, polygons, PRED_COLOUR, upscale)
@@ -290,6 +376,8 @@ def draw_detections(
         flow_px_per_m=flow_scale * upscale / resolution if flow is not None else None,
         flow_scale=flow_scale,
         font_scale=font_scale,
+        score_threshold=score_threshold,
+        flow_where=None if all_flow else "returns or boxes",
     )
     width = view.shape[1]
     strip = np.full((legend_height(legend, width - 8) + 8, width, 3), PANEL_COLOUR, np.uint8)

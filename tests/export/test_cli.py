@@ -107,3 +107,24 @@ def test_old_opset_is_a_usage_error(checkpoint, tmp_path, capsys):
         main([str(checkpoint), str(tmp_path / "model.onnx"), "--opset", "16"])
     assert exit_info.value.code == 2
     assert "opset must be >= 17" in capsys.readouterr().err
+
+
+def test_an_onnx_model_given_as_the_checkpoint_is_named_as_such(tmp_path, capsys):
+    """`rafd export model.onnx out.onnx`: the file is an ONNX model, not a checkpoint; no torch advice leaks."""
+    from rafd.assets import default_onnx
+
+    output = tmp_path / "out.onnx"
+    assert main([str(default_onnx()), str(output)]) == 1
+    err = capsys.readouterr().err
+    assert "is an ONNX model, not a checkpoint" in err and "rafd train" in err
+    for leak in ("weights_only", "file an issue", "torch.load", "Unpickl"):
+        assert leak not in err, leak
+    assert not output.exists()
+
+
+def test_a_truncated_checkpoint_error_carries_no_library_advice(checkpoint, tmp_path, capsys):
+    bad = tmp_path / "truncated.pt"
+    _truncated(bad, checkpoint)
+    assert main([str(bad), str(tmp_path / "m.onnx")]) == 1
+    err = capsys.readouterr().err
+    assert "not a readable RaFD checkpoint" in err and "weights_only" not in err and "file an issue" not in err

@@ -62,9 +62,13 @@ def _failed(report) -> set[str]:
     return {check for _, check, _, _, ok in report.checks() if not ok}
 
 
+# the checks themselves on a short sample: the evidence minimums lowered (tested on their own below)
+SMALL_SAMPLE = GateThresholds(min_frames=1, min_reference_detections=0)
+
+
 def test_identical_runtime_passes_with_zero_differences(shipped_onnx):
     reference, same = OnnxRunner(shipped_onnx, threads=1), OnnxRunner(shipped_onnx, threads=1)
-    report = run_gate(reference, same, _sources(reference.config))
+    report = run_gate(reference, same, _sources(reference.config), SMALL_SAMPLE)
     assert report.ok, "\n".join(report.lines())
     sim = report.sources["simulated"]
     assert sim.frames == 12 - reference.config.num_frames + 1  # every full window, warm-up frames excluded
@@ -84,7 +88,8 @@ def test_identical_runtime_passes_with_zero_differences(shipped_onnx):
 )
 def test_degraded_runtime_fails_the_matching_check(shipped_onnx, damage, expected):
     reference = OnnxRunner(shipped_onnx, threads=1)
-    report = run_gate(reference, Degraded(OnnxRunner(shipped_onnx, threads=1), **damage), _sources(reference.config))
+    degraded = Degraded(OnnxRunner(shipped_onnx, threads=1), **damage)
+    report = run_gate(reference, degraded, _sources(reference.config), SMALL_SAMPLE)
     assert not report.ok and expected <= _failed(report), "\n".join(report.lines())
 
 
@@ -109,6 +114,41 @@ def test_gate_runs_on_the_shipped_model_in_every_reduced_precision(shipped_onnx,
         assert json.loads(metadata[f"gate_{candidate[1]}_figures"])["figures"] == figures
 
 
+def test_the_gate_refuses_to_judge_too_little(shipped_onnx):
+    """An identical runtime on 9 windows: every difference is zero, but 9 windows are too few to show anything."""
+    from rafd.protocol import GATE_MIN_FRAMES, GATE_MIN_REFERENCE_DETECTIONS
+
+    reference, same = OnnxRunner(shipped_onnx, threads=1), OnnxRunner(shipped_onnx, threads=1)
+    report = run_gate(reference, same, _sources(reference.config))
+    assert not report.ok
+    assert _failed(report) == {"compared windows (at least)"} | (
+        {"reference detections (at least)"}
+        if report.pooled.reference_detections < GATE_MIN_REFERENCE_DETECTIONS
+        else set()
+    )
+    assert report.too_little().startswith("too little to judge: compared windows 9 < 100")
+    assert "FAIL (too little to judge" in report.lines()[0]
+    assert (GATE_MIN_FRAMES, GATE_MIN_REFERENCE_DETECTIONS) == (100, 100)
+    # nothing detected at all: FAIL, never PASS on 0 reference and 0 candidate detections
+    nothing = GateThresholds(score_threshold=1.0, min_frames=1)
+    report = run_gate(reference, same, _sources(reference.config), nothing)
+    assert report.pooled.reference_detections == 0 and not report.ok
+    assert _failed(report) == {"reference detections (at least)"}
+
+
+def test_the_service_never_considers_a_precision_without_a_gate_passed_on_enough(shipped_onnx):
+    def figures(frames, detections):
+        pooled = {"frames": frames, "reference_detections": detections, "candidate_detections": detections}
+        return json.dumps({"candidate": "openvino/bf16", "figures": {"simulated": pooled}})
+
+    assert gate_passed({}, "fp32")
+    assert not gate_passed({"gate_bf16": "pass"}, "bf16")  # a verdict without its figures
+    assert not gate_passed({"gate_bf16": "pass", "gate_bf16_figures": figures(0, 0)}, "bf16")  # PASS on nothing
+    assert not gate_passed({"gate_bf16": "pass", "gate_bf16_figures": figures(500, 40)}, "bf16")
+    assert not gate_passed({"gate_bf16": "fail", "gate_bf16_figures": figures(700, 1900)}, "bf16")
+    assert gate_passed({"gate_bf16": "pass", "gate_bf16_figures": figures(700, 1900)}, "bf16")
+
+
 def test_thresholds_are_the_briefs(shipped_onnx):
     t = GateThresholds()
     assert (t.score_threshold, t.changed_fraction, t.centre_p99_m, t.score_p99, t.map_points, t.epe_m) == (
@@ -130,7 +170,18 @@ def test_export_records_the_gate_verdict(tmp_path, capsys, monkeypatch):
     checkpoint = make_checkpoint(tmp_path / "model.pt", small_config(4))
     output = tmp_path / "gated.onnx"
     assert (
-        main([str(checkpoint), str(output), "--no-verify", "--gate", "--gate-sequences", "1", "--gate-frames", "8"])
+        main(
+            [
+                str(checkpoint),
+                str(output),
+                "--no-verify",
+                "--gate",
+                "--gate-sequences",
+                "1",
+                "--gate-sequence-frames",
+                "8",
+            ]
+        )
         == 0
     )
     out = capsys.readouterr().out
@@ -139,8 +190,9 @@ def test_export_records_the_gate_verdict(tmp_path, capsys, monkeypatch):
         assert "nothing to gate" in out and not any(k.startswith("gate_") for k in metadata)
         return
     for _, precision in reduced:
-        assert metadata[f"gate_{precision}"] in ("pass", "fail")
-        assert f"{precision} gate {metadata[f'gate_{precision}'].upper()}" in out
+        # 5 windows of an untrained model: too little to judge, so FAIL (it used to PASS on 0 detections)
+        assert metadata[f"gate_{precision}"] == "fail"
+        assert f"{precision} gate FAIL" in out and "too little to judge" in out
         assert json.loads(metadata[f"gate_{precision}_figures"])["figures"]["simulated"]["frames"] == 8 - 3
 
 

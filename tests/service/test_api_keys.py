@@ -51,15 +51,16 @@ def test_without_keys_configured_everything_is_open(client):
     ],
 )
 def test_every_route_but_the_probes_needs_a_valid_key(keyed, method, path):
-    for headers in (
-        {},
-        {"X-API-Key": "wrong-key-0123456789abcdef"},
-        {"Authorization": f"Basic {ALICE}"},
-        {"Authorization": "Bearer "},
+    for headers, code in (
+        ({}, "missing_api_key"),
+        ({"X-API-Key": "wrong-key-0123456789abcdef"}, "invalid_api_key"),
+        ({"Authorization": "Bearer wrong-key-0123456789abcdef"}, "invalid_api_key"),
+        ({"Authorization": f"Basic {ALICE}"}, "missing_api_key"),  # not a scheme the service reads keys from
+        ({"Authorization": "Bearer "}, "missing_api_key"),
     ):
         response = keyed.request(method, path, headers=headers, json=detect_json("x", 1.0, FRAME))
         assert response.status_code == 401, (headers, response.text)
-        assert response.json()["error"]["code"] == "unauthorized"
+        assert response.json()["error"]["code"] == code, headers
         assert response.headers["www-authenticate"].startswith("Bearer")
     assert keyed.request(method, path, headers=A, json=detect_json("x", 1.0, FRAME)).status_code != 401
 
@@ -141,3 +142,13 @@ def test_rafd_serve_refuses_to_start_with_a_bad_key_file(tmp_path, monkeypatch, 
     monkeypatch.setattr(uvicorn, "run", lambda *a, **k: pytest.fail("must not serve"))
     assert serve_main(["--model", str(model)]) == 2
     assert "missing-keys" in capsys.readouterr().err
+
+
+def test_the_two_401s_say_which_mistake_and_nothing_about_the_keys(keyed):
+    missing = keyed.get("/model").json()["error"]
+    wrong = keyed.get("/model", headers={"X-API-Key": ALICE[:-1] + "x"}).json()["error"]  # one character off
+    assert (missing["code"], wrong["code"]) == ("missing_api_key", "invalid_api_key")
+    assert "X-API-Key" in missing["message"] and "not valid" in wrong["message"]
+    for message in (missing["message"], wrong["message"]):
+        assert ALICE not in message and "alice" not in message and "bob" not in message
+        assert ALICE[:8] not in message  # not even a prefix of a configured key

@@ -49,3 +49,37 @@ def test_without_model_uses_the_shipped_default(tmp_path, recorded, monkeypatch,
     monkeypatch.setitem(sys.modules, "rafd.assets", types.SimpleNamespace(default_onnx=none_shipped))
     assert main([]) == 2
     assert "no default model" in capsys.readouterr().err
+
+
+def test_a_checkpoint_given_as_the_model_is_named_as_such(recorded, capsys):
+    from rafd.assets import default_checkpoint
+
+    assert main(["--model", str(default_checkpoint())]) == 2
+    err = capsys.readouterr().err
+    assert "is a PyTorch checkpoint, not an ONNX model" in err and "rafd export" in err
+    assert not recorded
+
+
+def test_every_setting_is_a_flag_and_a_flag_wins_over_its_variable(tmp_path, recorded, monkeypatch, capsys):
+    from service.cli import build_parser
+    from service.settings import Settings
+
+    parser = build_parser()
+    options = {option for action in parser._actions for option in action.option_strings}
+    for field in Settings.model_fields:
+        assert "--" + field.replace("_", "-") in options, field
+    helps = {action.dest: action.help for action in parser._actions}
+    assert all(helps[f"setting_{field}"] for field in Settings.model_fields)
+    assert "RAFD_MAX_STREAMS" in helps["setting_max_streams"] and "256" in helps["setting_max_streams"]
+    assert "onnxruntime" not in helps["setting_threads"].split("[")[0].lower()  # the runtime-neutral meaning
+    model = tmp_path / "model.onnx"
+    model.write_bytes(b"\x08\x08\x12\x07pytorch")
+    monkeypatch.setenv("RAFD_MAX_STREAMS", "7")
+    monkeypatch.setenv("RAFD_STREAM_TTL_S", "9")
+    argv = ["--model", str(model), "--max-streams", "3", "--score-threshold", "0.45", "--runtime", "onnxruntime"]
+    assert main(argv) == 0
+    settings = recorded[0][0].state.settings
+    assert settings.max_streams == 3 and settings.stream_ttl_s == 9.0  # the flag wins; the variable still works
+    assert settings.score_threshold == 0.45 and settings.runtime == "onnxruntime"
+    assert main(["--model", str(model), "--max-streams", "0"]) == 2  # refused as the variable would be
+    assert "max_streams" in capsys.readouterr().err

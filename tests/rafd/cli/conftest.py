@@ -20,13 +20,12 @@ def trained_checkpoint(sim_root: Path, tmp_path_factory: pytest.TempPathFactory)
 
     out = tmp_path_factory.mktemp("ckpt") / "model.pt"
     argv = [
-        "--data",
         str(sim_root),
         "--split",
         "train",
         "--config",
         "tiny",
-        "--frames",
+        "--window-frames",
         "2",
         "--input-size",
         "64",
@@ -40,7 +39,7 @@ def trained_checkpoint(sim_root: Path, tmp_path_factory: pytest.TempPathFactory)
         "2",
         "--device",
         "cpu",
-        "--no-progress",
+        "--quiet",
     ]
     assert main(argv) == 0
     return out

@@ -14,7 +14,7 @@ from rafd.cli.bench_accuracy import main
 @pytest.mark.slow
 def test_small_benchmark_end_to_end(tmp_path: Path) -> None:
     data = tmp_path / "bench"
-    assert main(["data", str(data), "--scale", "0.25", "--frames", "5"]) == 0
+    assert main(["data", "--out", str(data), "--scale", "0.25", "--sequence-frames", "5"]) == 0
     manifest = json.loads((data / "benchmark.json").read_text())
     assert [s["split"] for s in manifest["splits"]] == [s.split for s in BENCHMARK_SPLITS]
     assert [s["seed"] for s in manifest["splits"]] == [s.seed for s in BENCHMARK_SPLITS]
@@ -23,6 +23,7 @@ def test_small_benchmark_end_to_end(tmp_path: Path) -> None:
         [
             "run",
             str(data),
+            "--out",
             str(out),
             "--variants",
             "rafd2,single",
@@ -58,6 +59,7 @@ def test_small_benchmark_end_to_end(tmp_path: Path) -> None:
         [
             "run",
             str(data),
+            "--out",
             str(out),
             "--variants",
             "rafd4_from_single",
@@ -90,6 +92,7 @@ def test_small_benchmark_end_to_end(tmp_path: Path) -> None:
         [
             "run",
             str(data),
+            "--out",
             str(out),
             "--variants",
             "rafd4_from_single",
@@ -118,6 +121,7 @@ def test_small_benchmark_end_to_end(tmp_path: Path) -> None:
             [
                 "run",
                 str(data),
+                "--out",
                 str(out),
                 "--variants",
                 "rafd4_from_single",
@@ -143,11 +147,11 @@ def test_compare_needs_detections(tmp_path: Path, capsys: pytest.CaptureFixture[
 
 
 def test_run_without_manifest_and_unknown_variant_fail(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
-    assert main(["run", str(tmp_path), str(tmp_path / "o")]) != 0
+    assert main(["run", str(tmp_path), "--out", str(tmp_path / "o")]) != 0
     assert "benchmark.json" in capsys.readouterr().err
     (tmp_path / "benchmark.json").write_text(
         json.dumps({"input_size": 64, "train_split": "train", "test_split": "test"})
     )
-    assert main(["run", str(tmp_path), str(tmp_path / "o"), "--variants", "rafd4_from_single"]) != 0
+    assert main(["run", str(tmp_path), "--out", str(tmp_path / "o"), "--variants", "rafd4_from_single"]) != 0
     err = capsys.readouterr().err
     assert "train variant single" in err and str(tmp_path / "o" / "single" / "model.pt") in err

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import re
 from pathlib import Path
 
 import cv2
@@ -51,7 +52,8 @@ def test_client_streams_a_sequence_and_writes_drawings_and_video(sequence, servi
     assert main([str(sequence), "--url", service_url, "--out", str(out)]) == 0
     answers = [json.loads(line) for line in (out / "answers.jsonl").read_text().splitlines()]
     assert [a["frames_used"] for a in answers] == [1, 2, 3]
-    assert {a["stream_id"] for a in answers} == {"city_7_0"}
+    (stream,) = {a["stream_id"] for a in answers}  # one stream: the sequence's name and this run's id
+    assert re.fullmatch(r"city_7_0-[0-9a-f]{6}", stream)
     assert all(a["pose_source"] == "request" for a in answers)
     np.testing.assert_allclose([[a["pose"][k] for k in ("x", "y", "yaw")] for a in answers], POSES, atol=1e-9)
     drawn = cv2.imread(str(out / "frames" / "000003.png"))
@@ -61,7 +63,9 @@ def test_client_streams_a_sequence_and_writes_drawings_and_video(sequence, servi
     assert red_pixels_along(drawn, polygon) > 0.8  # the best box is outlined in the prediction colour
     video = cv2.VideoCapture(str(out / "sequence.mp4"))
     assert video.isOpened() and int(video.get(cv2.CAP_PROP_FRAME_COUNT)) == 3
-    assert "frame 000003" in capsys.readouterr().out
+    out_text = capsys.readouterr().out
+    assert f"stream {stream}: 3 frames answered" in out_text and "answers.jsonl" in out_text
+    assert "frame 000003" not in out_text  # no line per frame: a progress bar on stderr instead
 
 
 def test_client_without_poses_lets_the_service_use_odometry(sequence, service_url, tmp_path):
@@ -130,3 +134,27 @@ def test_client_sends_its_api_key_to_a_keyed_service(sequence, tmp_path, capsys,
             main([str(sequence), "--url", url, "--limit", "1", "--stream-id", "again", "--out", str(tmp_path / "b")])
             == 0
         )
+
+
+def test_running_the_same_sequence_again_starts_a_new_stream(sequence, service_url, capsys):
+    assert main([str(sequence), "--url", service_url, "--quiet"]) == 0
+    assert main([str(sequence), "--url", service_url, "--quiet"]) == 0  # the same timestamps again: a new stream
+    out = capsys.readouterr().out
+    streams = re.findall(r"stream (city_7_0-[0-9a-f]{6}): 3 frames answered", out)
+    assert len(streams) == 2 and streams[0] != streams[1]
+
+
+def test_a_chosen_stream_repeats_with_reset_and_a_409_names_both_ways_out(sequence, service_url, capsys):
+    argv = [str(sequence), "--url", service_url, "--stream-id", "run-a", "--quiet"]
+    assert main(argv) == 0
+    capsys.readouterr()
+    assert main(argv) == 1  # the service holds later timestamps of run-a
+    err = capsys.readouterr().err
+    assert "HTTP 409" in err and "'run-a'" in err
+    assert "DELETE /streams/run-a" in err  # the service's own message names the stream and the ways out
+    assert "--reset" in err and "leave out --stream-id" in err  # and so does the client
+    assert main([*argv, "--reset"]) == 0
+    out = capsys.readouterr().out
+    assert "stream run-a: deleted on the service (--reset)" in out and "stream run-a: 3 frames answered" in out
+    assert main([str(sequence), "--url", service_url, "--stream-id", "never-seen", "--reset", "--quiet"]) == 0
+    assert "stream never-seen: not on the service (--reset)" in capsys.readouterr().out

@@ -17,7 +17,6 @@ def test_writes_metrics_json_and_plots(trained_checkpoint: Path, sim_root: Path,
     code = main(
         [
             str(trained_checkpoint),
-            "--data",
             str(sim_root),
             "--split",
             "train",
@@ -29,7 +28,7 @@ def test_writes_metrics_json_and_plots(trained_checkpoint: Path, sim_root: Path,
             "2",
             "--device",
             "cpu",
-            "--no-progress",
+            "--quiet",
             "--detections",
             str(detections),
         ]
@@ -63,9 +62,9 @@ def test_writes_metrics_json_and_plots(trained_checkpoint: Path, sim_root: Path,
 def test_bad_split_and_missing_checkpoint_fail_clearly(
     trained_checkpoint: Path, sim_root: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]
 ) -> None:
-    assert main([str(trained_checkpoint), "--data", str(sim_root), "--split", "nope", "--device", "cpu"]) != 0
+    assert main([str(trained_checkpoint), str(sim_root), "--split", "nope", "--device", "cpu"]) != 0
     assert "nope" in capsys.readouterr().err
-    assert main([str(tmp_path / "none.pt"), "--data", str(sim_root), "--split", "train"]) != 0
+    assert main([str(tmp_path / "none.pt"), str(sim_root), "--split", "train"]) != 0
     assert "none.pt" in capsys.readouterr().err
 
 
@@ -84,7 +83,6 @@ def test_calibrate_writes_the_operating_threshold_into_a_copy_of_the_checkpoint(
     code = main(
         [
             str(checkpoint),
-            "--data",
             str(sim_root),
             "--split",
             "train",
@@ -94,7 +92,7 @@ def test_calibrate_writes_the_operating_threshold_into_a_copy_of_the_checkpoint(
             str(out_json),
             "--device",
             "cpu",
-            "--no-progress",
+            "--quiet",
             "--max-windows",
             "6",
         ]
@@ -112,7 +110,6 @@ def test_calibrate_writes_the_operating_threshold_into_a_copy_of_the_checkpoint(
         main(
             [
                 str(checkpoint),
-                "--data",
                 str(sim_root),
                 "--split",
                 "train",
@@ -120,7 +117,7 @@ def test_calibrate_writes_the_operating_threshold_into_a_copy_of_the_checkpoint(
                 str(out_json),
                 "--device",
                 "cpu",
-                "--no-progress",
+                "--quiet",
                 "--max-windows",
                 "6",
             ]
@@ -133,7 +130,7 @@ def test_calibrate_writes_the_operating_threshold_into_a_copy_of_the_checkpoint(
 def test_calibrate_refuses_a_budget_that_is_not_positive(
     trained_checkpoint: Path, sim_root: Path, capsys: pytest.CaptureFixture[str]
 ) -> None:
-    assert main([str(trained_checkpoint), "--data", str(sim_root), "--split", "train", "--calibrate", "0"]) == 2
+    assert main([str(trained_checkpoint), str(sim_root), "--split", "train", "--calibrate", "0"]) == 2
     assert "--calibrate" in capsys.readouterr().err
 
 
@@ -141,7 +138,7 @@ def test_like_frames_scores_only_the_frames_a_longer_model_scores(
     trained_checkpoint: Path, sim_root: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]
 ) -> None:
     """The 2-frame model scores 4 of each 5-frame drive's frames; --like-frames 4 keeps the 2 a 4-frame model scores."""
-    base = [str(trained_checkpoint), "--data", str(sim_root), "--split", "train", "--device", "cpu", "--no-progress"]
+    base = [str(trained_checkpoint), str(sim_root), "--split", "train", "--device", "cpu", "--quiet"]
     assert main(base + ["--json", str(tmp_path / "all.json")]) == 0
     assert main(base + ["--like-frames", "4", "--json", str(tmp_path / "like4.json")]) == 0
     every, like4 = (json.loads((tmp_path / name).read_text()) for name in ("all.json", "like4.json"))
@@ -156,10 +153,29 @@ def test_like_frames_scores_only_the_frames_a_longer_model_scores(
 def test_past_as_newest_is_reported_and_refuses_what_it_cannot_ablate(
     trained_checkpoint: Path, sim_root: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]
 ) -> None:
-    base = [str(trained_checkpoint), "--data", str(sim_root), "--split", "train", "--device", "cpu", "--no-progress"]
+    base = [str(trained_checkpoint), str(sim_root), "--split", "train", "--device", "cpu", "--quiet"]
     assert main(base + ["--past-as-newest", "--json", str(tmp_path / "still.json")]) == 0
     report = json.loads((tmp_path / "still.json").read_text())
     assert report["past_as_newest"] is True and report["overall"]["frames"] == 2 * 4
     for extra in (["--full-scan"], ["--plots", str(tmp_path / "p")]):
         assert main(base + ["--past-as-newest"] + extra) == 2
         assert "--past-as-newest" in capsys.readouterr().err
+
+
+def test_plots_draw_the_boxes_the_service_would_answer(
+    trained_checkpoint: Path, sim_root: Path, tmp_path: Path
+) -> None:
+    """--plots draws the boxes at or above the operating threshold (--score-threshold changes it), not every box."""
+    from rafd.viz.plots import PRED_COLOUR
+
+    red = {}
+    for threshold in ("0.0", "1.0"):
+        plots = tmp_path / threshold
+        argv = [str(trained_checkpoint), str(sim_root), "--split", "train", "--device", "cpu", "--quiet"]
+        assert main([*argv, "--plots", str(plots), "--examples", "1", "--score-threshold", threshold]) == 0
+        (example,) = plots.glob("example_*.png")
+        picture = cv2.imread(str(example))
+        scan = picture[: picture.shape[1]]  # the square scan above the legend strip
+        red[threshold] = int((np.abs(scan.astype(int) - np.array(PRED_COLOUR)) < 60).all(-1).sum())
+    assert red["0.0"] > 50  # every decoded box is drawn at threshold 0
+    assert red["1.0"] == 0  # none reaches 1.0: nothing is drawn

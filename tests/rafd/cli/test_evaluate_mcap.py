@@ -35,17 +35,16 @@ def test_eval_writes_one_log_per_sequence(trained_checkpoint: Path, sim_root: Pa
         main(
             [
                 str(trained_checkpoint),
-                "--data",
                 str(sim_root),
                 "--split",
                 "train",
-                "--mcap",
+                "--mcap-dir",
                 str(logs),
                 "--json",
                 str(report),
                 "--device",
                 "cpu",
-                "--no-progress",
+                "--quiet",
             ]
         )
         == 0
@@ -101,5 +100,5 @@ def test_logged_boxes_are_the_models_predictions(trained_checkpoint: Path, sim_r
 def test_mcap_without_the_logs_extra_or_checkpoint_fails_clearly(
     sim_root: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]
 ) -> None:
-    assert main([str(tmp_path / "none.pt"), "--data", str(sim_root), "--split", "train", "--mcap", str(tmp_path)]) == 2
+    assert main([str(tmp_path / "none.pt"), str(sim_root), "--split", "train", "--mcap-dir", str(tmp_path)]) == 2
     assert "none.pt" in capsys.readouterr().err

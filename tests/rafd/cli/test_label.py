@@ -27,7 +27,7 @@ def folder(tmp_path: Path) -> Path:
 
 def test_propose_writes_an_overview_sheets_and_an_editable_box_list(folder: Path, tmp_path: Path):
     out = tmp_path / "proposals"
-    assert main(["propose", str(folder), "--out", str(out), "--frames", "2", "--radius", "30"]) == 0
+    assert main(["propose", str(folder), "--out", str(out), "--frame-numbers", "2", "--radius", "30"]) == 0
     assert (out / "000002_overview.png").is_file()
     lines = [line for line in (out / "000002_candidates.txt").read_text().splitlines() if not line.startswith("#")]
     assert lines and all(line.startswith(str(STAMPS[1])) for line in lines)
@@ -55,7 +55,18 @@ def test_apply_compare_and_link(folder: Path, tmp_path: Path, capsys: pytest.Cap
     assert result["centre_distance_mean_m"] == pytest.approx(0.5, abs=0.01) and 0.5 < result["iou_mean"] <= 1.0
     linked = tmp_path / "root" / "seq_train"
     assert (
-        main(["link", str(folder), str(tmp_path / "ours.json"), str(linked), "--split", "train", "--frames", "1-2"])
+        main(
+            [
+                "link",
+                str(folder),
+                str(tmp_path / "ours.json"),
+                str(linked),
+                "--split",
+                "train",
+                "--frame-numbers",
+                "1-2",
+            ]
+        )
         == 0
     )
     sequence = read_sequence(linked, estimate_poses=False)

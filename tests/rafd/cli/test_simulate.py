@@ -14,14 +14,15 @@ def test_writes_sequences(tmp_path: Path, capsys: pytest.CaptureFixture) -> None
     assert (
         main(
             [
+                "--out",
                 str(tmp_path / "out"),
                 "--sequences",
                 "2",
-                "--frames",
+                "--sequence-frames",
                 "2",
                 "--seed",
                 "5",
-                "--size",
+                "--scan-size",
                 "128",
                 "--split",
                 "test",
@@ -40,7 +41,23 @@ def test_writes_sequences(tmp_path: Path, capsys: pytest.CaptureFixture) -> None
 def test_forced_weather_is_written(tmp_path: Path) -> None:
     import json
 
-    assert main([str(tmp_path / "out"), "--sequences", "3", "--frames", "1", "--size", "64", "--weather", "fog"]) == 0
+    assert (
+        main(
+            [
+                "--out",
+                str(tmp_path / "out"),
+                "--sequences",
+                "3",
+                "--sequence-frames",
+                "1",
+                "--scan-size",
+                "64",
+                "--weather",
+                "fog",
+            ]
+        )
+        == 0
+    )
     for k in range(3):
         meta = json.loads((tmp_path / "out" / f"sim_0_{k}" / "meta.json").read_text())
         assert meta["weather"] == "fog", meta
@@ -49,8 +66,8 @@ def test_forced_weather_is_written(tmp_path: Path) -> None:
 @pytest.mark.parametrize(
     "args, message",
     [
-        (["--size", "127"], "even"),
-        (["--frames", "0"], "--frames"),
+        (["--scan-size", "127"], "even"),
+        (["--sequence-frames", "0"], "--sequence-frames"),
         (["--sequences", "0"], "--sequences"),
         (["--clutter", "-1"], "clutter"),
         (["--weather", "snow"], "--weather"),
@@ -58,7 +75,7 @@ def test_forced_weather_is_written(tmp_path: Path) -> None:
 )
 def test_bad_arguments(tmp_path: Path, capsys: pytest.CaptureFixture, args: list[str], message: str) -> None:
     try:
-        code = main([str(tmp_path / "out"), *args])
+        code = main(["--out", str(tmp_path / "out"), *args])
     except SystemExit as exit_:  # argparse's own checks (choices)
         code = exit_.code
     assert code == 2
@@ -68,8 +85,8 @@ def test_bad_arguments(tmp_path: Path, capsys: pytest.CaptureFixture, args: list
 def test_out_dir_not_writable(tmp_path: Path, capsys: pytest.CaptureFixture) -> None:
     blocker = tmp_path / "file"
     blocker.write_text("not a folder")
-    assert main([str(blocker / "out"), "--frames", "1", "--size", "64"]) == 2
-    assert "OUT_DIR" in capsys.readouterr().err
+    assert main(["--out", str(blocker / "out"), "--sequence-frames", "1", "--scan-size", "64"]) == 2
+    assert "--out" in capsys.readouterr().err
 
 
 def test_missing_out_dir_and_preview_without_sample(
@@ -77,14 +94,14 @@ def test_missing_out_dir_and_preview_without_sample(
 ) -> None:
     assert main([]) == 2
     monkeypatch.delenv("RAFD_RADIATE_SAMPLE", raising=False)
-    assert main(["--preview", str(tmp_path / "p.png")]) == 2
-    assert main(["--preview", str(tmp_path / "p.png"), "--sample", str(tmp_path)]) == 2
+    assert main(["--preview", "--out", str(tmp_path / "p.png")]) == 2
+    assert main(["--preview", "--out", str(tmp_path / "p.png"), "--sample", str(tmp_path)]) == 2
     assert "RADIATE sequence folder" in capsys.readouterr().err
 
 
 def test_preview_side_by_side(tmp_path: Path, radiate_sample: Path) -> None:
     out = tmp_path / "preview.png"
-    assert main(["--preview", str(out), "--sample", str(radiate_sample)]) == 0
+    assert main(["--preview", "--out", str(out), "--sample", str(radiate_sample)]) == 0
     picture = cv2.imread(str(out))
     assert picture.shape == (768, 2 * 768 + 8, 3)
     red = (picture[..., 2] > 200) & (picture[..., 1] < 60)
@@ -117,7 +134,7 @@ def test_realism_table_from_the_command_line(tmp_path: Path, radiate_sample: Pat
         == 0
     )
     printed = capsys.readouterr().out
-    assert "18 real scans, 4 simulated scans" in printed and "patch classifier" in printed
+    assert "18 real scans of tiny_foggy; 4 simulated scans" in printed and "patch classifier" in printed
     rows = json.loads(out.read_text())
     assert len(rows) == 9 and all(row["distance"] >= 0 for row in rows)
     assert any(row["name"].startswith("scan-to-scan") for row in rows)

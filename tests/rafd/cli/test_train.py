@@ -26,11 +26,10 @@ def test_ablation_flags_reach_the_model_config(sim_root: Path, tmp_path: Path) -
 
     out = tmp_path / "ablation.pt"
     argv = [
-        "--data",
         str(sim_root),
         "--split",
         "train",
-        "--frames",
+        "--window-frames",
         "2",
         "--input-size",
         "64",
@@ -44,7 +43,7 @@ def test_ablation_flags_reach_the_model_config(sim_root: Path, tmp_path: Path) -
         "1",
         "--device",
         "cpu",
-        "--no-progress",
+        "--quiet",
         "--no-enhancement",
         "--no-flow-guidance",
         "--no-flow-supervision",
@@ -57,7 +56,7 @@ def test_ablation_flags_reach_the_model_config(sim_root: Path, tmp_path: Path) -
 
 def test_missing_data_root_fails_clearly(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
     missing = tmp_path / "nowhere"
-    assert main(["--data", str(missing), "--split", "train", "--out", str(tmp_path / "m.pt")]) != 0
+    assert main([str(missing), "--split", "train", "--out", str(tmp_path / "m.pt")]) != 0
     err = capsys.readouterr().err
     assert "does not exist" in err and str(missing) in err
     assert not (tmp_path / "m.pt").exists()
@@ -66,7 +65,7 @@ def test_missing_data_root_fails_clearly(tmp_path: Path, capsys: pytest.CaptureF
 def test_split_without_sequences_fails_clearly(
     sim_root: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]
 ) -> None:
-    assert main(["--data", str(sim_root), "--split", "no_such_split", "--out", str(tmp_path / "m.pt")]) != 0
+    assert main([str(sim_root), "--split", "no_such_split", "--out", str(tmp_path / "m.pt")]) != 0
     err = capsys.readouterr().err
     assert "no_such_split" in err
 
@@ -75,7 +74,6 @@ def test_missing_resume_checkpoint_fails_clearly(
     sim_root: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]
 ) -> None:
     argv = [
-        "--data",
         str(sim_root),
         "--split",
         "train",
@@ -94,7 +92,6 @@ def test_init_and_resume_together_are_refused(
     some = tmp_path / "some.pt"
     some.write_bytes(b"x")
     argv = [
-        "--data",
         str(sim_root),
         "--split",
         "train",
@@ -108,7 +105,6 @@ def test_init_and_resume_together_are_refused(
     assert main(argv) != 0
     assert "--init" in capsys.readouterr().err
     argv = [
-        "--data",
         str(sim_root),
         "--split",
         "train",
@@ -126,13 +122,12 @@ def test_propagation_norm_flag_reaches_the_model_config(sim_root: Path, tmp_path
 
     out = tmp_path / "post.pt"
     argv = [
-        "--data",
         str(sim_root),
         "--split",
         "train",
         "--config",
         "default",
-        "--frames",
+        "--window-frames",
         "2",
         "--input-size",
         "64",
@@ -146,7 +141,7 @@ def test_propagation_norm_flag_reaches_the_model_config(sim_root: Path, tmp_path
         "1",
         "--device",
         "cpu",
-        "--no-progress",
+        "--quiet",
         "--no-augment",
         "--propagation-norm",
         "post",

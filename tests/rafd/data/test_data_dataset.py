@@ -97,7 +97,7 @@ def test_windows_collate_into_a_batch(root: Path) -> None:
 def test_windows_from_the_prepared_cache_equal_windows_decoded_from_the_pngs(root: Path, tmp_path: Path) -> None:
     from rafd.cli.prepare import main as prepare_main
 
-    assert prepare_main([str(root), str(tmp_path / "cache"), "--crop", "192", "--workers", "2"]) == 0
+    assert prepare_main([str(root), "--out", str(tmp_path / "cache"), "--crop-size", "192", "--workers", "2"]) == 0
     for augment in (False, True):
         decoded = RadarWindowDataset(root, split=None, cfg=CFG, augment=augment, seed=3)
         cached = RadarWindowDataset(root, split=None, cfg=CFG, augment=augment, seed=3, cache=tmp_path / "cache")
@@ -107,18 +107,18 @@ def test_windows_from_the_prepared_cache_equal_windows_decoded_from_the_pngs(roo
             assert a["augmentation"] == b["augmentation"]
             assert all(np.array_equal(x, y) for x, y in zip(a["boxes"], b["boxes"]))
     # resumable: a second run finds every sequence complete
-    assert prepare_main([str(root), str(tmp_path / "cache"), "--crop", "192"]) == 0
+    assert prepare_main([str(root), "--out", str(tmp_path / "cache"), "--crop-size", "192"]) == 0
 
 
 def test_cache_problems_name_the_fix(root: Path, tmp_path: Path) -> None:
     from rafd.cli.prepare import main as prepare_main
     from rafd.data.cache import CacheError
 
-    with pytest.raises(CacheError, match="rafd-prepare"):  # not prepared
+    with pytest.raises(CacheError, match="rafd prepare"):  # not prepared
         RadarWindowDataset(root, split="test", cfg=CFG, cache=tmp_path / "none")
-    assert prepare_main([str(root), str(tmp_path / "small"), "--crop", "128", "--split", "test"]) == 0
+    assert prepare_main([str(root), "--out", str(tmp_path / "small"), "--crop-size", "128", "--split", "test"]) == 0
     RadarWindowDataset(root, split="test", cfg=CFG, cache=tmp_path / "small")  # enough without rotations
-    with pytest.raises(CacheError, match="--crop 184"):  # rotations need 128 * sqrt(2) + 2 px
+    with pytest.raises(CacheError, match="--crop-size 184"):  # rotations need 128 * sqrt(2) + 2 px
         RadarWindowDataset(root, split="test", cfg=CFG, augment=True, cache=tmp_path / "small")
 
 
@@ -206,7 +206,7 @@ def test_polar_only_folders_give_the_windows_of_their_cartesian_twin(tmp_path: P
     shutil.rmtree(polar_only / "Navtech_Cartesian")
     (polar_only / "Navtech_Cartesian.txt").unlink()
     assert odometry_main([str(tmp_path / "polar")]) == 0  # poses from the converted scans
-    assert prepare_main([str(tmp_path / "polar"), str(tmp_path / "cache"), "--crop", "256"]) == 0
+    assert prepare_main([str(tmp_path / "polar"), "--out", str(tmp_path / "cache"), "--crop-size", "256"]) == 0
     decoded = RadarWindowDataset(tmp_path / "polar", split="test", cfg=CFG)
     cached = RadarWindowDataset(tmp_path / "polar", split="test", cfg=CFG, cache=tmp_path / "cache")
     assert len(decoded) == len(cached) == 3

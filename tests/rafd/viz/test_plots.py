@@ -145,3 +145,52 @@ def test_flow_encodings_decode_alike_and_bad_scans_are_refused():
     assert heads.tolist() == [[578.0, 578.0]] and motions.tolist() == [[1.0, 0.0]]
     with pytest.raises(ValueError, match="posted"):
         draw_answer(np.zeros((256, 256), np.uint8), answer_for(1152, 128), None, RES)
+
+
+@pytest.mark.parametrize(
+    "height,width,px_per_m,font_scale",
+    [(256, 256, 4 / RES, 0.45), (768, 768, 6 / RES, 0.45), (128, 128, 1 / RES, 0.35), (1152, 1152, 1 / RES, 0.6)],
+)
+def test_the_scale_bar_label_never_touches_the_bar(height, width, px_per_m, font_scale):
+    from rafd.viz.plots import SCALE_BAR_GAP_PX, draw_scale_bar, scale_bar_layout
+
+    canvas = np.full((height, width, 3), 128, np.uint8)  # mid grey: the black outlines show too
+    draw_scale_bar(canvas, px_per_m, font_scale)
+    metres, bar, label = scale_bar_layout(canvas.shape, px_per_m, font_scale)
+    drawn_rows = np.flatnonzero((canvas != 128).any(axis=(1, 2)))
+    bar_top = bar[1]
+    label_rows = drawn_rows[drawn_rows < bar_top]
+    bar_rows = drawn_rows[drawn_rows >= bar_top]
+    assert len(label_rows) and len(bar_rows), "both the label and the bar are drawn"
+    assert bar_rows.min() - label_rows.max() - 1 >= SCALE_BAR_GAP_PX - 1, (label_rows.max(), bar_rows.min())
+    assert label_rows.min() >= label[1]  # the label stays inside its rect
+
+
+def test_flow_arrows_only_where_the_scan_has_returns_or_boxes():
+    from rafd.viz.plots import NEAR_BOX_M, meaningful_cells
+
+    image = np.full((64, 64), 10, np.uint8)
+    image[8:12, 8:12] = 220  # returns in cell (2, 2) only (stride 4)
+    keep = meaningful_cells(image, (16, 16), 4)
+    assert keep.sum() == 1 and keep[2, 2]
+    near = meaningful_cells(image, (16, 16), 4, centres=np.array([[50.0, 50.0]]), near_px=NEAR_BOX_M / RES)
+    assert near[2, 2] and near[12, 12] and not near[12, 0]
+    flow = np.zeros((2, 16, 16))
+    flow[0] = 1.0  # the network's flow moves everywhere, the empty edges included
+    drawn = draw_detections(image, np.zeros((0, 5)), np.zeros((0, 5)), np.zeros(0), RES, flow=flow, upscale=4)
+    everywhere = draw_detections(
+        image, np.zeros((0, 5)), np.zeros((0, 5)), np.zeros(0), RES, flow=flow, upscale=4, all_flow=True
+    )
+    arrows, all_arrows = dominant(drawn[:256], FLOW_COLOUR), dominant(everywhere[:256], FLOW_COLOUR)
+    assert 0 < arrows.sum() < all_arrows.sum() / 10
+    rows, cols = np.nonzero(arrows)
+    assert rows.max() < 64 and cols.max() < 64  # all near the returns in the top-left corner
+
+
+def test_the_picture_states_the_threshold_its_boxes_were_drawn_at():
+    from rafd.viz.plots import Legend, _legend_items
+
+    assert _legend_items(Legend(score_threshold=0.4924))[0][0] == "prediction (score >= 0.49, operating threshold)"
+    assert _legend_items(Legend())[0][0] == "prediction (score)"
+    flow_text = _legend_items(Legend(flow_px_per_m=10.0, flow_scale=2.0, flow_where="returns or boxes"))[-1][0]
+    assert flow_text == "flow, arrow = 1 m (drawn x2), at returns or boxes"

@@ -1,0 +1,292 @@
+"""The flags every command shares, defined once: each `add_*` function adds one flag with its one meaning and help.
+
+The vocabulary (docs/cli.md, "Shared flags", lists it with the commands that take each flag):
+
+- inputs are positional (`rafd eval CHECKPOINT ROOT`, `rafd prepare ROOT`);
+- the main output is `--out`, its metavar naming what it is (`--out CKPT`, `--out DIR`, `--out CSV`); further
+  outputs are named for what they hold (`--json FILE`, `--plots DIR`, `--mcap FILE`, `--mcap-dir DIR`);
+- `--split` is repeatable and comma-separable everywhere;
+- `--workers N` parallel worker processes, `--threads N` CPU threads of the model, `--device`, `--config`;
+- `--window-frames N` frames per window (the model's T) and `--sequence-frames N` frames per sequence are two
+  names for two things;
+- `--resume` has one meaning: continue the unfinished run in `--out` from its last finished epoch;
+- `--quiet` silences the progress bars (rafd.progress).
+
+Old spellings that changed keep working for one release: `deprecated(...)` adds them in a "deprecated spellings"
+group; using one prints a warning on stderr naming the new spelling, then acts like it.
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+from collections.abc import Callable, Iterable, Sequence
+from pathlib import Path
+from typing import Any
+
+from rafd import progress
+
+# Set by `rafd` (rafd.cli.main) while it runs a command: usage lines then read `rafd serve`, not `rafd-serve`.
+_dispatched = False
+
+
+def set_dispatched(value: bool) -> None:
+    global _dispatched
+    _dispatched = value
+
+
+def prog(command: str) -> str:
+    """The program name in usage lines: `rafd COMMAND` under the `rafd` dispatcher, else the `rafd-COMMAND` alias."""
+    return f"rafd {command}" if _dispatched else "rafd-" + command.replace(" ", "-")
+
+
+def split_names(values: Sequence[str] | None) -> tuple[str, ...]:
+    """--split given repeated and/or comma-separated -> the split names in order."""
+    return tuple(name.strip() for value in values or () for name in value.split(",") if name.strip())
+
+
+def warn(program: str, message: str) -> None:
+    print(f"{program}: warning: {message}", file=sys.stderr)
+
+
+# ----------------------------------------------------------------------------- deprecated spellings
+class DeprecatedOption(argparse.Action):
+    """An old option string kept for one release: warns naming the new one, then acts like it.
+
+    `kind`: "store" (takes a value), "store_true" / "store_false", or "append" (repeatable, like --split)."""
+
+    def __init__(self, option_strings: list[str], dest: str, new: str = "", kind: str = "store", **kwargs: Any):
+        self.new, self.kind = new, kind
+        if kind in ("store_true", "store_false"):
+            kwargs["nargs"] = 0
+            kwargs.setdefault("default", kind == "store_false")
+        super().__init__(option_strings, dest, **kwargs)
+
+    def __call__(
+        self,
+        parser: argparse.ArgumentParser,
+        namespace: argparse.Namespace,
+        values: Any,
+        option_string: str | None = None,
+    ) -> None:
+        warn(parser.prog, f"{option_string} is deprecated, use {self.new} (the old spelling goes in the next release)")
+        if self.kind == "store_true":
+            setattr(namespace, self.dest, True)
+        elif self.kind == "store_false":
+            setattr(namespace, self.dest, False)
+        elif self.kind == "append":
+            setattr(namespace, self.dest, [*(getattr(namespace, self.dest, None) or []), values])
+        else:
+            setattr(namespace, self.dest, values)
+
+
+def deprecated_group(parser: argparse.ArgumentParser) -> argparse._ArgumentGroup:
+    """The parser's group of old spellings (made once)."""
+    for group in parser._action_groups:
+        if group.title == DEPRECATED_TITLE:
+            return group
+    return parser.add_argument_group(DEPRECATED_TITLE)
+
+
+DEPRECATED_TITLE = "deprecated spellings (still work for one release, with a warning naming the new one)"
+
+
+def deprecated(
+    parser: argparse.ArgumentParser,
+    old: str,
+    new: str,
+    dest: str,
+    kind: str = "store",
+    type: Callable[[str], Any] | None = None,
+    metavar: str | None = None,
+) -> None:
+    """Keep `old` working for one release as a synonym of `new` (same dest)."""
+    options: dict[str, Any] = {
+        "dest": dest,
+        "new": new,
+        "kind": kind,
+        "help": f"use {new}",
+        "default": argparse.SUPPRESS,
+    }
+    if kind in ("store", "append"):
+        options.update(type=type, metavar=metavar)
+    deprecated_group(parser).add_argument(old, action=DeprecatedOption, **options)
+
+
+def deprecated_positional(
+    parser: argparse.ArgumentParser, args: argparse.Namespace, positional: str, option: str, dest: str
+) -> None:
+    """An output that used to be positional (`positional` = its dest, nargs='?'): warn and move it to `dest` (the
+    --out flag); both given is an error."""
+    value = getattr(args, positional, None)
+    if value is None:
+        return
+    if getattr(args, dest, None) is not None:
+        parser.error(f"give the output once: {option} (the positional output is deprecated)")
+    warn(parser.prog, f"the output as a positional argument is deprecated, use {option} {value}")
+    setattr(args, dest, value)
+
+
+# ----------------------------------------------------------------------------- the shared flags
+def add_split(
+    parser: argparse.ArgumentParser | argparse._ArgumentGroup,
+    what: str = "the splits to use",
+    required: bool = False,
+    flag: str = "--split",
+    dest: str | None = None,
+) -> None:
+    """--split NAME: meta.json 'set' names, repeated and/or comma-separated."""
+    parser.add_argument(
+        flag,
+        dest=dest,
+        action="append",
+        required=required,
+        metavar="NAME",
+        help=f"{what}: meta.json 'set' names, repeat or comma-separate (e.g. train_good_weather,test)",
+    )
+
+
+def add_out(
+    parser: argparse.ArgumentParser | argparse._ArgumentGroup,
+    metavar: str,
+    what: str,
+    required: bool = False,
+    type: Callable[[str], Any] = Path,
+) -> None:
+    """--out THING: the command's main output, its metavar naming what it is."""
+    parser.add_argument("--out", type=type, metavar=metavar, required=required, default=None, help=what)
+
+
+def add_workers(parser: argparse.ArgumentParser | argparse._ArgumentGroup, default: int | None, what: str) -> None:
+    """--workers N: parallel worker processes."""
+    parser.add_argument("--workers", type=int, default=default, metavar="N", help=f"parallel worker processes: {what}")
+
+
+def add_threads(parser: argparse.ArgumentParser | argparse._ArgumentGroup, default: int | None, what: str) -> None:
+    """--threads N: CPU threads of the model (torch in training and evaluation, the inference runtime elsewhere)."""
+    parser.add_argument(
+        "--threads", type=positive_int, default=default, metavar="N", help=f"CPU threads of the model: {what}"
+    )
+
+
+def add_device(parser: argparse.ArgumentParser | argparse._ArgumentGroup) -> None:
+    """--device: where torch runs."""
+    parser.add_argument("--device", default="auto", help="torch device: cpu | cuda | cuda:N | auto (default: auto)")
+
+
+def add_config(
+    parser: argparse.ArgumentParser | argparse._ArgumentGroup, choices: Iterable[str], default: str, what: str
+) -> None:
+    """--config NAME: the recipe (network configuration and training settings, rafd.train.recipes)."""
+    parser.add_argument(
+        "--config",
+        choices=sorted(choices),
+        default=default,
+        help=f"recipe (rafd.train.recipes), default {default}: {what}",
+    )
+
+
+def add_window_frames(
+    parser: argparse.ArgumentParser | argparse._ArgumentGroup, choices: Sequence[int] | None = None
+) -> None:
+    """--window-frames N: frames per window, the model's T (old spelling in rafd train: --frames)."""
+    parser.add_argument(
+        "--window-frames",
+        dest="frames",
+        type=int,
+        choices=choices,
+        metavar="N",
+        help="frames per window: the model sees the newest frame and N-1 earlier ones (1, 2 or 4)",
+    )
+
+
+def add_sequence_frames(
+    parser: argparse.ArgumentParser | argparse._ArgumentGroup, default: int | None, what: str = ""
+) -> None:
+    """--sequence-frames N: frames per simulated sequence (old spelling: --frames)."""
+    parser.add_argument(
+        "--sequence-frames",
+        dest="frames",
+        type=int,
+        default=default,
+        metavar="N",
+        help="frames per sequence" + (f" ({what})" if what else "") + (f", default {default}" if default else ""),
+    )
+
+
+def add_resume(parser: argparse.ArgumentParser | argparse._ArgumentGroup, what: str) -> None:
+    """--resume: continue the unfinished run in --out from its last finished epoch."""
+    parser.add_argument(
+        "--resume",
+        action="store_true",
+        help=f"continue the unfinished run in --out from its last finished epoch: {what}",
+    )
+
+
+def legacy_resume_path(argv: Sequence[str], program: str) -> tuple[list[str], Path | None]:
+    """The old `--resume PATH` of rafd train (a checkpoint file, not a directory: a data root is one), kept for one
+    release: -> (argv without PATH, PATH), with a warning; else (argv, None)."""
+    args = list(argv)
+    for i, token in enumerate(args[:-1]):
+        following = args[i + 1]
+        if token == "--resume" and not following.startswith("-") and not Path(following).is_dir():
+            warn(
+                program,
+                f"--resume {following} is deprecated: --resume takes no value and continues the run in --out "
+                "(the old spelling goes in the next release)",
+            )
+            return args[: i + 1] + args[i + 2 :], Path(following)
+    return args, None
+
+
+def add_warm_up_windows(parser: argparse.ArgumentParser | argparse._ArgumentGroup) -> None:
+    """--warm-up-windows: each sequence's first T-1 frames as windows too, padded as the service pads a stream's
+    first frames (without it, only full windows: the paper's protocol)."""
+    parser.add_argument(
+        "--warm-up-windows",
+        action="store_true",
+        help="also each sequence's first frames, in windows padded as the service pads a new stream's "
+        "(a short real sequence keeps all its labelled frames)",
+    )
+
+
+def add_quiet(parser: argparse.ArgumentParser | argparse._ArgumentGroup) -> None:
+    """--quiet: no progress bars (rafd.progress); results and errors are still printed."""
+    parser.add_argument("--quiet", action="store_true", help="no progress bars; results and errors are still printed")
+
+
+def add_checkpoint(
+    parser: argparse.ArgumentParser | argparse._ArgumentGroup, nargs: str | None = None, what: str = ""
+) -> None:
+    """CHECKPOINT: a checkpoint written by rafd train (positional: an input)."""
+    parser.add_argument(
+        "checkpoint",
+        type=Path,
+        nargs=nargs,
+        metavar="CHECKPOINT",
+        help="checkpoint written by rafd train (.pt)" + (f"; {what}" if what else ""),
+    )
+
+
+def apply_quiet(args: argparse.Namespace) -> None:
+    """Apply --quiet to every progress bar of this process."""
+    progress.set_quiet(bool(getattr(args, "quiet", False)))
+
+
+# ----------------------------------------------------------------------------- value types
+def positive_int(text: str) -> int:
+    value = int(text)
+    if value < 1:
+        raise argparse.ArgumentTypeError(f"must be >= 1, got {value}")
+    return value
+
+
+def int_list(text: str) -> list[int]:
+    """'1,2,8' -> [1, 2, 8]."""
+    try:
+        values = [int(v) for v in text.split(",") if v.strip()]
+    except ValueError as error:
+        raise argparse.ArgumentTypeError(f"a comma-separated list of integers, got {text!r}") from error
+    if not values:
+        raise argparse.ArgumentTypeError("at least one value")
+    return values

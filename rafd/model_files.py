@@ -1,0 +1,49 @@
+"""What kind of model file a path holds, from its first bytes (torch-free): a checkpoint (a torch file: a zip
+archive, or a legacy pickle) or an ONNX model (a protobuf ModelProto). Lets every command say "this is an ONNX
+model, not a checkpoint" (and the reverse) instead of passing on a library's parse error."""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+from typing import Literal
+
+FileKind = Literal["checkpoint", "onnx", "unknown"]
+# ModelProto fields that follow ir_version (field 1, varint, written first): producer_name, producer_version,
+# domain, model_version, doc_string, graph, opset_import (protobuf tags of fields 2-8).
+_ONNX_SECOND_FIELDS = frozenset({0x12, 0x1A, 0x22, 0x28, 0x32, 0x3A, 0x42})
+
+
+def file_kind(path: str | os.PathLike[str]) -> FileKind:
+    """ "checkpoint" (zip or pickle: what torch.save writes), "onnx" (an ONNX ModelProto) or "unknown"."""
+    try:
+        with open(path, "rb") as file:
+            head = file.read(8)
+    except OSError:
+        return "unknown"
+    if head[:4] == b"PK\x03\x04" or (len(head) > 1 and head[0] == 0x80 and 2 <= head[1] <= 5):
+        return "checkpoint"
+    # ir_version (tag 0x08) as a one-byte varint (ONNX IR versions 1-13), then the next field's tag
+    if len(head) > 2 and head[0] == 0x08 and 1 <= head[1] < 0x80 and head[2] in _ONNX_SECOND_FIELDS:
+        return "onnx"
+    return "unknown"
+
+
+def onnx_given_for_checkpoint(path: str | os.PathLike[str]) -> str | None:
+    """The message when `path` is an ONNX model where a checkpoint is expected, else None."""
+    if file_kind(path) != "onnx":
+        return None
+    return (
+        f"{path} is an ONNX model, not a checkpoint: this command takes the checkpoint (.pt) that `rafd train` "
+        f"writes; an ONNX model is what `rafd serve --model {Path(path).name}` serves"
+    )
+
+
+def checkpoint_given_for_onnx(path: str | os.PathLike[str]) -> str | None:
+    """The message when `path` is a PyTorch checkpoint where an ONNX model is expected, else None."""
+    if file_kind(path) != "checkpoint":
+        return None
+    return (
+        f"{path} is a PyTorch checkpoint, not an ONNX model: export it first "
+        f"(`rafd export {Path(path).name} --out model.onnx`), then serve the ONNX file"
+    )

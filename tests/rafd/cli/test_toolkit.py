@@ -1,0 +1,312 @@
+"""One toolkit: `rafd COMMAND` reaches every tool (found through the "rafd.commands" entry points), the shared flags
+mean one thing everywhere (rafd.cli.flags), every flag has help, usage lines are argparse's own, old spellings warn
+and still work for one release, and docs/cli.md lists every command and the shared flags as the parsers have them."""
+
+from __future__ import annotations
+
+import argparse
+import importlib
+import re
+import sys
+from importlib import metadata
+from pathlib import Path
+
+import pytest
+
+from rafd.cli import flags
+from rafd.cli import main as dispatcher
+from rafd.cli.main import COMMANDS
+
+REPO = Path(__file__).resolve().parents[3]
+TYPED = {c.name: c.name.replace("-", " ", 1) if c.name.startswith("bench-") else c.name for c in COMMANDS}
+
+
+def parser_of(command: str) -> argparse.ArgumentParser:
+    """The command's parser, built as `rafd COMMAND` builds it."""
+    target = next(c.target for c in COMMANDS if c.name == command)
+    module = importlib.import_module(target.split(":")[0])
+    build = getattr(module, "build_parser", None) or module._parser
+    flags.set_dispatched(True)
+    try:
+        return build()
+    finally:
+        flags.set_dispatched(False)
+
+
+def all_parsers(command: str) -> list[argparse.ArgumentParser]:
+    """The parser and its sub-commands' parsers."""
+    out, todo = [], [parser_of(command)]
+    while todo:
+        parser = todo.pop()
+        out.append(parser)
+        for action in parser._actions:
+            if isinstance(action, argparse._SubParsersAction):
+                todo += list(action.choices.values())
+    return out
+
+
+def options_of(command: str, include_deprecated: bool = False) -> set[str]:
+    found = set()
+    for parser in all_parsers(command):
+        deprecated = {
+            id(a) for g in parser._action_groups if g.title == flags.DEPRECATED_TITLE for a in g._group_actions
+        }
+        for action in parser._actions:
+            if include_deprecated or id(action) not in deprecated:
+                found.update(action.option_strings)
+    return found
+
+
+def pyproject() -> dict:
+    tomllib = pytest.importorskip("tomllib", reason="tomllib needs Python 3.11")
+    return tomllib.loads((REPO / "pyproject.toml").read_text())
+
+
+# ----------------------------------------------------------------------------- the one command
+def test_the_command_table_is_pyprojects_entry_points_and_every_alias_runs_the_same_function():
+    project = pyproject()["project"]
+    entry_points = project["entry-points"]["rafd.commands"]
+    assert entry_points == {c.name: c.target for c in COMMANDS}
+    assert project["scripts"]["rafd"] == "rafd.cli.main:main"
+    for command in COMMANDS:  # each rafd-* alias runs what `rafd COMMAND` runs
+        assert project["scripts"][f"rafd-{command.name}"] == command.target, command.name
+
+
+def test_rafd_help_lists_every_command(capsys):
+    assert dispatcher.main(["--help"]) == 0
+    listed = capsys.readouterr().out
+    for command in COMMANDS:
+        assert re.search(rf"^  {TYPED[command.name]} +{re.escape(command.summary)}$", listed, re.M), command.name
+    assert dispatcher.main([]) == 2 and "commands:" in capsys.readouterr().err  # no command: the list, exit 2
+
+
+@pytest.mark.parametrize("command", [c.name for c in COMMANDS])
+def test_rafd_command_help_reaches_the_tool(command, capsys):
+    with pytest.raises(SystemExit) as exit_info:
+        dispatcher.main([*TYPED[command].split(), "--help"])
+    assert exit_info.value.code == 0
+    help_text = capsys.readouterr().out
+    assert help_text.startswith(f"usage: rafd {TYPED[command]}"), help_text[:200]
+
+
+def test_commands_are_found_through_the_installed_entry_points(monkeypatch, capsys):
+    """The dispatcher reads the entry points, importing a command only when it runs: a command another package
+    declares is listed and run like the built-in ones."""
+    installed = [metadata.EntryPoint(c.name, c.target, dispatcher.GROUP) for c in COMMANDS]
+    plugin = metadata.EntryPoint("hello", "tests.rafd.cli.test_toolkit:hello_command", dispatcher.GROUP)
+    monkeypatch.setattr(
+        metadata, "entry_points", lambda group: [*installed, plugin] if group == dispatcher.GROUP else []
+    )
+    assert "tests.rafd.cli.test_toolkit" in sys.modules
+    assert dispatcher.main(["--help"]) == 0
+    listed = capsys.readouterr().out
+    assert "  hello " in listed and "  serve " in listed
+    assert dispatcher.main(["hello", "a", "b"]) == 7
+    assert capsys.readouterr().out == "hello ['a', 'b']\n"
+
+
+def hello_command(argv):
+    print("hello", list(argv))
+    return 7
+
+
+def test_an_unknown_command_is_refused_with_a_suggestion(capsys):
+    assert dispatcher.main(["serv"]) == 2
+    assert "did you mean `rafd serve`" in capsys.readouterr().err
+    assert dispatcher.main(["bench", "sped"]) == 2
+    assert "did you mean `rafd bench speed`" in capsys.readouterr().err
+    assert dispatcher.main(["bench"]) == 2 and "speed" in capsys.readouterr().err
+
+
+def test_the_rafd_prefixed_aliases_keep_their_program_name(capsys):
+    from rafd.cli.prepare import build_parser
+
+    assert build_parser().prog == "rafd-prepare"
+    assert parser_of("prepare").prog == "rafd prepare"
+
+
+# ----------------------------------------------------------------------------- flags
+@pytest.mark.parametrize("command", [c.name for c in COMMANDS])
+def test_every_flag_has_help_and_usage_is_argparses_own(command):
+    for parser in all_parsers(command):
+        for action in parser._actions:
+            if isinstance(action, (argparse._HelpAction, argparse._SubParsersAction)):
+                continue
+            assert action.help and action.help.strip(), f"{parser.prog} {action.option_strings or action.dest}"
+        for text in (parser.description or "", parser.epilog or ""):
+            for line in text.splitlines():  # no hand-made usage block: a line showing a command and its flags
+                assert not re.match(r"^\s*rafd[- ][a-z-]+ .*\[--", line), f"{parser.prog}: {line}"
+
+
+SHARED_OUTPUTS = {  # command -> what its --out writes
+    "train": "CKPT",
+    "simulate": "DIR|PNG",
+    "odometry": "CSV",
+    "prepare": "CACHE",
+    "polar": "DIR",
+    "client": "DIR",
+    "export": "MODEL.onnx",
+}
+
+
+def test_the_shared_vocabulary_holds_in_every_command():
+    for command, metavar in SHARED_OUTPUTS.items():
+        out = next(a for a in parser_of(command)._actions if "--out" in a.option_strings)
+        assert out.metavar == metavar, command
+    for command in (c.name for c in COMMANDS):
+        options = options_of(command)
+        # the old, ambiguous spellings exist only as deprecated synonyms
+        for old in ("--frames", "--num-workers", "--size", "--crop", "--no-progress", "--data", "--gate-frames"):
+            assert old not in options, f"rafd {TYPED[command]} still has {old} as a flag of its own"
+        for parser in all_parsers(command):
+            for action in parser._actions:
+                if "--split" in action.option_strings or "--val-split" in action.option_strings:
+                    assert isinstance(action, argparse._AppendAction), f"{parser.prog}: --split must be repeatable"
+                if "--resume" in action.option_strings:
+                    assert action.nargs == 0, f"{parser.prog}: --resume takes no value"
+    long_running = {c.name for c in COMMANDS} - {"serve"}
+    for command in long_running:
+        assert "--quiet" in options_of(command), command
+
+
+def run_parse(module: str, function: str, argv: list[str]) -> argparse.Namespace:
+    return getattr(importlib.import_module(module), function)(argv)
+
+
+def test_old_spellings_warn_naming_the_new_one_and_still_work(tmp_path, capsys):
+    ckpt = tmp_path / "m.pt"
+    args = run_parse(
+        "rafd.cli.train",
+        "parse",
+        ["--data", "ROOT", "--split", "a", "--out", str(ckpt), "--frames", "2", "--num-workers", "3", "--no-progress"],
+    )
+    assert (str(args.data), args.frames, args.workers, args.quiet) == ("ROOT", 2, 3, True)
+    err = capsys.readouterr().err
+    for old, new in (
+        ("--data", "the positional ROOT"),
+        ("--frames", "--window-frames"),
+        ("--num-workers", "--workers"),
+        ("--no-progress", "--quiet"),
+    ):
+        assert f"{old} is deprecated, use {new}" in err
+    # --resume: bare, it continues --out; the old --resume PATH still continues PATH, with a warning
+    from rafd.cli.train import train_run
+
+    args = run_parse("rafd.cli.train", "parse", ["ROOT", "--split", "a", "--out", str(ckpt), "--resume"])
+    assert train_run(args).resume == ckpt and "deprecated" not in capsys.readouterr().err
+    args = run_parse("rafd.cli.train", "parse", ["ROOT", "--split", "a", "--out", str(ckpt), "--resume", "old.pt"])
+    assert train_run(args).resume == Path("old.pt") and str(args.data) == "ROOT"
+    assert "--resume old.pt is deprecated" in capsys.readouterr().err
+
+    args = run_parse("rafd.cli.simulate", "parse", [str(tmp_path / "sim"), "--frames", "3", "--size", "64"])
+    assert (args.out, args.frames, args.scan_size) == (tmp_path / "sim", 3, 64)
+    err = capsys.readouterr().err
+    assert "use --out" in err and "use --sequence-frames" in err and "use --scan-size" in err
+    args = run_parse("rafd.cli.simulate", "parse", ["--preview", str(tmp_path / "p.png")])
+    assert args.preview and args.out == tmp_path / "p.png"
+    assert "use --preview --out" in capsys.readouterr().err
+
+    args = run_parse("rafd.cli.evaluate", "parse", ["ck.pt", "--data", "R", "--split", "test", "--mcap", "logs"])
+    assert (str(args.data), str(args.mcap)) == ("R", "logs")
+    assert "--mcap is deprecated, use --mcap-dir" in capsys.readouterr().err
+
+    from rafd.cli.prepare import build_parser as prepare_parser
+
+    parser = prepare_parser()
+    args = parser.parse_args(["ROOT", "CACHE", "--crop", "192"])
+    flags.deprecated_positional(parser, args, "cache", "--out", "out")
+    assert (str(args.out), args.crop_size) == ("CACHE", 192)
+    err = capsys.readouterr().err
+    assert "use --out CACHE" in err and "--crop is deprecated, use --crop-size" in err
+
+    from export.cli import build_parser as export_parser
+
+    args = export_parser().parse_args(["ck.pt", "m.onnx", "--gate-frames", "30"])
+    assert args.gate_frames == 30 and "use --gate-sequence-frames" in capsys.readouterr().err
+    from export.speed_cli import build_parser as speed_parser
+
+    args = speed_parser().parse_args(["--checkpoint", "ck.pt"])
+    assert str(args.checkpoint_option) == "ck.pt" and "use the positional CHECKPOINT" in capsys.readouterr().err
+
+
+def test_the_export_output_is_positional_or_out_once(capsys):
+    from export.cli import main
+
+    with pytest.raises(SystemExit):
+        main(["ck.pt"])
+    assert "OUTPUT.onnx or --out" in capsys.readouterr().err
+    with pytest.raises(SystemExit):
+        main(["ck.pt", "a.onnx", "--out", "b.onnx"])
+    assert "once" in capsys.readouterr().err
+
+
+def test_simulate_deals_sequences_to_repeated_splits(tmp_path):
+    import json
+
+    from rafd.cli.simulate import main
+
+    out = tmp_path / "sim"
+    argv = ["--out", str(out), "--sequences", "3", "--sequence-frames", "1", "--scan-size", "64", "--quiet"]
+    assert main([*argv, "--split", "train", "--split", "test"]) == 0
+    splits = [json.loads((out / f"sim_0_{k}" / "meta.json").read_text())["set"] for k in range(3)]
+    assert splits == ["train", "test", "train"]
+
+
+# ----------------------------------------------------------------------------- the docs' CLI page
+def cli_page() -> str:
+    return (REPO / "docs" / "cli.md").read_text()
+
+
+def test_the_cli_page_lists_every_command():
+    page = cli_page()
+    for command in COMMANDS:
+        assert f"`rafd {TYPED[command.name]}`" in page, command.name
+        assert f"`rafd-{command.name}`" in page, command.name
+
+
+def test_the_shared_flags_table_matches_the_parsers():
+    """Each row: `| `--flag` | meaning | commands |`; every command named takes the flag, and every command that
+    takes the flag is named."""
+    section = cli_page().split("## Shared flags", 1)[1].split("\n## ", 1)[0]
+    rows = [line for line in section.splitlines() if line.startswith("| `--")]
+    assert len(rows) >= 12
+    for row in rows:
+        cells = [cell.strip() for cell in row.strip("|").split("|")]
+        flag = re.match(r"`(--[a-z-]+)", cells[0]).group(1)
+        named = set(re.findall(r"`rafd ([a-z ]+?)`", cells[2]))
+        takes = {TYPED[c.name] for c in COMMANDS if flag in options_of(c.name)}
+        assert named == takes, f"{flag}: the table says {sorted(named)}, the parsers {sorted(takes)}"
+
+
+# ----------------------------------------------------------------------------- progress
+def test_progress_is_silent_with_quiet_and_throttled_off_a_terminal(capsys, monkeypatch):
+    from rafd import progress
+
+    monkeypatch.setattr(progress, "_quiet", False)
+    for _ in progress.track(range(20000), desc="a long stage", unit="it"):
+        pass
+    err = capsys.readouterr().err
+    lines = [line for line in re.split(r"[\r\n]+", err) if line.strip()]
+    assert 1 <= len(lines) <= 3 and "a long stage" in lines[-1] and "20000/20000" in lines[-1]  # not 20000 lines
+    progress.set_quiet(True)
+    try:
+        for _ in progress.track(range(100), desc="quiet"):
+            pass
+        progress.stage("a stage")
+        with progress.Stages("job", 2) as stages:
+            stages.begin("one")
+            stages.begin("two")
+    finally:
+        progress.set_quiet(False)
+    assert capsys.readouterr().err == ""
+
+
+def test_stages_say_what_runs_and_how_far(capsys):
+    from rafd import progress
+
+    with progress.Stages("bench speed", 3) as stages:
+        stages.begin("export")
+        stages.begin("time the steps")
+        stages.begin("gate")
+    err = capsys.readouterr().err
+    assert "bench speed: gate" in err and "3/3" in err
