@@ -1,7 +1,11 @@
 """Parse POST /detect bodies strictly: JSON (base64 image) or multipart/form-data (image file + form fields).
 
 JSON: no duplicate keys, no NaN / Infinity / out-of-range numbers, no unknown keys, no type coercion (a
-timestamp is a JSON number: "1.5" and true are refused). Multipart: fields stream_id, timestamp, optional
+timestamp is a JSON number: "1.5" and true are refused). Bounded cost, off the event loop: a JSON body is parsed on
+the parse executor, first counted for the structural characters a detect request can hold (`check_structure`: a
+few keys, one object in another, no long arrays; a body of 240k keys or a million numbers is refused from this
+count in about a millisecond, unparsed), then parsed by orjson (strict: UTF-8, no NaN / Infinity, no trailing
+data). Multipart: fields stream_id, timestamp, optional
 pose_x, pose_y, pose_yaw (all three or none) and the file field `image`, each at most once; numbers are written
 as JSON numbers. Unknown fields are refused (a typo like `pose_yw` must not silently drop the pose).
 The stream id may come from the body, the X-Stream-Id header or the path; all that are given must agree.
@@ -12,9 +16,11 @@ from __future__ import annotations
 import json
 import math
 import re
-from collections.abc import Callable
+from collections.abc import Awaitable, Callable
 from typing import Any
 
+import numpy as np
+import orjson
 from fastapi import Request
 from pydantic import BaseModel, ValidationError
 
@@ -32,18 +38,36 @@ JSON_FIELDS = frozenset(DetectJson.model_fields)
 POSE_FIELDS = frozenset(Pose.model_fields)
 # RFC 8259's number grammar: what a multipart number field may hold (no "nan", "inf", " 1", "1_000", "0x1").
 NUMBER = re.compile(r"-?(?:0|[1-9][0-9]*)(?:\.[0-9]+)?(?:[eE][+-]?[0-9]+)?")
+# The most of each structural character a JSON body may hold, counted before it is parsed. A complete request (keys
+# stream_id, timestamp, pose {x, y, yaw}, image) has 18 quotes, 6 commas (one in a data URL prefix), 2 objects and
+# no array; base64 and stream ids hold none of them. The bounds leave room for whitespace-free mistakes to get
+# pydantic's message (a wrong type, an unknown key) while a body of many keys or numbers is refused unparsed.
+MAX_JSON_QUOTES = 64
+MAX_JSON_COMMAS = 32
+MAX_JSON_OBJECTS = 4
+MAX_JSON_ARRAYS = 4
+
+JsonParser = Callable[[bytes], Awaitable[tuple[DetectBody, str]]]
+
+
+async def _parse_here(raw: bytes) -> tuple[DetectBody, str]:
+    return parse_json_body(raw)
 
 
 async def parse_detect_request(
-    request: Request, stream_hint: str | None, upload_check: Callable[[], Callable[[bytes], None]] | None = None
+    request: Request,
+    stream_hint: str | None,
+    upload_check: Callable[[], Callable[[bytes], None]] | None = None,
+    parse_json: JsonParser = _parse_here,
 ) -> tuple[DetectFields, PostedImage]:
     """-> (validated fields with the resolved stream id, the image as posted); 400/415/422 with the reason.
 
-    `upload_check()` gives a feeder that sees a multipart image upload piece by piece as it streams in."""
+    `upload_check()` gives a feeder that sees a multipart image upload piece by piece as it streams in;
+    `parse_json` runs `parse_json_body` (the service: on its parse executor)."""
     media_type = request.headers.get("content-type", "").split(";")[0].strip().lower()
     image: PostedImage  # text from a JSON body, bytes from a form
     if media_type == JSON:
-        body, image = parse_json_body(await request.body())
+        body, image = await parse_json(await request.body())
     elif media_type == MULTIPART:
         body, image = await _parse_form(request, {"image": upload_check()} if upload_check else {})
     else:
@@ -95,7 +119,8 @@ def _no_constant(name: str) -> float:
 
 
 def load_json(raw: bytes) -> Any:
-    """JSON text -> Python; refuses duplicate keys and non-finite numbers (Python's json would take both)."""
+    """JSON text -> Python with the standard library, naming a duplicated key; refuses non-finite numbers. The slow
+    path: used once `check_structure` bounded the body, when it holds backslashes or a duplicate was found."""
     try:
         return json.loads(raw, object_pairs_hook=_object, parse_float=_finite_float, parse_constant=_no_constant)
     except _DuplicateKey as exc:
@@ -125,10 +150,53 @@ def _validate(model: type[BaseModel], data: Any) -> Any:
         raise ApiError("validation_error", format_validation_errors(exc.errors())) from exc
 
 
+def check_structure(raw: bytes) -> tuple[int, int]:
+    """Refuse (422) a body with more structure than a detect request can have, before parsing it; -> the numbers of
+    quotes and of backslashes in it (escapes: the duplicate-key check needs the slow path then)."""
+    data = np.frombuffer(raw, np.uint8)
+    quotes, commas, objects, arrays, backslashes = (int(np.count_nonzero(data == c)) for c in b'",{[\\')
+    if quotes > MAX_JSON_QUOTES or commas > MAX_JSON_COMMAS or objects > MAX_JSON_OBJECTS or arrays > MAX_JSON_ARRAYS:
+        raise ApiError(
+            "validation_error",
+            f"the body has {quotes} quotes, {commas} commas, {objects} objects and {arrays} arrays: more than a detect "
+            f"request can have (at most {MAX_JSON_QUOTES}, {MAX_JSON_COMMAS}, {MAX_JSON_OBJECTS} and "
+            f"{MAX_JSON_ARRAYS}: the keys stream_id, timestamp, pose {{x, y, yaw}} and image); refused unparsed",
+        )
+    return quotes, backslashes
+
+
+def _quotes(value: Any) -> int:
+    """The quote characters `value` takes when written as JSON without escapes."""
+    if isinstance(value, str):
+        return 2
+    if isinstance(value, dict):
+        return sum(2 + _quotes(item) for item in value.values())
+    if isinstance(value, list):
+        return sum(_quotes(item) for item in value)
+    return 0
+
+
+def parse_json(raw: bytes) -> Any:
+    """Strict JSON -> Python: orjson, then the duplicate-key check. Without escapes, every quote of the body belongs
+    to a key or a string, so a body whose quotes outnumber its parsed keys and strings repeated a key (orjson keeps
+    the last one); with escapes, the standard library's parser names the key (bounded by `check_structure`)."""
+    quotes, backslashes = check_structure(raw)
+    try:
+        data = orjson.loads(raw)
+    except orjson.JSONDecodeError as exc:
+        raise ApiError(
+            "invalid_json",
+            f"the body is not valid JSON (UTF-8; NaN, Infinity and out-of-range numbers are not allowed): {exc}",
+        ) from exc
+    if backslashes or quotes != _quotes(data):
+        data = load_json(raw)  # raises naming the duplicated key, if any
+    return data
+
+
 def parse_json_body(raw: bytes) -> tuple[DetectBody, str]:
     if not raw or raw.isspace():
         raise ApiError("empty_body", "the request body is empty; expected a JSON object")
-    data = load_json(raw)
+    data = parse_json(raw)
     if not isinstance(data, dict):
         raise ApiError("validation_error", f"expected a JSON object, got {type(data).__name__}")
     _refuse_unknown_keys(data, JSON_FIELDS, "")
