@@ -18,9 +18,11 @@ keeps uvicorn's parser and request cycle (the fastest path measured here) and ad
   the answer before the client reads it;
 - each request's `scope["extensions"]["rafd.arrival"]["at"]`: time.monotonic() of its first byte (arrival order).
 
-Each refusal is a JSON error of the service's shape, closes the connection, and is counted through `on_refused`.
-The subclass relies on uvicorn's HttpToolsProtocol internals (its parser callbacks and `cycle`): uvicorn is pinned
-in pyproject.toml, and tests/service/test_protocol.py exercises every limit on a real server.
+Each refusal is a JSON error of the service's shape, closes the connection, is counted through `on_refused` and by
+the refusal penalty (service/penalty.py, shared with the app): a peer refused too often has each further refusal
+answered only after the penalty, its connection not read meanwhile, so a flood of endless heads cannot take the
+cores. The subclass relies on uvicorn's HttpToolsProtocol internals (its parser callbacks and `cycle`): uvicorn is
+pinned in pyproject.toml, and tests/service/test_hostile_clients.py exercises every limit on a real server.
 """
 
 from __future__ import annotations
@@ -38,11 +40,12 @@ from uvicorn.protocols.http.httptools_impl import STATUS_LINE, HttpToolsProtocol
 
 from service.errors import ERRORS, error_body
 from service.intake import ARRIVAL
+from service.penalty import RefusalPenalty
 
 log = logging.getLogger(__name__)
 
 LINGER_S = 1.0
-LINGER_BYTES = 1 << 20
+LINGER_BYTES = 64 * 1024
 
 
 @dataclass(frozen=True)
@@ -65,6 +68,7 @@ class HeadRefused(Exception):
 
 class LimitedHttpToolsProtocol(HttpToolsProtocol):
     limits: ClassVar[HeadLimits] = HeadLimits()
+    penalty: ClassVar[RefusalPenalty | None] = None
 
     @staticmethod
     def on_refused(status: int) -> None:
@@ -195,13 +199,26 @@ class LimitedHttpToolsProtocol(HttpToolsProtocol):
         )
 
     def _refuse(self, refusal: HeadRefused) -> None:
-        """Answer the refusal (the service's JSON error shape) and close the connection."""
+        """Answer the refusal (the service's JSON error shape) and close the connection; after the penalty, if any,
+        with the connection not read meanwhile."""
         self._cancel_head_timer()
+        self._unset_keepalive_if_required()
+        self._lingering = 0  # from now on, what the client sends is dropped
         status = ERRORS[refusal.code].status
         log.debug("refused a request head from %s: %s", self.client, refusal.message)
         self.on_refused(status)
         if self.cycle is not None and not self.cycle.response_complete:
             self.transport.close()  # an answer is in progress on this connection: nothing can be added to it
+            return
+        delay = self.penalty.record(self.client[0]) if self.penalty is not None and self.client else 0.0
+        if delay:
+            self.transport.pause_reading()
+            self.loop.call_later(delay, self._answer_refusal, refusal, status)
+        else:
+            self._answer_refusal(refusal, status)
+
+    def _answer_refusal(self, refusal: HeadRefused, status: int) -> None:
+        if self.transport.is_closing():
             return
         body = json.dumps(error_body(refusal.code, refusal.message)).encode()
         head = [STATUS_LINE[status]]
@@ -214,6 +231,7 @@ class LimitedHttpToolsProtocol(HttpToolsProtocol):
             body,
         ]
         self.transport.write(b"".join(head))
+        self.transport.resume_reading()
         self._linger()
 
     def _linger(self) -> None:
@@ -246,9 +264,11 @@ def _head_too_large(limits: HeadLimits) -> HeadRefused:
     )
 
 
-def limited_protocol(limits: HeadLimits, on_refused: Callable[[int], None] | None = None) -> type[asyncio.Protocol]:
-    """The protocol class for uvicorn's `http=` option, with these limits."""
-    attributes: dict[str, Any] = {"limits": limits}
+def limited_protocol(
+    limits: HeadLimits, on_refused: Callable[[int], None] | None = None, penalty: RefusalPenalty | None = None
+) -> type[asyncio.Protocol]:
+    """The protocol class for uvicorn's `http=` option, with these limits (and the app's refusal penalty)."""
+    attributes: dict[str, Any] = {"limits": limits, "penalty": penalty}
     if on_refused is not None:
         attributes["on_refused"] = staticmethod(on_refused)
     protocol: type[asyncio.Protocol] = type("RaFDHttpProtocol", (LimitedHttpToolsProtocol,), attributes)

@@ -32,9 +32,14 @@ def head_limits(settings: Settings) -> HeadLimits:
 
 
 def http_protocol(app: FastAPI, settings: Settings) -> type[asyncio.Protocol]:
-    """The protocol class, its refusals counted in the app's metrics (route "unmatched": no route was matched)."""
+    """The protocol class, its refusals counted in the app's metrics (route "unmatched": no route was matched) and by
+    the app's refusal penalty."""
     metrics = getattr(app.state, "metrics", None)
-    return limited_protocol(head_limits(settings), metrics.refused_before_app if metrics is not None else None)
+    return limited_protocol(
+        head_limits(settings),
+        metrics.refused_before_app if metrics is not None else None,
+        getattr(app.state, "refusal_penalty", None),
+    )
 
 
 def uvicorn_options(app: FastAPI, settings: Settings) -> dict[str, Any]:
