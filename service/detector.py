@@ -32,7 +32,7 @@ from service.images import DecodedFrame, accepted_sizes, check_posted_image, dec
 from service.intake import arrival_of, client_of
 from service.metrics import ServiceMetrics
 from service.ordering import ArrivalOrder, Unresolved
-from service.requests import parse_detect_request, parse_json_body
+from service.requests import StructureCount, parse_detect_request, parse_json_body
 from service.schemas import DetectBody, DetectFields
 from service.settings import Settings
 from service.streams import StreamStore, Ticket
@@ -232,9 +232,9 @@ class DetectService:
                 f"the request body did not arrive within {self.settings.body_timeout_s} s (RAFD_BODY_TIMEOUT_S)",
             ) from exc
 
-    async def _parse_json(self, raw: bytes) -> tuple[DetectBody, str]:
-        """A JSON body on the parse executor: its structure checked, then parsed and validated (off the loop)."""
-        return await self.executors.parse.run(parse_json_body, raw)
+    async def _parse_json(self, raw: bytes, counted: StructureCount) -> tuple[DetectBody, str]:
+        """A JSON body (its structure counted as it arrived) parsed and validated on the parse executor."""
+        return await self.executors.parse.run(parse_json_body, raw, counted)
 
     # ------------------------------------------------------------------ post-processing
     def _answer(

@@ -314,11 +314,27 @@ def test_3_json_of_many_keys_or_numbers_is_refused_unparsed_and_counted_by_the_p
     assert refusals == 3
 
 
+@pytest.mark.network
+def test_3_a_json_flood_is_refused_at_its_first_piece_before_the_rest_arrives():
+    """The structure is counted as the body streams in: a body of keys is answered 422 after its first 64 KiB, the
+    remaining 2 MB never sent (the connection then closes)."""
+    keys = json.dumps({f"k{k}": 0 for k in range(150_000)}).encode()
+    with served() as (url, app, http):
+        head, _ = http_request("POST", "/detect", keys, {"Content-Type": "application/json"})
+        with connect(port_of(url), ATTACKER) as sock:
+            sock.sendall(head + keys[:65536])
+            status, answer = read_answer(sock)
+    assert 1_500_000 < len(keys) < Settings().max_request_bytes  # within the size limit: the structure refuses it
+    assert status == 422 and "refused unparsed" in answer["error"]["message"]
+
+
 def test_3_json_bodies_are_parsed_on_the_parse_executor_not_the_event_loop(monkeypatch):
     threads = []
     real = service.detector.parse_json_body
     monkeypatch.setattr(
-        service.detector, "parse_json_body", lambda raw: threads.append(threading.current_thread().name) or real(raw)
+        service.detector,
+        "parse_json_body",
+        lambda raw, counted: threads.append(threading.current_thread().name) or real(raw, counted),
     )
     with TestClient(create_app(Settings(threads=1), runner=FakeRunner())) as client:
         wait_ready(client)
