@@ -469,7 +469,8 @@ def scan(i: int, large: bool) -> np.ndarray:
 def test_9_frames_named_only_in_the_body_are_served_in_arrival_order():
     """Before: eight frames of one stream, each on its own connection 15 ms after the previous, the stream named only
     in the JSON body: 1-3 of 8 answered 409 in every run, the order being taken once a body was parsed. Here large
-    full scans alternate with small crops, so a later small body is parsed before the earlier large one: every
+    full scans, their bodies arriving over ~50 ms, alternate with small crops, so a later small body is parsed before
+    the earlier large one (with the hold off, RAFD_ORDER_HOLD_S=0, the large frames are answered 409 here): every
     frame is still served, each after the one sent before it."""
     bodies = [
         json.dumps(detect_json("order", float(i), scan(i, i % 2 == 1), (float(i), 0, 0))).encode() for i in range(1, 9)
@@ -485,8 +486,9 @@ def test_9_frames_named_only_in_the_body_are_served_in_arrival_order():
 
 
 def post_in_order(port: int, bodies: list[bytes], gap_s: float) -> list[tuple[int, dict]]:
-    """Each body on its own connection, the requests' first bytes sent in order `gap_s` apart (each request's rest
-    is sent by its own thread, so a large body does not delay the next request's start)."""
+    """Each body on its own connection, the requests' first bytes sent in order `gap_s` apart; each request's rest is
+    sent by its own thread in 10 pieces 5 ms apart (a large body over a slower link: ~50 ms, far above the minimum
+    rate), so a later small body arrives whole before an earlier large one."""
     sockets = [connect(port) for _ in bodies]
     started = [threading.Event() for _ in bodies]
     t0 = time.monotonic() + 0.05
@@ -498,7 +500,11 @@ def post_in_order(port: int, bodies: list[bytes], gap_s: float) -> list[tuple[in
         time.sleep(max(0.0, t0 + k * gap_s - time.monotonic()))
         sockets[k].sendall(head + body[:1000])
         started[k].set()
-        sockets[k].sendall(body[1000:])
+        rest = body[1000:]
+        step = max(1, -(-len(rest) // 10))
+        for offset in range(0, len(rest), step):
+            time.sleep(0.005)
+            sockets[k].sendall(rest[offset : offset + step])
         return read_answer(sockets[k])
 
     try:
