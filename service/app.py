@@ -3,8 +3,10 @@
 The model is loaded in the lifespan, in a background task, never at import: /health/live answers at
 once, /health/ready (and every model route) answers 503 until the model is loaded and warmed up.
 The interactive API pages (/docs, /redoc) load their assets from this process (/static-offline-docs/), not from
-the internet. Middleware, outermost first: metrics (counts every answer, 401s and 413s included), API keys (401 before
-anything is read), the body size limit (413), then the routes.
+the internet. Middleware, outermost first: metrics (counts every answer, 401s and 413s included), intake (arrival
+stamp, the per-client request limit and the minimum body rate: service/intake.py), API keys (401 before anything is
+read), the body size limit (413), then the routes. The HTTP server limits each request head before any of them
+(service/protocol.py, run by service/server.py).
 """
 
 from __future__ import annotations
@@ -24,6 +26,7 @@ from rafd import __version__
 from service.auth import OPEN_PATHS, ApiKeyMiddleware, load_api_keys
 from service.detector import DetectService, Executors
 from service.errors import ERRORS, error_responses, expand_codes, install_error_handlers
+from service.intake import IntakeMiddleware
 from service.limits import BodySizeLimitMiddleware
 from service.live import LiveView
 from service.loading import check_buffer_length, open_runner, warm_up
@@ -41,7 +44,20 @@ ANY_ROUTE_ERRORS = (
     'Every error is `{"error": {"code", "message"}}`. Besides each route\'s own errors, any route may answer: '
     + "; ".join(
         f"{ERRORS[code].status} `{code}`: {ERRORS[code].meaning}"
-        for code in expand_codes(("unauthorized", "not_found", "method_not_allowed", "request_too_large", "http_error"))
+        for code in expand_codes(
+            (
+                "unauthorized",
+                "not_found",
+                "method_not_allowed",
+                "request_header_timeout",
+                "body_too_slow",
+                "request_too_large",
+                "request_line_too_long",
+                "too_many_client_requests",
+                "request_header_too_large",
+                "http_error",
+            )
+        )
     )
     + "."
 )
@@ -75,6 +91,8 @@ def create_app(
                 on_evict=lambda reason: service_metrics.evictions.labels(reason=reason).inc(),
                 queue_limit=settings.stream_queue_limit,
                 retry_after_s=settings.retry_after_s,
+                max_streams_per_key=streams_per_key(settings, api_keys.count),
+                on_restart=lambda reason: service_metrics.restarts.labels(reason=reason).inc(),
             )
             service_metrics.track_active_streams(lambda: len(store))
             app.state.service = DetectService(
@@ -122,13 +140,27 @@ def create_app(
     for router in (detect.router, streams.router, health.router, metrics.router):
         app.include_router(router)
     app.include_router(model.router, responses=error_responses("unauthorized", "not_ready"))
-    # Last added = outermost: metrics also count the 401s and 413s answered before the routes.
+    # Last added = outermost: metrics also count the 401s, 413s and 429s answered before the routes.
     app.add_middleware(BodySizeLimitMiddleware, max_bytes=settings.max_request_bytes)
     app.add_middleware(ApiKeyMiddleware, keys=api_keys)
+    app.add_middleware(
+        IntakeMiddleware,
+        max_per_client=settings.max_requests_per_client,
+        min_rate=settings.min_body_bytes_per_s,
+        grace_s=settings.body_rate_grace_s,
+        retry_after_s=settings.retry_after_s,
+    )
     app.add_middleware(MetricsMiddleware, metrics=service_metrics)
     if api_keys.enabled:
         _document_api_keys(app)
     return app
+
+
+def streams_per_key(settings: Settings, keys: int) -> int:
+    """RAFD_MAX_STREAMS_PER_KEY, or an equal share of RAFD_MAX_STREAMS per configured key (all of it without keys)."""
+    if keys == 0:
+        return settings.max_streams
+    return settings.max_streams_per_key or max(1, settings.max_streams // keys)
 
 
 def _document_api_keys(app: FastAPI) -> None:

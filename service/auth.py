@@ -2,10 +2,10 @@
 
 Keys come from RAFD_API_KEYS (comma-separated) and/or the file RAFD_API_KEYS_FILE (one per line, # comments),
 each "KEY" or "NAME:KEY"; the name (default: "key-" + 8 hex digits of the key's sha256) is what logs and stream
-ownership use, so the key itself is never stored or echoed. A request presents its key as `X-API-Key: KEY` or
+namespaces use, so the key itself is never stored or echoed. A request presents its key as `X-API-Key: KEY` or
 `Authorization: Bearer KEY`; it is compared with every configured key in constant time (hmac.compare_digest of
-sha256 digests, no early exit). A stream belongs to the key that created it: other keys get 403 on it and do not
-see it in GET /streams.
+sha256 digests, no early exit). Each key has its own stream namespace (service/streams.py): another key's `car-7` is
+another stream, and nothing tells a key whether another key's id exists.
 """
 
 from __future__ import annotations
@@ -40,6 +40,10 @@ class ApiKeys:
     @property
     def enabled(self) -> bool:
         return bool(self.keys)
+
+    @property
+    def count(self) -> int:
+        return len(self.keys)
 
     def identify(self, presented: str | None) -> str | None:
         """The name of the key presented, or None; the same work whichever key (if any) matches."""

@@ -66,9 +66,8 @@ def main(argv: list[str] | None = None) -> int:
         print(f"rafd-serve: {wrong_kind}", file=sys.stderr)
         return 2
 
-    import uvicorn
-
     from service.app import create_app
+    from service.server import serve
 
     logging.basicConfig(level=args.log_level.upper(), format="%(asctime)s %(levelname)s %(name)s: %(message)s")
     try:
@@ -76,7 +75,7 @@ def main(argv: list[str] | None = None) -> int:
     except ValueError as exc:  # e.g. a malformed API key or an unreadable RAFD_API_KEYS_FILE
         print(f"rafd-serve: {exc}", file=sys.stderr)
         return 2
-    uvicorn.run(app, host=args.host, port=args.port, log_level=args.log_level)
+    serve(app, settings, host=args.host, port=args.port, log_level=args.log_level)
     return 0
 
 

@@ -1,9 +1,11 @@
 """The detect pipeline, in arrival order per stream, every stage bounded:
 
-    admit (in-flight limit) -> [ticket: X-Stream-Id / path form] -> body parsed (a multipart PNG's chunk headers
-    checked as it streams in) -> [ticket: body form] -> placed (409 at once if out of order) -> PNG chunk check
-    (event loop, headers only) -> decode executor -> wait for the stream's turn -> pose (odometry executor) ->
-    runner step (model executor) -> commit -> boxes and flow.
+    receiving pool -> [ticket by arrival: X-Stream-Id / path form] -> body received (at the minimum rate,
+    service/intake.py; a multipart PNG's chunk headers checked as it streams in) and parsed (JSON: parse executor)
+    -> in-flight limit (only now: a slow body never holds a slot the model needs) -> [ticket by arrival: body form]
+    -> placed (409 at once if out of order) -> PNG chunk check (event loop, headers only) -> decode executor ->
+    hold for the same client's earlier frames still being parsed (service/ordering.py) -> wait for the stream's turn
+    -> pose (odometry executor) -> runner step (model executor) -> commit -> boxes and flow.
 
 A refused or failed frame changes no stream; a frame whose client left before its turn is dropped (499).
 """
@@ -28,11 +30,13 @@ from service import poses
 from service.errors import ApiError
 from service.executors import AdmissionLimit, BoundedExecutor
 from service.images import DecodedFrame, accepted_sizes, check_posted_image, decode_frame, upload_check
+from service.intake import arrival_of, client_of
 from service.metrics import ServiceMetrics
-from service.requests import parse_detect_request
-from service.schemas import DetectFields
+from service.ordering import ArrivalOrder, Unresolved
+from service.requests import StructureCount, parse_detect_request, parse_json_body
+from service.schemas import DetectBody, DetectFields
 from service.settings import Settings
-from service.streams import StreamStore
+from service.streams import StreamStore, Ticket
 
 if TYPE_CHECKING:
     from rafd.runtime.streaming import Runner
@@ -58,6 +62,7 @@ class DetectOptions:
 class Executors:
     """One bounded executor per stage, so a slow stage never queues the others' work (or health checks)."""
 
+    parse: BoundedExecutor
     decode: BoundedExecutor
     odometry: BoundedExecutor
     model: BoundedExecutor
@@ -72,13 +77,14 @@ class Executors:
             return executor
 
         return cls(
+            parse=make("parse", settings.parse_workers, settings.parse_queue_limit),
             decode=make("decode", settings.decode_workers, settings.decode_queue_limit),
             odometry=make("odometry", settings.odometry_workers, settings.odometry_queue_limit),
             model=make("model", settings.concurrent_runs, settings.model_queue_limit),
         )
 
     def shutdown(self) -> None:
-        for executor in (self.decode, self.odometry, self.model):
+        for executor in (self.parse, self.decode, self.odometry, self.model):
             executor.shutdown()
 
 
@@ -100,7 +106,11 @@ class DetectService:
         self.store = store
         self.metrics = metrics
         self.executors = executors or Executors.from_settings(settings, metrics)
+        self.receiving = AdmissionLimit(
+            settings.max_receiving_requests, settings.retry_after_s, "receiving their body", "MAX_RECEIVING_REQUESTS"
+        )
         self.admission = AdmissionLimit(settings.max_inflight_requests, settings.retry_after_s)
+        self.order = ArrivalOrder(settings.order_hold_s)
         self._odometry = odometry
         # RAFD_SCORE_THRESHOLD when set, else the model's documented operating threshold (rafd.protocol)
         self.score_threshold = operating_threshold(runner.metadata, settings.score_threshold)
@@ -122,18 +132,32 @@ class DetectService:
         """One frame of one stream -> the JSON answer; the stream changes only when everything succeeded.
 
         `stream_hint`: the stream id from the X-Stream-Id header or the path (None: from the body); with it the
-        frame's place in the stream's queue is taken before the body is read. `caller`: the API key's name.
+        frame's place in the stream's queue is taken before the body is read. `caller`: the API key's name (the
+        stream's namespace).
         """
         start = time.perf_counter()
-        self.admission.enter()
-        ticket = None
+        arrival, client = arrival_of(request.scope), client_of(request.scope)
+        ticket: Ticket | None = None
+        unresolved: Unresolved | None = None
+        receiving = admitted = False
+        self.receiving.enter()
+        receiving = True
         try:
             if stream_hint is not None:
-                ticket = self.store.take_ticket(stream_hint, caller)
+                ticket = self.store.take_ticket(stream_hint, caller, arrival)
+            else:  # the same client's later frames hold their turn while this body arrives and is parsed
+                unresolved = self.order.arrive(client, arrival)
             size, resolution = self.config.input_size, self.config.resolution
             fields, image = await self._read(request, stream_hint, lambda: upload_check(size, resolution))
+            self.receiving.leave()
+            receiving = False
+            self.admission.enter()  # the in-flight limit: only once the body has arrived
+            admitted = True
             if ticket is None:
-                ticket = self.store.take_ticket(fields.stream_id, caller)
+                ticket = self.store.take_ticket(fields.stream_id, caller, arrival)
+            if unresolved is not None:  # placed: frames that arrived after it now queue behind it
+                self.order.resolve(unresolved)
+                unresolved = None
             self.store.place(ticket, fields.timestamp)
             read_at = time.perf_counter()
             check_posted_image(image, size, resolution)  # chunk headers only: hostile files never take a slot
@@ -141,6 +165,7 @@ class DetectService:
             frame = decoded.model_input()  # [S, S] float32 in [0, 1]
             decoded_at = time.perf_counter()
 
+            await self.order.wait_for_earlier(client, arrival)
             await self.store.wait_turn(ticket)
             if await request.is_disconnected():
                 raise ClientDisconnect()  # nobody to answer: the frame is dropped before it changes the stream
@@ -168,13 +193,20 @@ class DetectService:
             previous_timestamp = entry.last_timestamp
             self.store.commit(ticket, new_state, fields.timestamp, decoded.odometry_view, pose, source)
         finally:
+            if unresolved is not None:
+                self.order.resolve(unresolved)
             if ticket is not None:
                 self.store.release(ticket)
-            self.admission.leave()
+            if receiving:
+                self.receiving.leave()
+            if admitted:
+                self.admission.leave()
 
         self.metrics.frames.inc()
         self.metrics.model_latency.observe(model_done - odometry_done)
         answer = self._answer(fields, decoded, result, pose, source, previous_timestamp, options)
+        if ticket.restarted is not None:  # the first answer of a chain the service restarted says why
+            answer["stream_restarted"] = ticket.restarted
         done = time.perf_counter()
         answer["timing"] = {
             "read_ms": _ms(read_at - start),
@@ -191,7 +223,7 @@ class DetectService:
 
     async def _read(self, request: Request, stream_hint: str | None, check: Any) -> tuple[DetectFields, Any]:
         """The parsed body, within RAFD_BODY_TIMEOUT_S: a slow body must not hold its stream's place forever."""
-        parse = parse_detect_request(request, stream_hint, check)
+        parse = parse_detect_request(request, stream_hint, check, self._parse_json)
         try:
             if not hasattr(asyncio, "timeout"):  # Python 3.10
                 return await asyncio.wait_for(parse, self.settings.body_timeout_s)
@@ -204,6 +236,10 @@ class DetectService:
                 "body_timeout",
                 f"the request body did not arrive within {self.settings.body_timeout_s} s (RAFD_BODY_TIMEOUT_S)",
             ) from exc
+
+    async def _parse_json(self, raw: bytes, counted: StructureCount) -> tuple[DetectBody, str]:
+        """A JSON body (its structure counted as it arrived) parsed and validated on the parse executor."""
+        return await self.executors.parse.run(parse_json_body, raw, counted)
 
     # ------------------------------------------------------------------ post-processing
     def _answer(

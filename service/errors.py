@@ -44,12 +44,21 @@ ERRORS: Mapping[str, ErrorCode] = {
     "invalid_multipart": ErrorCode(400, "the multipart/form-data body cannot be parsed (boundary, part headers)"),
     "missing_api_key": ErrorCode(401, "API keys are configured and the request carries none"),
     "invalid_api_key": ErrorCode(401, "API keys are configured and the request's key is not one of them"),
-    "stream_forbidden": ErrorCode(403, "the stream was created with another API key"),
     "not_found": ErrorCode(404, "no such route"),
-    "stream_not_found": ErrorCode(404, "no such stream (never seen, deleted or expired)"),
+    "stream_not_found": ErrorCode(
+        404, "no such stream of this API key (never seen, deleted or expired; no frame of it accepted or in flight)"
+    ),
     "method_not_allowed": ErrorCode(405, "the route does not take this HTTP method"),
     "body_timeout": ErrorCode(
         408, "the body did not arrive within RAFD_BODY_TIMEOUT_S (its frame held its stream's place meanwhile)"
+    ),
+    "body_too_slow": ErrorCode(
+        408,
+        "after its first RAFD_BODY_RATE_GRACE_S seconds the body arrived slower than RAFD_MIN_BODY_BYTES_PER_S "
+        "bytes per second on average",
+    ),
+    "request_header_timeout": ErrorCode(
+        408, "the request line and headers did not arrive within RAFD_HEADER_TIMEOUT_S (the connection is closed)"
     ),
     "timestamp_not_increasing": ErrorCode(
         409,
@@ -63,6 +72,9 @@ ERRORS: Mapping[str, ErrorCode] = {
         "chain and was not used: send it again to start the new chain",
     ),
     "request_too_large": ErrorCode(413, "the body exceeds RAFD_MAX_REQUEST_BYTES"),
+    "request_line_too_long": ErrorCode(
+        414, "the request line exceeds RAFD_MAX_REQUEST_LINE_BYTES (the connection is closed)"
+    ),
     "unsupported_media_type": ErrorCode(415, "Content-Type is neither application/json nor multipart/form-data"),
     "validation_error": ErrorCode(
         422,
@@ -80,13 +92,21 @@ ERRORS: Mapping[str, ErrorCode] = {
     "unsupported_image_size": ErrorCode(422, "the PNG is not one of the accepted square sizes"),
     "unsupported_image_format": ErrorCode(422, "the PNG is not 8-bit greyscale (colour type 0, bit depth 8)"),
     "stream_queue_full": ErrorCode(429, "RAFD_STREAM_QUEUE_LIMIT frames of this stream are already queued"),
+    "too_many_client_requests": ErrorCode(
+        429, "RAFD_MAX_REQUESTS_PER_CLIENT requests of this client (by address) are already unfinished"
+    ),
+    "request_header_too_large": ErrorCode(
+        431,
+        "more than RAFD_MAX_HEADERS header fields or more than RAFD_MAX_HEADER_BYTES bytes of them (the connection "
+        "is closed)",
+    ),
     "internal_error": ErrorCode(500, "the model or the service failed; no stream changed"),
     "odometry_failed": ErrorCode(500, "odometry returned no finite ego motion; no stream changed"),
     "not_ready": ErrorCode(503, "the model is loading or warming up, or failed to load"),
     "overloaded": ErrorCode(
         503,
-        "too many requests in flight, or the decode / odometry / model queue is full; retry after the "
-        "Retry-After header's seconds",
+        "too many requests receiving their body or in flight, or the parse / decode / odometry / model queue is "
+        "full; retry after the Retry-After header's seconds",
     ),
     "odometry_unavailable": ErrorCode(503, "this build cannot estimate ego motion: send a pose with every frame"),
     "http_error": ErrorCode(400, "any other refusal by the HTTP framework (not expected)"),
@@ -165,18 +185,44 @@ def error_responses(*codes: str) -> dict[int | str, dict[str, Any]]:
     }
 
 
-# Refusals of the request's content that a flood repeats (service/penalty.py slows their answers).
+# Refusals of what a client sent that a flood repeats (service/penalty.py slows their answers): the body, its
+# fields and image, its rate, and the client's own request limit. Never the refusals a well-behaved client can meet
+# (409 ordering, 503 overload, 404 after an expiry).
 PENALISED_CODES = frozenset(
-    {"invalid_image", "request_too_large", "unsupported_image_size", "unsupported_image_format"}
+    {
+        "empty_body",
+        "invalid_json",
+        "invalid_multipart",
+        "body_timeout",
+        "body_too_slow",
+        "request_too_large",
+        "unsupported_media_type",
+        "validation_error",
+        "stream_id_mismatch",
+        "invalid_image",
+        "unsupported_image_size",
+        "unsupported_image_format",
+        "too_many_client_requests",
+    }
 )
 
 
-async def _api_error(request: Request, exc: ApiError) -> JSONResponse:
-    penalty = getattr(request.app.state, "refusal_penalty", None)
-    if penalty is not None and exc.code in PENALISED_CODES:
-        delay = penalty.record(request.client.host if request.client else "unknown")
+async def penalise(app: Any, client: str) -> None:
+    """Count one penalised refusal of `client` and wait out its penalty, if any (service/penalty.py)."""
+    penalty = getattr(app.state, "refusal_penalty", None)
+    if penalty is not None:
+        delay = penalty.record(client)
         if delay:
             await asyncio.sleep(delay)
+
+
+def client_host(request: Request) -> str:
+    return request.client.host if request.client else "unknown"
+
+
+async def _api_error(request: Request, exc: ApiError) -> JSONResponse:
+    if exc.code in PENALISED_CODES:
+        await penalise(request.app, client_host(request))
     return error_response(exc.status, exc.code, exc.message, exc.headers)
 
 
@@ -189,6 +235,7 @@ async def _http_error(request: Request, exc: StarletteHTTPException) -> JSONResp
 
 
 async def _validation_error(request: Request, exc: RequestValidationError) -> JSONResponse:
+    await penalise(request.app, client_host(request))
     return error_response(422, "validation_error", format_validation_errors(list(exc.errors())))
 
 

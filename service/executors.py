@@ -1,4 +1,4 @@
-"""Bounded executors: decoding, odometry and the model each get their own threads and their own queue limit.
+"""Bounded executors: JSON parsing, decoding, odometry and the model each get their own threads and queue limit.
 
 Why: with one shared thread pool, 45 slow decodes in flight made /health/ready take 19 s and a normal /detect up to
 67 s. Here a job waits only behind jobs of its own kind, a full queue answers 503 `overloaded` with Retry-After
@@ -78,19 +78,22 @@ class BoundedExecutor:
 
 
 class AdmissionLimit:
-    """At most `limit` /detect requests in flight (each may hold a body of up to RAFD_MAX_REQUEST_BYTES)."""
+    """At most `limit` /detect requests at once in one stage: receiving their body (RAFD_MAX_RECEIVING_REQUESTS), or
+    with their body arrived (RAFD_MAX_INFLIGHT_REQUESTS; each holds a body of up to RAFD_MAX_REQUEST_BYTES)."""
 
-    def __init__(self, limit: int, retry_after_s: int) -> None:
+    def __init__(self, limit: int, retry_after_s: int, what: str = "in flight", setting: str = "MAX_INFLIGHT_REQUESTS"):
         self.limit = limit
         self.retry_after_s = retry_after_s
+        self.what = what
+        self.setting = setting
         self.in_flight = 0  # event loop only
 
     def enter(self) -> None:
         if self.in_flight >= self.limit:
             raise ApiError(
                 "overloaded",
-                f"{self.limit} detect requests are already in flight "
-                f"(RAFD_MAX_INFLIGHT_REQUESTS); retry after {self.retry_after_s} s",
+                f"{self.limit} detect requests are already {self.what} "
+                f"(RAFD_{self.setting}); retry after {self.retry_after_s} s",
                 headers={"Retry-After": str(self.retry_after_s)},
             )
         self.in_flight += 1

@@ -15,6 +15,7 @@ runs the same rules on a multipart upload while it streams in.
 from __future__ import annotations
 
 import binascii
+import logging
 from collections.abc import Callable
 from dataclasses import dataclass
 
@@ -28,6 +29,8 @@ from rafd.polar import RADIATE_AZIMUTHS, RADIATE_RANGE_BINS
 from rafd.preprocess import model_crop, polar_to_cartesian, to_model_input
 from service import png
 from service.errors import ApiError
+
+log = logging.getLogger(__name__)
 
 # Odometry registers this much of the posted scan around the radar (89 m at RADIATE's resolution):
 # on the model's small crop alone the static scene is too sparse and registration sometimes locks
@@ -147,12 +150,23 @@ def upload_check(input_size: int, resolution: float) -> Callable[[bytes], None]:
 
 def decode_frame(image: PostedImage, input_size: int, resolution: float) -> DecodedFrame:
     """A posted PNG (bytes, or base64 text; Cartesian or polar) -> the model's [S, S] uint8 crop; 422 naming what
-    was expected."""
+    was expected. No input gives anything else: a failure of the decoding libraries on a posted file is that file's
+    fault (422 `invalid_image`, logged as a warning), never a 500."""
+    try:
+        return _decode_frame(image, input_size, resolution)
+    except ApiError:
+        raise
+    except Exception as exc:
+        log.warning("decoding a posted image failed: %s: %s", type(exc).__name__, exc)
+        raise ApiError("invalid_image", f"the image could not be decoded ({type(exc).__name__})") from exc
+
+
+def _decode_frame(image: PostedImage, input_size: int, resolution: float) -> DecodedFrame:
     layout = check_posted_image(image, input_size, resolution)
     if isinstance(image, str):
         try:
             data = png.a2b_base64_strict(strip_data_url(image))
-        except binascii.Error as exc:
+        except (binascii.Error, ValueError) as exc:
             raise ApiError("invalid_image", f"field 'image' is not valid base64: {exc}") from exc
     else:
         data = image

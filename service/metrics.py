@@ -2,15 +2,21 @@
 
 Every label comes from a closed set: the route TEMPLATE (never the raw path: stream ids would explode it) or
 "unmatched", a known HTTP method or "other" (a client can send any token as a method), a status the service
-answers or "other". So no request, however made up, adds a series.
+answers or "other". So no request, however made up, adds a series. Every route is counted under its own template,
+also the documentation's (/docs, /redoc, /openapi.json: plain Starlette routes, which FastAPI does not mark in the
+scope) and also when a middleware answered before routing (401, 429, 413); "unmatched" is a path no route has.
+Heads refused by the HTTP server before the app (414, 431, 408: service/protocol.py) count as "unmatched", "other".
 """
 
 from __future__ import annotations
 
+import re
 import time
 from collections.abc import Callable
+from typing import Any
 
 from prometheus_client import CollectorRegistry, Counter, Gauge, Histogram
+from starlette.routing import Mount, Route, compile_path
 from starlette.types import ASGIApp, Message, Receive, Scope, Send
 
 from service.errors import CLIENT_CLOSED_REQUEST, ERRORS
@@ -18,7 +24,8 @@ from service.errors import CLIENT_CLOSED_REQUEST, ERRORS
 LATENCY_BUCKETS = (0.005, 0.01, 0.025, 0.05, 0.1, 0.25, 0.5, 1.0, 2.5, 5.0, 10.0)
 METHODS = frozenset({"GET", "HEAD", "POST", "PUT", "DELETE", "OPTIONS", "PATCH"})
 STATUSES = frozenset({200, 204, CLIENT_CLOSED_REQUEST} | {error.status for error in ERRORS.values()})
-EXECUTORS = ("decode", "odometry", "model")
+EXECUTORS = ("parse", "decode", "odometry", "model")
+RESTART_REASONS = ("evicted", "expired")
 
 
 def method_label(method: str) -> str:
@@ -27,6 +34,38 @@ def method_label(method: str) -> str:
 
 def status_label(status: int) -> str:
     return str(status) if status in STATUSES else "other"
+
+
+class RouteLabels:
+    """Route templates for requests FastAPI did not mark with their route: its documentation's plain routes, and any
+    route when a middleware answered before routing. Built once, from the app's plain routes and the OpenAPI
+    document's path templates (public interfaces only: FastAPI's own route objects change between versions)."""
+
+    def __init__(self) -> None:
+        self._table: list[tuple[re.Pattern[str], str]] | None = None
+
+    def label(self, scope: Scope) -> str:
+        path = getattr(scope.get("route"), "path", None)
+        if path:
+            return str(path)
+        app = scope.get("app")
+        if app is None:
+            return "unmatched"
+        if self._table is None:
+            self._table = self._build(app)
+        route_path = scope["path"][len(scope.get("root_path", "")) :] if scope.get("root_path") else scope["path"]
+        for regex, template in self._table:
+            if regex.match(route_path):
+                return template
+        return "unmatched"
+
+    @staticmethod
+    def _build(app: Any) -> list[tuple[re.Pattern[str], str]]:
+        table = [(route.path_regex, route.path) for route in app.router.routes if isinstance(route, (Route, Mount))]
+        openapi = getattr(app, "openapi", None)
+        for template in openapi()["paths"] if callable(openapi) else ():
+            table.append((compile_path(template)[0], template))
+        return table
 
 
 class ServiceMetrics:
@@ -71,8 +110,17 @@ class ServiceMetrics:
             ["executor"],
             registry=self.registry,
         )
+        self.restarts = Counter(
+            "rafd_stream_restarts",
+            "frames answered with stream_restarted: the first accepted frame of a stream id whose previous chain the "
+            "service ended, by reason (evicted or expired)",
+            ["reason"],
+            registry=self.registry,
+        )
         for reason in ("ttl", "lru"):
             self.evictions.labels(reason=reason)  # export zeros so dashboards see the series from the start
+        for reason in RESTART_REASONS:
+            self.restarts.labels(reason=reason)
         for executor in EXECUTORS:
             self.refused.labels(executor=executor)
 
@@ -86,6 +134,12 @@ class ServiceMetrics:
     def executor_refused(self, name: str) -> None:
         self.refused.labels(executor=name).inc()
 
+    def refused_before_app(self, status: int) -> None:
+        """A request head the HTTP server refused (service/protocol.py): no route, no method known to count."""
+        code = status_label(status)
+        self.requests.labels(route="unmatched", method="other", code=code).inc()
+        self.errors.labels(route="unmatched", code=code).inc()
+
 
 class MetricsMiddleware:
     """Counts every HTTP request by its route template, method and status, all from closed sets."""
@@ -93,6 +147,7 @@ class MetricsMiddleware:
     def __init__(self, app: ASGIApp, metrics: ServiceMetrics) -> None:
         self.app = app
         self.metrics = metrics
+        self.routes = RouteLabels()
 
     async def __call__(self, scope: Scope, receive: Receive, send: Send) -> None:
         if scope["type"] != "http":
@@ -110,8 +165,7 @@ class MetricsMiddleware:
         try:
             await self.app(scope, receive, send_wrapper)
         finally:
-            route = scope.get("route")
-            path = getattr(route, "path", None) or "unmatched"
+            path = self.routes.label(scope)
             code = status_label(status)
             self.metrics.requests.labels(route=path, method=method_label(scope["method"]), code=code).inc()
             if status >= 400:

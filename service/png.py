@@ -39,6 +39,8 @@ if sys.version_info >= (3, 11):
 
     def a2b_base64_strict(text: str) -> bytes:
         """Base64 text -> bytes; binascii.Error unless it is the alphabet only, padded at the end only."""
+        if not text.isascii():  # a2b_base64 raises ValueError, not binascii.Error, on other characters
+            raise binascii.Error("only A-Z, a-z, 0-9, + and / (ASCII), '=' padding only at the end")
         return binascii.a2b_base64(text, strict_mode=True)
 
 else:  # Python 3.10's a2b_base64 has no strict_mode (it skips stray characters): the same rules as a pattern
@@ -46,7 +48,7 @@ else:  # Python 3.10's a2b_base64 has no strict_mode (it skips stray characters)
 
     def a2b_base64_strict(text: str) -> bytes:
         """Base64 text -> bytes; binascii.Error unless it is the alphabet only, padded at the end only."""
-        if _STRICT_BASE64.fullmatch(text) is None:
+        if not text.isascii() or _STRICT_BASE64.fullmatch(text) is None:
             raise binascii.Error("only A-Z, a-z, 0-9, + and / in groups of 4, '=' padding only at the end")
         return binascii.a2b_base64(text)
 
@@ -91,7 +93,7 @@ class Base64Bytes:
         start, stop = offset // 3 * 4, -(-(offset + size) // 3) * 4
         try:
             block = a2b_base64_strict(self.text[start:stop])
-        except binascii.Error as exc:
+        except (binascii.Error, ValueError) as exc:
             raise ApiError("invalid_image", f"field 'image' is not valid base64: {exc}") from exc
         return block[offset % 3 : offset % 3 + size]
 

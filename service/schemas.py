@@ -11,16 +11,17 @@ from typing import Annotated, Any, Literal
 
 from pydantic import BaseModel, ConfigDict, Field
 
-# URL-path-safe, printable, no whitespace: the id also appears in DELETE /streams/{stream_id}.
-STREAM_ID_PATTERN = r"^[A-Za-z0-9._~:@+\-]{1,128}$"
+# URL-path-safe, printable, no whitespace: the id also appears in DELETE /streams/{stream_id}; and neither "." nor
+# "..", which a normalising proxy rewrites as path segments (`/streams/../detect` would become `/detect`).
+STREAM_ID_PATTERN = (
+    r"^(?:[A-Za-z0-9_~:@+\-][A-Za-z0-9._~:@+\-]{0,127}"
+    r"|\.[A-Za-z0-9_~:@+\-][A-Za-z0-9._~:@+\-]{0,126}"
+    r"|\.\.[A-Za-z0-9._~:@+\-]{1,126})$"
+)
+STREAM_ID_RULE = '1-128 characters from A-Z a-z 0-9 . _ ~ : @ + -, and not "." or ".."'
 StreamId = Annotated[
     str,
-    Field(
-        min_length=1,
-        max_length=128,
-        pattern=STREAM_ID_PATTERN,
-        description="1-128 characters from A-Z a-z 0-9 . _ ~ : @ + -",
-    ),
+    Field(min_length=1, max_length=128, pattern=STREAM_ID_PATTERN, description=STREAM_ID_RULE),
 ]
 
 # No coercion: a JSON timestamp is a number (an integer is a number), never "1.5" or true.
@@ -136,6 +137,12 @@ class DetectResponse(Answer):
     frames_used: int
     num_frames: int
     warming_up: bool = Field(description="true while fewer than num_frames frames are buffered")
+    stream_restarted: Literal["evicted", "expired"] | None = Field(
+        default=None,
+        description="present only on the first answer of a chain that the service restarted: the stream id's "
+        "previous chain was evicted (its key's quota or the store's cap) or expired (idle past RAFD_STREAM_TTL_S); "
+        "frames_used starts again at 1",
+    )
     pose_source: Literal["request", "odometry"]
     pose: Pose
     boxes: list[BoxOut]
@@ -162,6 +169,7 @@ class StreamOut(Answer):
 class StreamsResponse(Answer):
     count: int = Field(description="streams listed (with API keys: the caller's own)")
     max_streams: int
+    max_streams_per_key: int = Field(description="the most streams one API key holds (its own LRU beyond)")
     ttl_s: float
     streams: list[StreamOut]
 

@@ -75,22 +75,58 @@ class Settings(BaseSettings):
     # Answered frames waiting to be published to the live view; beyond it a frame is dropped (counted), never waited
     # for.
     foxglove_queue_frames: int = Field(default=32, ge=1)
-    # Live streams held at once; beyond it the least recently used stream is evicted.
+    # Live streams held at once (streams with an accepted frame; a stream whose frames were all refused or are still
+    # in flight counts toward no cap). A key over its quota or over this cap evicts its OWN least recently used
+    # idle stream, never another key's.
     max_streams: int = Field(default=256, ge=1)
+    # Live streams of one API key (its namespace: with keys, A's `car-7` and B's `car-7` are different streams).
+    # None: max_streams // the number of keys configured (all of max_streams without keys), so that no key can take
+    # another's room.
+    max_streams_per_key: int | None = Field(default=None, ge=1)
     # A stream idle for longer than this is forgotten (its next frame starts a new buffer).
     stream_ttl_s: float = Field(default=300.0, gt=0)
-    # Request bodies above this many bytes get 413 (a base64 1152x1152 RADIATE PNG is ~1-2 MB).
-    max_request_bytes: int = Field(default=8 * 1024 * 1024, ge=1024)
-    # /detect requests in flight at once (each may hold a body of max_request_bytes); beyond it 503 + Retry-After
-    # before the body is read.
+    # Request bodies above this many bytes get 413. A 1152 px RADIATE scan is ~0.65 MB as a PNG (~0.9 MB in base64);
+    # the worst a valid one can be (incompressible pixels, 64 KiB of ancillary chunks) is 1.40 MB, 1.87 MB in base64:
+    # 2.5 MiB leaves 40% headroom over that.
+    max_request_bytes: int = Field(default=5 * 512 * 1024, ge=1024)
+    # /detect requests whose body has arrived, running at once (each holds a body of up to max_request_bytes);
+    # beyond it 503 + Retry-After. A request counts here only once its body has arrived: a slow body never holds a
+    # slot the model needs.
     max_inflight_requests: int = Field(default=64, ge=1)
+    # /detect requests receiving their body at once (their own pool, apart from max_inflight_requests); beyond it 503
+    # + Retry-After before the body is read.
+    max_receiving_requests: int = Field(default=64, ge=1)
+    # Unfinished requests of one client (by address; behind a trusted proxy, its X-Forwarded-For) at once, on every
+    # route but the health probes; beyond it 429 `too_many_client_requests` before anything else is read.
+    max_requests_per_client: int = Field(default=16, ge=1)
     # Frames of one stream queued at once (they run in arrival order); beyond it 429 + Retry-After.
     stream_queue_limit: int = Field(default=8, ge=1)
     # Seconds a request's body may take to arrive (a frame holds its stream's place while it does); beyond it 408.
     body_timeout_s: float = Field(default=30.0, gt=0)
+    # Slowest body accepted: after its first body_rate_grace_s seconds, a body must have kept up this many bytes per
+    # second on average since its request arrived, else 408 `body_too_slow` (counted by the refusal penalty).
+    # 0 turns the rate check off (body_timeout_s still applies).
+    min_body_bytes_per_s: int = Field(default=64 * 1024, ge=0)
+    body_rate_grace_s: float = Field(default=1.0, ge=0)
+    # Limits on a request's head, enforced by the HTTP server before anything reaches the app (service/protocol.py):
+    # the request line (414 beyond), the number of header fields and their total size (431 beyond), and the time the
+    # head may take from the connection's first byte (or, on a kept-alive connection, the request's first byte;
+    # 408 `request_header_timeout` beyond).
+    max_request_line_bytes: int = Field(default=8 * 1024, ge=256)
+    max_headers: int = Field(default=100, ge=8)
+    max_header_bytes: int = Field(default=32 * 1024, ge=1024)
+    header_timeout_s: float = Field(default=10.0, gt=0)
+    # A frame named only in its body is placed in its stream by its arrival; a frame of the same client that arrived
+    # after it waits, at most this many seconds, before its turn while that body is still being read and parsed.
+    order_hold_s: float = Field(default=0.5, ge=0)
+    # On SIGTERM, seconds the server waits for requests in progress before it drops them and exits.
+    shutdown_timeout_s: float = Field(default=10.0, ge=0)
     # Each stage runs on its own threads with its own queue limit (jobs waiting beyond the running ones); a full
     # queue answers 503 + Retry-After at once. The model stage runs `concurrent_runs` steps at once (the runner shares
     # the threads out among them).
+    # JSON bodies are parsed on the parse executor (off the event loop), after a bounded structural check.
+    parse_workers: int = Field(default=1, ge=1)
+    parse_queue_limit: int = Field(default=16, ge=0)
     decode_workers: int = Field(default=1, ge=1)
     decode_queue_limit: int = Field(default=16, ge=0)
     odometry_workers: int = Field(default=1, ge=1)
@@ -98,8 +134,9 @@ class Settings(BaseSettings):
     model_queue_limit: int = Field(default=16, ge=0)
     # Seconds a 503 / 429 asks the client to wait (the Retry-After header).
     retry_after_s: int = Field(default=1, ge=1)
-    # A client refused more than REFUSAL_PENALTY_AFTER times within a second (invalid or oversized images) gets each
-    # further refusal only after REFUSAL_PENALTY_S seconds (service/penalty.py); 0 turns this off.
+    # A client refused more than REFUSAL_PENALTY_AFTER times within a second (invalid or oversized bodies and images,
+    # refused fields, slow bodies, its own request limit: service/errors.py PENALISED_CODES) gets each further
+    # refusal only after REFUSAL_PENALTY_S seconds (service/penalty.py); 0 turns this off.
     refusal_penalty_s: float = Field(default=0.5, ge=0.0, le=30.0)
     refusal_penalty_after: int = Field(default=3, ge=0)
     # API keys, "KEY" or "NAME:KEY", comma-separated (e.g. RAFD_API_KEYS=car-fleet:4f9c...); empty: no keys.

@@ -1,17 +1,27 @@
-"""Per-stream state store: one runner StreamState per stream, an arrival-order queue, generations, TTL and LRU.
+"""Per-stream state store: one runner StreamState per stream, an arrival-order queue, generations, TTL and LRU,
+one namespace per API key.
 
-Arrival order: a frame takes a `Ticket` in its stream's queue when it arrives (before decoding; with the
-X-Stream-Id header or the path form even before its body is read), and frames of one stream change the stream
-strictly in that order. A frame that can no longer be in order (its timestamp is not after the stream's last
+Namespaces: a stream is (owner, stream id), the owner being the API key's name (None without keys), so A's
+`car-7` and B's `car-7` are different streams and no key can tell whether another's id exists. Each owner holds at
+most `max_streams_per_key` streams and all owners together `max_streams`; a key over either evicts its OWN least
+recently used idle stream, never another key's. Only streams with an accepted frame count: an entry made for
+frames still in flight, or whose frames were all refused, counts toward no cap.
+
+Arrival order: a frame takes a `Ticket` in its stream's queue at its place by ARRIVAL (when its request's first
+bytes arrived, `service.intake`): at once with the X-Stream-Id header or the path form, or once its body is parsed
+when only the body names the stream (it is then inserted ahead of frames that arrived after it and have not
+started; `service.ordering` holds those for a bounded time while it is parsed). Frames of one stream change the
+stream strictly in that order. A frame that can no longer be in order (its timestamp is not after the stream's last
 accepted frame, or after that of a frame queued ahead of it) is refused at once instead of waiting its turn.
 
 Exact bookkeeping: only an accepted frame (`commit`) moves a stream in the LRU order or refreshes its idle time;
 a refused frame changes nothing, and a new stream whose frames were all refused leaves nothing behind. Each
-stream id's chain has a generation: DELETE ends it, and its queued or running frames are refused
-(`stream_reset`) instead of continuing the old chain beside the new one.
+stream id's chain has a generation: DELETE ends it (also while its first frame is in flight), and its queued or
+running frames are refused (`stream_reset`) instead of continuing the old chain beside the new one. A chain ended
+by an eviction or the TTL leaves a bounded tombstone, so the next chain's first answer says why it restarted.
 
 Expiry is lazy: every store access first drops streams idle past the TTL (never one with frames queued), so no
-background task is needed. The LRU cap applies when a request that committed a frame ends; streams with frames
+background task is needed. The caps apply when a request that committed a frame ends; streams with frames
 queued are never evicted. All methods run on the event loop (no locking needed).
 """
 
@@ -19,15 +29,21 @@ from __future__ import annotations
 
 import asyncio
 import itertools
+import math
 import time
-from collections import OrderedDict, deque
+from collections import Counter, OrderedDict, deque
 from collections.abc import Callable
 from dataclasses import dataclass, field
-from typing import Any
+from typing import Any, Literal
 
 import numpy as np
 
 from service.errors import ApiError, timestamp_error
+
+StreamKey = tuple[str | None, str]  # (owner: the API key's name or None, stream id)
+ArrivalKey = tuple[float, int]  # (monotonic time of the request's first bytes, arrival sequence number)
+RestartReason = Literal["evicted", "expired"]
+MIN_TOMBSTONES = 64  # per owner; at least 4x its quota (chains ended by eviction or expiry, remembered for a notice)
 
 
 @dataclass(eq=False)
@@ -35,8 +51,11 @@ class Ticket:
     """One frame's place in its stream's queue."""
 
     entry: StreamEntry
+    arrival: ArrivalKey
     timestamp: float | None = None  # None until the body is parsed (header / path form)
+    started: bool = False  # its turn came: it heads the queue and may change the stream
     committed: bool = False
+    restarted: RestartReason | None = None  # set when it committed the first frame of a chain restarted by the store
     wake: asyncio.Event = field(default_factory=asyncio.Event)
 
 
@@ -45,7 +64,7 @@ class StreamEntry:
     """One stream chain's buffer and bookkeeping; changed only by the ticket at the head of its queue."""
 
     stream_id: str
-    owner: str | None  # name of the API key that created it (None without API keys)
+    owner: str | None  # name of the API key whose namespace holds it (None without API keys)
     generation: int
     state: Any  # the runner's StreamState (holds the last T frames + poses)
     last_used: float  # store clock when its last frame was ACCEPTED
@@ -56,6 +75,11 @@ class StreamEntry:
     last_frame: np.ndarray | None = None  # [V, V] uint8 odometry view of the last accepted frame
     last_pose: np.ndarray | None = None  # [3] world pose of the last accepted frame
     pose_source: str | None = None  # source of the FIRST frame: fixes which world frame the stream uses
+    restarted: RestartReason | None = None  # how the previous chain of this id ended, when the store ended it
+
+    @property
+    def key(self) -> StreamKey:
+        return (self.owner, self.stream_id)
 
     @property
     def frames_buffered(self) -> int:
@@ -116,7 +140,8 @@ def _reset_error(entry: StreamEntry) -> ApiError:
 
 
 class StreamStore:
-    """Holds at most `max_streams` streams; evicts idle ones after `ttl_s` and the least recently used at the cap."""
+    """Holds at most `max_streams` streams (`max_streams_per_key` per owner); evicts idle ones after `ttl_s` and, at a
+    cap, the owner's own least recently used."""
 
     def __init__(
         self,
@@ -127,35 +152,46 @@ class StreamStore:
         on_evict: Callable[[str], None] | None = None,
         queue_limit: int = 8,
         retry_after_s: int = 1,
+        max_streams_per_key: int | None = None,
+        on_restart: Callable[[str], None] | None = None,
     ) -> None:
         self._new_state = new_state
         self.max_streams = max_streams
+        self.max_streams_per_key = min(max_streams_per_key or max_streams, max_streams)
         self.ttl_s = ttl_s
         self.queue_limit = queue_limit
         self.retry_after_s = retry_after_s
         self._clock = clock
         self._on_evict = on_evict
-        self._entries: OrderedDict[str, StreamEntry] = OrderedDict()  # least recently ACCEPTED first
+        self._on_restart = on_restart
+        self._entries: OrderedDict[StreamKey, StreamEntry] = OrderedDict()  # least recently ACCEPTED first
+        self._accepted: Counter[str | None] = Counter()  # streams with an accepted frame, per owner
+        self._tombstones: dict[str | None, OrderedDict[str, RestartReason]] = {}
         self._generations = itertools.count(1)
+        self._arrivals = itertools.count()  # order of tickets taken without an arrival (direct use, tests)
 
     def __len__(self) -> int:
         """Streams holding a buffer (at least one accepted frame)."""
         self._expire()
-        return sum(1 for e in self._entries.values() if e.frames_seen)
+        return sum(self._accepted.values())
 
     def __contains__(self, stream_id: str) -> bool:
         return self.get(stream_id) is not None
 
-    def get(self, stream_id: str) -> StreamEntry | None:
+    def get(self, stream_id: str, owner: str | None = None) -> StreamEntry | None:
         self._expire()
-        entry = self._entries.get(stream_id)
+        entry = self._entries.get((owner, stream_id))
         return entry if entry is not None and entry.frames_seen else None
 
     # ------------------------------------------------------------------ a frame's life
-    def take_ticket(self, stream_id: str, owner: str | None = None) -> Ticket:
-        """A place at the end of the stream's queue (creating the stream when new); changes nothing else."""
+    def take_ticket(self, stream_id: str, owner: str | None = None, arrival: ArrivalKey | None = None) -> Ticket:
+        """A place in the stream's queue by arrival (creating the stream's entry when new); changes nothing else.
+
+        Placed after every frame that arrived before it and ahead of those that arrived after it and have not
+        started (a frame whose stream was only known once its body was parsed); never ahead of a started frame."""
         self._expire()
-        entry = self._entries.get(stream_id)
+        key = (owner, stream_id)
+        entry = self._entries.get(key)
         if entry is None:
             entry = StreamEntry(
                 stream_id=stream_id,
@@ -163,10 +199,9 @@ class StreamStore:
                 generation=next(self._generations),
                 state=self._new_state(),
                 last_used=self._clock(),
+                restarted=self._tombstone(owner, stream_id),
             )
-            self._entries[stream_id] = entry
-        elif entry.owner != owner:
-            raise ApiError("stream_forbidden", f"stream {stream_id!r} belongs to another API key")
+            self._entries[key] = entry
         elif len(entry.queue) >= self.queue_limit:
             raise ApiError(
                 "stream_queue_full",
@@ -174,8 +209,14 @@ class StreamStore:
                 f"queued (RAFD_STREAM_QUEUE_LIMIT); retry after {self.retry_after_s} s",
                 headers={"Retry-After": str(self.retry_after_s)},
             )
-        ticket = Ticket(entry=entry)
-        entry.queue.append(ticket)
+        ticket = Ticket(entry=entry, arrival=arrival if arrival is not None else (math.inf, next(self._arrivals)))
+        queue = entry.queue
+        position = len(queue)
+        while position > 0 and not queue[position - 1].started and queue[position - 1].arrival > ticket.arrival:
+            position -= 1
+        queue.insert(position, ticket)
+        if position < len(queue) - 1:
+            entry.wake_all()  # the frames behind it check their order against it once it is placed
         return ticket
 
     def place(self, ticket: Ticket, timestamp: float) -> None:
@@ -197,6 +238,7 @@ class StreamStore:
             if reason:
                 raise timestamp_error(entry.stream_id, reason)
             if entry.queue[0] is ticket:
+                ticket.started = True  # no frame is placed ahead of it from now on
                 return
             await ticket.wake.wait()
 
@@ -214,37 +256,45 @@ class StreamStore:
         assert entry.queue and entry.queue[0] is ticket, "commit out of turn"
         entry.commit(state, timestamp, frame, pose, pose_source)
         entry.last_used = self._clock()
-        if self._entries.get(entry.stream_id) is entry:
-            self._entries.move_to_end(entry.stream_id)
+        if self._entries.get(entry.key) is entry:
+            self._entries.move_to_end(entry.key)
+        if entry.frames_seen == 1:  # the chain's first accepted frame: the stream now counts toward the caps
+            self._accepted[entry.owner] += 1
+            if entry.restarted is not None:
+                ticket.restarted = entry.restarted
+                self._forget_tombstone(entry.owner, entry.stream_id)
+                if self._on_restart is not None:
+                    self._on_restart(entry.restarted)
         ticket.committed = True
 
     def release(self, ticket: Ticket) -> None:
-        """The request ended (answered, refused or failed): leave the queue; apply the cap after a commit."""
+        """The request ended (answered, refused or failed): leave the queue; apply the caps after a commit."""
         entry = ticket.entry
         try:
             entry.queue.remove(ticket)
         except ValueError:
             return  # released twice
         entry.wake_all()
-        if entry.closed or self._entries.get(entry.stream_id) is not entry:
+        if entry.closed or self._entries.get(entry.key) is not entry:
             return
         if entry.frames_seen == 0 and not entry.queue:  # a new stream whose frames were all refused
-            del self._entries[entry.stream_id]
+            del self._entries[entry.key]
         elif ticket.committed:
-            self._enforce_cap(keep=entry.stream_id)
+            self._enforce_caps(entry)
 
     # ------------------------------------------------------------------ resources
     def delete(self, stream_id: str, owner: str | None = None) -> bool:
-        """End a stream's chain (its next frame starts a new one); False when unknown. Queued frames get 409."""
+        """End the owner's stream chain (its next frame starts a new one), also while its first frame is in flight
+        (that frame gets 409 `stream_reset`, as queued frames do); False when it has neither an accepted frame nor
+        a frame in flight."""
         self._expire()
-        entry = self._entries.get(stream_id)
-        if entry is None or not entry.frames_seen:  # a first frame still in flight is not a stream yet
+        entry = self._entries.get((owner, stream_id))
+        if entry is None or not (entry.frames_seen or entry.queue):
             return False
-        if entry.owner != owner:
-            raise ApiError("stream_forbidden", f"stream {stream_id!r} belongs to another API key")
-        del self._entries[stream_id]
+        self._remove(entry)
         entry.closed = True
         entry.wake_all()
+        self._forget_tombstone(owner, stream_id)  # a reset the client asked for: no notice
         return True
 
     def snapshot(self, owner: str | None = None) -> list[StreamInfo]:
@@ -268,24 +318,50 @@ class StreamStore:
         ]
 
     # ------------------------------------------------------------------ internals
+    def _remove(self, entry: StreamEntry) -> None:
+        del self._entries[entry.key]
+        if entry.frames_seen:
+            self._accepted[entry.owner] -= 1
+            if not self._accepted[entry.owner]:
+                del self._accepted[entry.owner]
+
+    def _tombstone(self, owner: str | None, stream_id: str) -> RestartReason | None:
+        tombstones = self._tombstones.get(owner)
+        return tombstones.get(stream_id) if tombstones is not None else None
+
+    def _forget_tombstone(self, owner: str | None, stream_id: str) -> None:
+        tombstones = self._tombstones.get(owner)
+        if tombstones is not None:
+            tombstones.pop(stream_id, None)
+
+    def _end(self, entry: StreamEntry, reason: RestartReason) -> None:
+        """The store ended an idle chain: forget it, and remember why for its id's next answer."""
+        self._remove(entry)
+        tombstones = self._tombstones.setdefault(entry.owner, OrderedDict())
+        tombstones.pop(entry.stream_id, None)
+        tombstones[entry.stream_id] = reason
+        while len(tombstones) > max(MIN_TOMBSTONES, 4 * self.max_streams_per_key):
+            tombstones.popitem(last=False)
+        if self._on_evict is not None:
+            self._on_evict("ttl" if reason == "expired" else "lru")
+
     def _expire(self) -> None:
         now = self._clock()
-        expired = [k for k, e in self._entries.items() if not e.queue and now - e.last_used > self.ttl_s]
-        for stream_id in expired:
-            del self._entries[stream_id]
-            self._evicted("ttl")
+        expired = [e for e in self._entries.values() if not e.queue and now - e.last_used > self.ttl_s]
+        for entry in expired:
+            self._end(entry, "expired")
 
-    def _enforce_cap(self, keep: str) -> None:
-        """Evict least recently used idle streams beyond the cap. Streams with frames queued are skipped (the
-        store may then exceed the cap by at most the number of busy streams, until a later frame is accepted).
-        `keep`, the stream whose frame was just accepted, is never the one to go."""
-        excess = len(self._entries) - self.max_streams
+    def _enforce_caps(self, entry: StreamEntry) -> None:
+        """Evict the owner's least recently used idle streams beyond its quota or the store's cap; never another
+        owner's. Streams with frames queued are skipped (the store may then exceed a cap by at most the number of
+        busy streams, until a later frame is accepted). `entry`, whose frame was just accepted, is never the one to
+        go."""
+        owner = entry.owner
+        excess = max(self._accepted[owner] - self.max_streams_per_key, sum(self._accepted.values()) - self.max_streams)
         if excess <= 0:
             return
-        for stream_id in [k for k, e in self._entries.items() if not e.queue and k != keep][:excess]:
-            del self._entries[stream_id]
-            self._evicted("lru")
-
-    def _evicted(self, reason: str) -> None:
-        if self._on_evict is not None:
-            self._on_evict(reason)
+        victims = [
+            e for e in self._entries.values() if e.owner == owner and e.frames_seen and not e.queue and e is not entry
+        ]
+        for victim in victims[:excess]:
+            self._end(victim, "evicted")

@@ -7,7 +7,9 @@ under two conditions: full 1152 px RADIATE scans without poses (so decode + odom
 the README's curl, at the radar's 4 Hz, each answer awaited; meanwhile a probe on its own process asks
 /health/ready every 50 ms.
 "alone" has nothing else; "under flood" runs beside --flood-connections clients on their own process posting,
-back to back, a valid scan padded with ~900 zTXt chunks to 7.7 MB (27 s of libpng time each before the fix).
+back to back, a valid scan padded with zTXt chunks to --flood-bytes (default 2.4 MB, just under the service's body
+limit; the 7.7 MB file of the original finding, 27 s of libpng time each before the fix, now gets 413 from its
+Content-Length at once).
 The conditions alternate in --rounds blocks (a shared machine's background load drifts; both see the same).
 Prints the normal stream's p50/p99 latency, readiness latency and the flood's answers per status, and exits 1
 when the normal stream's p99 under the flood exceeds 2x its unloaded p99, a readiness probe took 100 ms or more
@@ -357,6 +359,12 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--rate-hz", type=float, default=4.0, help="normal-stream frame rate (RADIATE: 4 Hz)")
     parser.add_argument("--flood-connections", type=int, default=8, help="flood clients posting back to back")
     parser.add_argument(
+        "--flood-bytes",
+        type=int,
+        default=2_400_000,
+        help="size of the padded PNG (default: just under RAFD_MAX_REQUEST_BYTES, so its chunks are what is refused)",
+    )
+    parser.add_argument(
         "--flood-cost-seconds",
         type=float,
         default=5.0,
@@ -374,7 +382,7 @@ def main(argv: list[str] | None = None) -> int:
         )
 
     scans = scans_from(args.sample)
-    request = multipart_request(padded_png(scans[0]), "flood", 1.0)
+    request = multipart_request(padded_png(scans[0], args.flood_bytes), "flood", 1.0)
     port = free_port()
     url = f"http://{HOST}:{port}"
     # defaults: no keys, default limits (none of this shell's RAFD_* settings)

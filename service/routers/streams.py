@@ -1,4 +1,4 @@
-"""Stream inspection and reset: GET /streams, DELETE /streams/{stream_id} (a caller sees and deletes its own)."""
+"""Stream inspection and reset: GET /streams, DELETE /streams/{stream_id} (in the caller's own namespace)."""
 
 from __future__ import annotations
 
@@ -23,6 +23,7 @@ async def list_streams(
     return StreamsResponse(
         count=len(infos),
         max_streams=service.store.max_streams,
+        max_streams_per_key=service.store.max_streams_per_key,
         ttl_s=service.store.ttl_s,
         streams=[StreamOut.model_validate(dataclasses.asdict(info)) for info in infos],
     )
@@ -31,7 +32,9 @@ async def list_streams(
 @router.delete(
     "/{stream_id}",
     status_code=204,
-    responses=error_responses("unauthorized", "stream_forbidden", "stream_not_found", "validation_error", "not_ready"),
+    responses=error_responses(
+        "unauthorized", "stream_not_found", "validation_error", "too_many_client_requests", "not_ready"
+    ),
 )
 async def delete_stream(
     stream_id: str = Path(min_length=1, max_length=128, pattern=STREAM_ID_PATTERN),
@@ -39,7 +42,9 @@ async def delete_stream(
     caller: str | None = Depends(get_caller),
 ) -> Response:
     """Forget a stream's buffer; its next frame starts a new chain (this is also the reset). Frames of the old
-    chain still queued or running are refused with 409 `stream_reset`."""
+    chain still queued or running are refused with 409 `stream_reset`, a stream's first frame in flight included
+    (204 then, though the stream had no accepted frame yet); 404 when the caller has no such stream: none accepted
+    and none in flight."""
     if not service.store.delete(stream_id, owner=caller):
         raise ApiError("stream_not_found", f"no stream {stream_id!r} (never seen, deleted or expired)")
     return Response(status_code=204)

@@ -70,26 +70,35 @@ def test_liveness_and_readiness_need_no_key(keyed):
     assert keyed.get("/health/ready").status_code == 200
 
 
-def test_a_stream_belongs_to_the_key_that_created_it(keyed):
-    assert keyed.post("/detect", json=detect_json("car", 1.0, FRAME, (0, 0, 0)), headers=A).status_code == 200
-    taken = keyed.post("/detect", json=detect_json("car", 2.0, FRAME, (0, 0, 0)), headers=B)
-    assert taken.status_code == 403 and taken.json()["error"]["code"] == "stream_forbidden"
-    assert (
-        keyed.post("/streams/car/detect", json=detect_json("car", 2.0, FRAME, (0, 0, 0)), headers=B).status_code == 403
-    )
-    assert keyed.delete("/streams/car", headers=B).status_code == 403
-    assert keyed.get("/streams", headers=B).json()["count"] == 0  # bob cannot even list it
-    listed = keyed.get("/streams", headers=A).json()["streams"]
-    assert [s["stream_id"] for s in listed] == ["car"] and listed[0]["frames_seen"] == 1  # bob changed nothing
-    assert keyed.post("/detect", json=detect_json("car", 2.0, FRAME, (0, 0, 0)), headers=A).status_code == 200
-    assert keyed.delete("/streams/car", headers=A).status_code == 204
-    # once deleted, the id is free: whoever posts first owns the new chain
+def test_each_key_has_its_own_stream_namespace_with_no_existence_oracle(keyed):
+    """Issue 34 finding 7: stream ids were one namespace across keys, so key B could tell whether A's id existed (403
+    vs 404 on DELETE) and squat an id first (A then got 403 until the TTL). Now A's `car` and B's `car` are two
+    streams: B sees nothing of A's, and posting first takes nothing from A."""
+    # B posts first
     assert keyed.post("/detect", json=detect_json("car", 1.0, FRAME, (0, 0, 0)), headers=B).status_code == 200
+    assert keyed.post("/detect", json=detect_json("car", 5.0, FRAME, (0, 0, 0)), headers=A).status_code == 200
+    assert keyed.post("/detect", json=detect_json("car", 2.0, FRAME, (0, 0, 0)), headers=B).json()["frames_used"] == 2
+    # no oracle: B's DELETE of an id only A has is the same 404 as of an id nobody has
+    assert keyed.post("/detect", json=detect_json("only-a", 1.0, FRAME, (0, 0, 0)), headers=A).status_code == 200
+    only_a, nobody = keyed.delete("/streams/only-a", headers=B), keyed.delete("/streams/nobody", headers=B)
+    assert only_a.status_code == nobody.status_code == 404
+    assert only_a.json()["error"]["code"] == nobody.json()["error"]["code"] == "stream_not_found"
+    listed = {name: keyed.get("/streams", headers=headers).json()["streams"] for name, headers in (("a", A), ("b", B))}
+    assert sorted(s["stream_id"] for s in listed["a"]) == ["car", "only-a"]
+    assert [s["stream_id"] for s in listed["b"]] == ["car"]
+    assert {s["stream_id"]: s["last_timestamp"] for s in listed["a"]}["car"] == 5.0  # B changed nothing of A's
+    assert listed["b"][0]["last_timestamp"] == 2.0 and listed["b"][0]["frames_seen"] == 2
+    # B resets its own car; A's goes on
+    assert keyed.delete("/streams/car", headers=B).status_code == 204
+    assert keyed.post("/detect", json=detect_json("car", 6.0, FRAME, (0, 0, 0)), headers=A).json()["frames_used"] == 2
 
 
-def test_refusals_are_counted_in_the_metrics(keyed):
+def test_refusals_are_counted_in_the_metrics_under_the_route(keyed):
     keyed.get("/streams")
-    assert 'rafd_requests_total{code="401",method="GET",route="unmatched"}' in keyed.get("/metrics", headers=A).text
+    keyed.get("/no/such/route")
+    metrics = keyed.get("/metrics", headers=A).text
+    assert 'rafd_requests_total{code="401",method="GET",route="/streams"} 1.0' in metrics
+    assert 'rafd_requests_total{code="401",method="GET",route="unmatched"} 1.0' in metrics
 
 
 def test_openapi_documents_the_key_schemes_and_the_open_probes(keyed):

@@ -104,6 +104,14 @@ CASES = {
     "pose missing yaw": (422, "validation_error", {"json": body(pose={"x": 1.0, "y": 2.0})}),
     "timestamp not a number": (422, "validation_error", {"json": body(timestamp="soon")}),
     "not base64": (422, "invalid_image", {"json": body(image="%%% not base64 %%%")}),
+    # issue 34 finding 6: binascii.a2b_base64 raised ValueError (not binascii.Error) on non-ASCII text: 500 before
+    "non-ASCII base64": (422, "invalid_image", {"json": body(image="éééé")}),
+    "non-ASCII inside valid base64": (
+        422,
+        "invalid_image",
+        {"json": body(image=b64(GOOD_PNG)[:40] + "é" + b64(GOOD_PNG)[41:])},
+    ),
+    "non-ASCII data url": (422, "invalid_image", {"json": body(image="data:image/png;base64,ééé")}),
     "base64 not an image": (422, "invalid_image", {"json": body(image=base64.b64encode(b"hello radar").decode())}),
     "empty image": (422, "validation_error", {"json": body(image="")}),
     "truncated png": (
@@ -166,9 +174,9 @@ CASES = {
         "validation_error",
         raw_json(GOOD_BODY.replace('"timestamp": 10.0', '"timestamp": 10.0, "timestamp": 11.0')),
     ),
-    "huge integer timestamp": (
-        422,
-        "validation_error",
+    "huge integer timestamp": (  # beyond a double: out of range for orjson like 1e400
+        400,
+        "invalid_json",
         raw_json(GOOD_BODY.replace('"timestamp": 10.0', '"timestamp": 1' + "0" * 400)),
     ),
     "overlong integer literal": (
@@ -176,7 +184,7 @@ CASES = {
         "invalid_json",
         raw_json(GOOD_BODY.replace('"timestamp": 10.0', '"timestamp": 1' + "0" * 5000)),
     ),
-    "deeply nested json": (400, "invalid_json", raw_json("[" * 100_000 + "]" * 100_000)),
+    "deeply nested json": (422, "validation_error", raw_json("[" * 100_000 + "]" * 100_000)),  # refused unparsed
     # finding 8: 8-bit greyscale PNG only, refused from the header
     "1-bit png": (422, "unsupported_image_format", {"json": body(image=b64(other_format_png(128, 128, 1, 0)))}),
     "palette png": (422, "unsupported_image_format", {"json": body(image=b64(other_format_png(128, 128, 8, 3)))}),
@@ -264,6 +272,9 @@ MESSAGES = {
     "palette png": "8-bit palette",
     "4-bit grey png": "4-bit greyscale",
     "duplicate json key": "more than once",
+    "deeply nested json": "more than a detect request can have",
+    "non-ASCII base64": "not valid base64",
+    "non-ASCII inside valid base64": "base64",
     "multipart duplicate field": "more than once",
     "multipart duplicate image": "more than once",
     "timestamp true": "valid number",

@@ -34,6 +34,8 @@ def stream_frames(k: int) -> tuple[list[np.ndarray], list[tuple[float, float, fl
 def test_twenty_concurrent_streams_stay_isolated(settings):
     settings.concurrent_runs = 2  # two steps at once, so different streams really run concurrently
     settings.model_queue_limit = STREAMS  # every stream's frame may wait: this test is not about overload
+    settings.parse_queue_limit = STREAMS
+    settings.max_requests_per_client = STREAMS  # one test client posts all the streams
     runner = FakeRunner(delay_s=0.003)
     data = {k: stream_frames(k) for k in range(STREAMS)}
 

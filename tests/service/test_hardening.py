@@ -68,7 +68,10 @@ def gated_app(**overrides):
     gate = threading.Event()
     gate.set()
     runner = FakeRunner(gate=gate)
-    settings = Settings(threads=1, concurrent_runs=1, **overrides)  # one model step at a time
+    # one model step at a time; one test client posts every frame: neither its request limit nor the parse queue
+    # is what these tests are about
+    limits = {"max_requests_per_client": 256, "parse_queue_limit": 256} | overrides
+    settings = Settings(threads=1, concurrent_runs=1, **limits)
     with TestClient(create_app(settings, runner=runner)) as client:
         wait_ready(client)
         gate.clear()
@@ -96,7 +99,7 @@ def test_padded_png_is_refused_from_its_chunk_headers_without_decoding(monkeypat
     assert 7_000_000 < len(padded) < 8 * 1024 * 1024
     decoded = []
     monkeypatch.setattr(service.images.cv2, "imdecode", lambda *a: decoded.append(1))
-    with TestClient(create_app(Settings(threads=1), runner=FakeRunner())) as client:
+    with TestClient(create_app(Settings(threads=1, max_request_bytes=8 * 1024 * 1024), runner=FakeRunner())) as client:
         wait_ready(client)
         response = client.post(
             "/detect", data={"stream_id": "flood", "timestamp": "1"}, files={"image": ("x.png", padded, "image/png")}
@@ -157,7 +160,7 @@ def test_health_and_metrics_answer_while_the_model_queue_is_full_and_excess_work
     assert runner.calls == 1 + 5  # warm-up + the admitted frames: refused work was never spent
 
 
-def test_in_flight_limit_refuses_before_reading_the_body():
+def test_in_flight_limit_refuses_once_the_body_has_arrived():
     with gated_app(max_inflight_requests=2) as (client, gate, runner):
         with ThreadPoolExecutor(max_workers=2) as pool:
             futures = [
@@ -419,7 +422,10 @@ def test_error_bodies_do_not_grow_with_the_input(client):
     body = detect_json("s", 1.0, FRAME) | {f"extra_key_{k}": k for k in range(100_000)}  # ~1.8 MB
     response = client.post("/detect", json=body)
     assert response.status_code == 422 and len(response.content) < 1024
-    assert "and 99995 more" in response.json()["error"]["message"]
+    assert "more than a detect request can have" in response.json()["error"]["message"]  # refused unparsed
+    body = detect_json("s", 1.0, FRAME) | {f"extra_key_{k}": k for k in range(20)}  # parsed: the keys are listed
+    response = client.post("/detect", json=body)
+    assert response.status_code == 422 and "and 15 more" in response.json()["error"]["message"]
     nested = detect_json("s", 1.0, FRAME) | {"pose": {f"k{k}": 0 for k in range(100_000)}}
     response = client.post("/detect", json=nested)
     assert response.status_code == 422 and len(response.content) < 1024
@@ -446,7 +452,8 @@ def test_openapi_says_metrics_is_text_and_detect_lists_its_errors(client):
     spec = client.get("/openapi.json").json()
     assert set(spec["paths"]["/metrics"]["get"]["responses"]["200"]["content"]) == {"text/plain"}
     responses = spec["paths"]["/detect"]["post"]["responses"]
-    assert {"400", "401", "403", "409", "413", "415", "422", "429", "500", "503"} <= set(responses)
+    assert {"400", "401", "408", "409", "413", "415", "422", "429", "500", "503"} <= set(responses)
+    assert "403" not in responses  # a stream id lives in its key's namespace: no other key's stream to refuse
     assert "bad_request" not in json.dumps(spec)
     assert spec["paths"]["/streams/{stream_id}/detect"]["post"]["responses"] == responses
     headers = [p for p in spec["paths"]["/detect"]["post"]["parameters"] if p["in"] == "header"]
