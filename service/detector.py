@@ -121,11 +121,6 @@ class DetectService:
     def accepted_sizes(self) -> tuple[int, ...]:
         return accepted_sizes(self.config.input_size, self.config.resolution)
 
-    def odometry(self) -> poses.Odometry:
-        if self._odometry is None:
-            self._odometry = poses.default_odometry()
-        return self._odometry
-
     async def detect(
         self, request: Request, stream_hint: str | None, caller: str | None, options: DetectOptions
     ) -> dict[str, Any]:
@@ -174,16 +169,20 @@ class DetectService:
             if fields.pose is not None:
                 poses.check_request_pose(entry.pose_source)
                 pose, source = np.array([fields.pose.x, fields.pose.y, fields.pose.yaw]), "request"
-            elif entry.last_frame is None:  # a stream's first frame anchors its odometry world frame
+                memory = poses.remember(decoded.odometry_view, fields.timestamp, decoded.sweep)
+            elif entry.odometry is None:  # a stream's first frame anchors its odometry world frame
                 pose, source = np.zeros(3), "odometry"
+                memory = poses.remember(decoded.odometry_view, fields.timestamp, decoded.sweep)
             else:
-                pose = await self.executors.odometry.run(
+                pose, memory = await self.executors.odometry.run(
                     poses.odometry_pose,
                     entry.last_pose,
-                    entry.last_frame,
+                    entry.odometry,
                     decoded.odometry_view,
+                    fields.timestamp,
+                    decoded.sweep,
                     resolution,
-                    self.odometry(),
+                    self._odometry,
                 )
                 source = "odometry"
             odometry_done = time.perf_counter()
@@ -191,7 +190,7 @@ class DetectService:
             result, new_state = await self.executors.model.run(self.runner.step, entry.state, frame, pose)
             model_done = time.perf_counter()
             previous_timestamp = entry.last_timestamp
-            self.store.commit(ticket, new_state, fields.timestamp, decoded.odometry_view, pose, source)
+            self.store.commit(ticket, new_state, fields.timestamp, memory, pose, source)
         finally:
             if unresolved is not None:
                 self.order.resolve(unresolved)

@@ -34,11 +34,14 @@ import time
 from collections import Counter, OrderedDict, deque
 from collections.abc import Callable
 from dataclasses import dataclass, field
-from typing import Any, Literal
+from typing import TYPE_CHECKING, Any, Literal
 
 import numpy as np
 
 from service.errors import ApiError, timestamp_error
+
+if TYPE_CHECKING:
+    from service.poses import OdometryMemory
 
 StreamKey = tuple[str | None, str]  # (owner: the API key's name or None, stream id)
 ArrivalKey = tuple[float, int]  # (monotonic time of the request's first bytes, arrival sequence number)
@@ -72,7 +75,7 @@ class StreamEntry:
     closed: bool = False  # deleted: the chain ended, its queued frames are refused
     frames_seen: int = 0
     last_timestamp: float | None = None
-    last_frame: np.ndarray | None = None  # [V, V] uint8 odometry view of the last accepted frame
+    odometry: OdometryMemory | None = None  # the last accepted frame as the next frame's odometry needs it
     last_pose: np.ndarray | None = None  # [3] world pose of the last accepted frame
     pose_source: str | None = None  # source of the FIRST frame: fixes which world frame the stream uses
     restarted: RestartReason | None = None  # how the previous chain of this id ended, when the store ended it
@@ -85,11 +88,13 @@ class StreamEntry:
     def frames_buffered(self) -> int:
         return int(self.state.frames_used)
 
-    def commit(self, state: Any, timestamp: float, frame: np.ndarray, pose: np.ndarray, pose_source: str) -> None:
+    def commit(
+        self, state: Any, timestamp: float, odometry: OdometryMemory, pose: np.ndarray, pose_source: str
+    ) -> None:
         """Swap in the runner's new state and the frame's bookkeeping (only after a successful step)."""
         self.state = state
         self.last_timestamp = timestamp
-        self.last_frame = frame
+        self.odometry = odometry
         self.last_pose = pose
         if self.pose_source is None:
             self.pose_source = pose_source
@@ -249,12 +254,18 @@ class StreamStore:
         return ticket.entry
 
     def commit(
-        self, ticket: Ticket, state: Any, timestamp: float, frame: np.ndarray, pose: np.ndarray, pose_source: str
+        self,
+        ticket: Ticket,
+        state: Any,
+        timestamp: float,
+        odometry: OdometryMemory,
+        pose: np.ndarray,
+        pose_source: str,
     ) -> None:
         """The frame was accepted: the only place a stream changes, moves in the LRU order and stops being idle."""
         entry = self.check_turn(ticket)
         assert entry.queue and entry.queue[0] is ticket, "commit out of turn"
-        entry.commit(state, timestamp, frame, pose, pose_source)
+        entry.commit(state, timestamp, odometry, pose, pose_source)
         entry.last_used = self._clock()
         if self._entries.get(entry.key) is entry:
             self._entries.move_to_end(entry.key)

@@ -33,6 +33,8 @@ use the full scan for odometry where it is available.
 
 from __future__ import annotations
 
+import copy
+import dataclasses
 import functools
 import logging
 import math
@@ -468,6 +470,16 @@ class OdometryStream:
         self.previous_time: float | None = None
         self.prior: np.ndarray | None = None
         self.period: float | None = None  # typical time between scans, from the first pair on
+
+    def fork(self) -> OdometryStream:
+        """A copy whose add() leaves this one unchanged (the service commits a stream's odometry only together with
+        the frame's answer: a frame that fails after its odometry must leave the stream as it was). Cheap: the
+        prepared levels are shared, never written in place; the previous scan's record is copied because add()
+        attaches its sweep timing and de-skewed levels to it."""
+        forked = copy.copy(self)
+        if self.previous is not None:
+            forked.previous = dataclasses.replace(self.previous)
+        return forked
 
     def add(
         self, image: np.ndarray, timestamp: float | None = None, timing: SweepTiming | None = None

@@ -1,0 +1,65 @@
+"""The service's odometry per frame, side by side: registering every pair from scratch (estimate_relative_pose, what
+the service ran before issue 30) against the stream's OdometryStream (each scan prepared once, the previous pair's
+motion as the prior: what it runs now).
+
+    python -m tools.odometry_cost SEQUENCE [--rounds 5] [--threads 1]
+
+SEQUENCE: any folder rafd's reader takes (RADIATE, Oxford/Boreas native, simulated). Each frame's odometry view is
+what the service registers: the centre 512 px of the scan (service/images.py). Rounds alternate the two ways; prints
+each way's median ms per frame over all frames and rounds. Torch-free.
+"""
+
+from __future__ import annotations
+
+import argparse
+import statistics
+import time
+
+import cv2
+
+from rafd.data import read_sequence
+from rafd.data.odometry import OdometryStream, estimate_relative_pose
+from rafd.preprocess import model_crop
+from service.images import ODOMETRY_VIEW_SIZE
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(prog="python -m tools.odometry_cost", description=__doc__.splitlines()[0])
+    parser.add_argument("sequence", help="a sequence folder")
+    parser.add_argument("--rounds", type=int, default=5)
+    parser.add_argument("--threads", type=int, default=1, help="opencv threads (the service sets 1 per worker)")
+    args = parser.parse_args(argv)
+    if not 1 <= args.rounds <= 100 or not 1 <= args.threads <= 64:
+        parser.error("--rounds 1-100, --threads 1-64")
+    cv2.setNumThreads(args.threads)
+    sequence = read_sequence(args.sequence, estimate_poses=False)
+    views, stamps = [], []
+    for frame in sequence.frames:
+        scan = frame.load()
+        views.append(model_crop(scan, min(ODOMETRY_VIEW_SIZE, scan.shape[0])))
+        stamps.append(frame.timestamp)
+    if len(views) < 3:
+        parser.error(f"{args.sequence}: {len(views)} frames; needs 3 or more")
+    resolution = sequence.resolution
+    pairwise_ms: list[float] = []
+    stream_ms: list[float] = []
+    for _ in range(args.rounds):
+        for previous, current in zip(views[:-1], views[1:]):
+            start = time.perf_counter()
+            estimate_relative_pose(previous, current, resolution)
+            pairwise_ms.append(1000.0 * (time.perf_counter() - start))
+        stream = OdometryStream(resolution)
+        stream.add(views[0], stamps[0])
+        for view, stamp in zip(views[1:], stamps[1:]):
+            start = time.perf_counter()
+            stream.add(view, stamp)
+            stream_ms.append(1000.0 * (time.perf_counter() - start))
+    print(f"{len(views) - 1} frames x {args.rounds} rounds, {views[0].shape[0]} px views, opencv threads {args.threads}")
+    print(f"pairwise (each pair from scratch): median {statistics.median(pairwise_ms):.1f} ms per frame")
+    print(f"stream (each scan prepared once):  median {statistics.median(stream_ms):.1f} ms per frame")
+    print(f"ratio: {statistics.median(pairwise_ms) / statistics.median(stream_ms):.2f}x")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
