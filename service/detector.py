@@ -27,6 +27,7 @@ from rafd.detections import decode_detections
 from rafd.geometry import box_polygons_pixels
 from rafd.protocol import operating_threshold, warming_up
 from service import poses
+from service.batcher import StepBatcher
 from service.errors import ApiError
 from service.executors import AdmissionLimit, BoundedExecutor
 from service.images import DecodedFrame, accepted_sizes, check_posted_image, decode_frame, upload_check
@@ -112,6 +113,8 @@ class DetectService:
         self.admission = AdmissionLimit(settings.max_inflight_requests, settings.retry_after_s)
         self.order = ArrivalOrder(settings.order_hold_s)
         self._odometry = odometry
+        self.batcher = StepBatcher(runner, self.executors.model, settings.max_batch, settings.batch_window_ms / 1000.0)
+        self.batcher.on_batch = metrics.model_batch_size.observe
         # RAFD_SCORE_THRESHOLD when set, else the model's documented operating threshold (rafd.protocol)
         self.score_threshold = operating_threshold(runner.metadata, settings.score_threshold)
         # Given every answer once it is complete (the live view's queue, service/live.py); must not block.
@@ -187,7 +190,7 @@ class DetectService:
                 source = "odometry"
             odometry_done = time.perf_counter()
             # float64: world poses may be large (UTM metres); the runner takes differences before casting.
-            result, new_state = await self.executors.model.run(self.runner.step, entry.state, frame, pose)
+            result, new_state = await self.batcher.step(entry.state, frame, pose)
             model_done = time.perf_counter()
             previous_timestamp = entry.last_timestamp
             self.store.commit(ticket, new_state, fields.timestamp, memory, pose, source)

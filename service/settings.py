@@ -132,6 +132,12 @@ class Settings(BaseSettings):
     odometry_workers: int = Field(default=1, ge=1)
     odometry_queue_limit: int = Field(default=16, ge=0)
     model_queue_limit: int = Field(default=16, ge=0)
+    # Cross-stream batching (service/batcher.py): at most this many streams' steady-state steps in one model run, when
+    # the graph has a batch axis (rafd-export --batch dynamic); 1 = every step runs alone. Off by default: on the
+    # CPUs measured it does not pay (docs/performance.md, "Cross-stream batching").
+    max_batch: int = Field(default=1, ge=1, le=64)
+    # When the model is idle, a ready step waits this long for other streams' steps before it runs alone.
+    batch_window_ms: float = Field(default=0.0, ge=0.0, le=50.0)
     # Seconds a 503 / 429 asks the client to wait (the Retry-After header).
     retry_after_s: int = Field(default=1, ge=1)
     # A client refused more than REFUSAL_PENALTY_AFTER times within a second (invalid or oversized bodies and images,

@@ -54,7 +54,8 @@ def main(argv: list[str] | None = None) -> int:
             start = time.perf_counter()
             stream.add(view, stamp)
             stream_ms.append(1000.0 * (time.perf_counter() - start))
-    print(f"{len(views) - 1} frames x {args.rounds} rounds, {views[0].shape[0]} px views, opencv threads {args.threads}")
+    side = views[0].shape[0]
+    print(f"{len(views) - 1} frames x {args.rounds} rounds, {side} px views, opencv threads {args.threads}")
     print(f"pairwise (each pair from scratch): median {statistics.median(pairwise_ms):.1f} ms per frame")
     print(f"stream (each scan prepared once):  median {statistics.median(stream_ms):.1f} ms per frame")
     print(f"ratio: {statistics.median(pairwise_ms) / statistics.median(stream_ms):.2f}x")
