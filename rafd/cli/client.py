@@ -131,6 +131,13 @@ def _headers(api_key: str | None) -> dict[str, str]:
     return {"x-api-key": api_key} if api_key else {}
 
 
+def _stream_header(stream_id: str) -> dict[str, str]:
+    """The stream named outside the body too: routers that keep a stream on one replica hash on this header
+    (deploy/nginx.conf, deploy/kubernetes/ingress.yaml), and the service takes the frame's place in the stream
+    before its body is read."""
+    return {"X-Stream-Id": stream_id}
+
+
 def _error_of(exc: urllib.error.HTTPError) -> tuple[str | None, str]:
     """(code, message) of a service error answer; (None, the HTTP reason) when the body is not one."""
     try:
@@ -144,7 +151,7 @@ def reset_stream(url: str, stream_id: str, timeout: float, api_key: str | None =
     """DELETE /streams/{id}: True when the service held the stream, False when it did not (404); ServiceError else."""
     request = urllib.request.Request(
         f"{url.rstrip('/')}/streams/{urllib.parse.quote(stream_id, safe='')}",
-        headers=_headers(api_key),
+        headers={**_headers(api_key), **_stream_header(stream_id)},
         method="DELETE",
     )
     try:
@@ -162,7 +169,8 @@ def reset_stream(url: str, stream_id: str, timeout: float, api_key: str | None =
 def post_frame(
     url: str, stream_id: str, frame: ClientFrame, png: bytes, use_pose: bool, timeout: float, api_key: str | None = None
 ) -> dict[str, Any]:
-    """One POST /detect (JSON body, base64 PNG); `api_key` goes in the X-API-Key header the service checks."""
+    """One POST /detect (JSON body, base64 PNG); `api_key` goes in the X-API-Key header the service checks, the
+    stream id in the X-Stream-Id header as well as in the body."""
     body: dict[str, Any] = {
         "stream_id": stream_id,
         "timestamp": frame.timestamp,
@@ -170,7 +178,7 @@ def post_frame(
     }
     if use_pose and frame.pose is not None:
         body["pose"] = {"x": float(frame.pose[0]), "y": float(frame.pose[1]), "yaw": float(frame.pose[2])}
-    headers = {"content-type": "application/json", **_headers(api_key)}
+    headers = {"content-type": "application/json", **_headers(api_key), **_stream_header(stream_id)}
     request = urllib.request.Request(
         f"{url.rstrip('/')}/detect", data=json.dumps(body).encode(), headers=headers, method="POST"
     )

@@ -158,3 +158,26 @@ def test_a_chosen_stream_repeats_with_reset_and_a_409_names_both_ways_out(sequen
     assert "stream run-a: deleted on the service (--reset)" in out and "stream run-a: 3 frames answered" in out
     assert main([str(sequence), "--url", service_url, "--stream-id", "never-seen", "--reset", "--quiet"]) == 0
     assert "stream never-seen: not on the service (--reset)" in capsys.readouterr().out
+
+
+def test_the_stream_id_travels_in_the_x_stream_id_header_that_routers_hash_on(monkeypatch):
+    """Behind deploy/nginx.conf or the Kubernetes ingress a stream stays on one replica only if every request of
+    it, the --reset DELETE included, names the stream in X-Stream-Id."""
+    import io
+    from types import SimpleNamespace
+
+    from rafd.cli import client
+
+    sent = []
+
+    def urlopen(request, timeout):
+        sent.append(request)
+        return io.BytesIO(b"{}")
+
+    monkeypatch.setattr(client.urllib.request, "urlopen", urlopen)
+    frame = SimpleNamespace(timestamp=1.0, pose=None, number=1)
+    client.post_frame("http://router", "lane-7", frame, b"png", use_pose=False, timeout=1.0, api_key="k")
+    client.reset_stream("http://router", "lane-7", timeout=1.0)
+    assert [r.get_method() for r in sent] == ["POST", "DELETE"]
+    assert [r.get_header("X-stream-id") for r in sent] == ["lane-7", "lane-7"]
+    assert json.loads(sent[0].data)["stream_id"] == "lane-7" and sent[0].get_header("X-api-key") == "k"
