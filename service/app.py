@@ -18,6 +18,7 @@ import time
 from collections.abc import AsyncIterator, Callable
 from typing import Any
 
+import cv2
 from fastapi import FastAPI
 from fastapi_offline import FastAPIOffline
 from starlette.concurrency import run_in_threadpool
@@ -95,6 +96,10 @@ def create_app(
                 on_restart=lambda reason: service_metrics.restarts.labels(reason=reason).inc(),
             )
             service_metrics.track_active_streams(lambda: len(store))
+            # Decode and odometry jobs get their parallelism from their executors (one thread each by default);
+            # opencv's own thread pool inside a job would compete with the model's threads for the same cores.
+            # One thread costs a lone stream's odometry 6-11% (docs/performance.md, "Odometry").
+            cv2.setNumThreads(1)
             app.state.service = DetectService(
                 loaded, settings, store, service_metrics, odometry, Executors.from_settings(settings, service_metrics)
             )
