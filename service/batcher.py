@@ -46,6 +46,7 @@ class StepBatcher:
         self._queue: list[_Pending] = []
         self._running = 0  # batches submitted to the executor and not finished
         self._timer: asyncio.TimerHandle | None = None
+        self._tasks: set[asyncio.Task[None]] = set()  # running batches: the loop keeps only weak references
 
     @property
     def waiting(self) -> int:
@@ -107,7 +108,9 @@ class StepBatcher:
         self._running += 1
         if self.on_batch is not None:
             self.on_batch(len(batch))
-        asyncio.get_running_loop().create_task(self._run(batch))
+        task = asyncio.get_running_loop().create_task(self._run(batch))
+        self._tasks.add(task)
+        task.add_done_callback(self._tasks.discard)
 
     async def _run(self, batch: list[_Pending]) -> None:
         items = [(p.state, p.frame, p.pose) for p in batch]
