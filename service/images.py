@@ -178,16 +178,21 @@ def _decode_frame(image: PostedImage, input_size: int, resolution: float) -> Dec
         raise ApiError("unsupported_image_format", f"decoded {decoded.dtype} {decoded.shape}; expected 8-bit grey")
     posted_format = "cartesian"
     sweep = None
+    width = decoded.shape[1]
+    # A polar or native scan is converted only where the service looks: the odometry view around the radar (which
+    # holds the model's crop), not the whole 1152 px disc; the same pixels as the whole conversion's centre.
+    converted = max(input_size, ODOMETRY_VIEW_SIZE)
     if decoded.shape == POLAR_SHAPE:  # the size check let it through: polar scans are accepted here
-        decoded, posted_format = polar_to_cartesian(decoded), "polar"  # [576, 400] -> [1152, 1152] uint8
+        width, posted_format = RADIATE_SCAN_SIZE, "polar"
+        decoded = polar_to_cartesian(decoded, min(converted, width))  # [576, 400] -> [V, V] uint8
     elif decoded.shape[0] != decoded.shape[1]:  # a native scan (the size check let only these through)
         try:
             scan = parse_native_scan(decoded, native_format_name(decoded.shape[1]))
         except ValueError as exc:
             raise ApiError("invalid_image", f"the native scan's header columns do not read as one: {exc}") from exc
-        decoded, posted_format = native_to_cartesian(scan), "native"  # [A, 11 + R] -> [1152, 1152] uint8
+        width, posted_format = RADIATE_SCAN_SIZE, "native"
+        decoded = native_to_cartesian(scan, min(converted, width))  # [A, 11 + R] -> [V, V] uint8
         sweep = (scan.timestamps_us, scan.azimuths)
-    width = decoded.shape[1]
     view = model_crop(decoded, max(input_size, min(width, ODOMETRY_VIEW_SIZE)))
     return DecodedFrame(
         crop=model_crop(decoded, input_size),

@@ -150,3 +150,19 @@ def test_real_polar_scans_answer_as_their_cartesian_conversion(shipped_client, r
         assert from_polar["input"]["posted_format"] == raw["input"]["posted_format"] == "polar"
         assert from_polar["pose_source"] == "odometry"
         assert comparable(from_polar) == comparable(from_cartesian) == comparable(raw)
+
+
+@pytest.mark.parametrize("input_size", [128, 256, 640])
+def test_only_the_centre_is_converted_and_it_equals_the_whole_conversion(input_size):
+    """The service converts a polar scan only over the odometry view (512 px, or the model's input if larger): the
+    crop and the view are the very pixels of the whole 1152 px conversion's centre."""
+    from rafd.preprocess import model_crop
+    from service.images import decode_frame
+
+    polar = polar_scan(3)
+    whole = polar_to_cartesian(polar)
+    decoded = decode_frame(png(polar), input_size, 0.173611)
+    view = max(input_size, 512)
+    assert decoded.posted_size == 1152 and decoded.crop_offset == (1152 - input_size) // 2
+    np.testing.assert_array_equal(decoded.crop, model_crop(whole, input_size))
+    np.testing.assert_array_equal(decoded.odometry_view, model_crop(whole, view))

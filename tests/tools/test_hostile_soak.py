@@ -81,4 +81,8 @@ def test_the_server_overhead_comparison_runs_every_variant():
         line.split() for line in out.stdout.splitlines() if line.split()[:1] in (["httptools"], ["limited"], ["h11"])
     ]
     assert [row[0] for row in rows] == ["httptools", "limited", "h11"]
-    assert all(len(row) == 5 and all(float(cell) > 0 for cell in row[1:]) for row in rows)
+    # latency cells (1, 3) are positive; the server's CPU cells (2, 4) are counted in the kernel's 10 ms clock ticks,
+    # so over 10 cheap requests they may read 0
+    assert all(len(row) == 5 for row in rows)
+    assert all(float(row[1]) > 0 and float(row[3]) > 0 for row in rows)
+    assert all(float(row[2]) >= 0 and float(row[4]) >= 0 for row in rows)
