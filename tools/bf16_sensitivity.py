@@ -6,9 +6,9 @@ windows, as the accuracy gate compares OpenVINO bf16 with onnxruntime fp32 (expo
 
 Prints per variant: detections at the operating threshold (float32's and the variant's), the share that changed
 (no partner within one feature cell), the p99 centre shift and score difference of the matched ones, and the max
-heatmap difference. A CPU without bf16 units computes bf16 exactly as one with them rounds it (PyTorch converts each
-operand), only slower, so the answer holds for AMX machines, up to the runtimes' own kernel choices (OpenVINO keeps
-some operations in float32 that PyTorch rounds here, and the reverse).
+heatmap difference. PyTorch rounds every result to bfloat16 on any CPU (without bf16 units it converts each operand,
+only slower), so this runs where OpenVINO bf16 cannot; a runtime's own kernels may keep some operations in float32
+that PyTorch rounds here, and the reverse.
 """
 
 from __future__ import annotations
