@@ -8,8 +8,8 @@ apply: the boxes you kept (text, metres in the ego frame) -> RADIATE's annotatio
 render: every labelled scan with its boxes drawn, to check them.
 compare: agreement of two label sets on the same scans: found / missed / extra (centres within 2 m), centre
 distance and IoU of the matched boxes.
-link: a sequence folder OUT that reads SEQ's scans (symlinks) with these labels and meta.json's split, for
-rafd train / rafd eval.
+link: a sequence folder OUT that reads SEQ's scans (symlinks) with these labels and meta.json's split and labelled
+area (outside it the scans are ignore regions), for rafd train / rafd eval.
 """
 
 from __future__ import annotations
@@ -25,7 +25,7 @@ import numpy as np
 
 from rafd.cli import flags
 from rafd.data.candidates import propose
-from rafd.data.labels import IGNORE_CLASS, parse_box_lines, to_annotations, write_annotations
+from rafd.data.labels import IGNORE_CLASS, LABELLED_AREA_KEY, parse_box_lines, to_annotations, write_annotations
 from rafd.data.native_folder import MVDNET_LABELS
 from rafd.data.reader import RadarSequence, read_sequence
 from rafd.progress import track
@@ -188,10 +188,16 @@ def run_compare(args: argparse.Namespace) -> int:
 
 
 def link_folder(
-    sequence_dir: Path, labels: Path | None, out: Path, split: str | None, frames: list[int] | None = None
+    sequence_dir: Path,
+    labels: Path | None,
+    out: Path,
+    split: str | None,
+    frames: list[int] | None = None,
+    labelled_half_m: float | None = None,
 ) -> Path:
     """A sequence folder at `out` reading `sequence_dir`'s native scans through symlinks, with `labels` as its
-    annotations and `split` in its meta.json; `frames` keeps only those scans (numbers in time order)."""
+    annotations and `split` in its meta.json; `frames` keeps only those scans (numbers in time order);
+    `labelled_half_m`: the labelled square, outside which the datasets ignore the scans (rafd.data.labels)."""
     sequence_dir, out = sequence_dir.resolve(), Path(out)
     (out / "radar").mkdir(parents=True, exist_ok=True)
     source = read_sequence(sequence_dir, estimate_poses=False)
@@ -209,9 +215,11 @@ def link_folder(
     if labels is not None:
         (out / "annotations").mkdir(exist_ok=True)
         (out / "annotations" / "annotations.json").write_text(Path(labels).read_text())
-    meta = {"name": out.name, "native_format": "oxford"}
+    meta: dict[str, str | float] = {"name": out.name, "native_format": "oxford"}
     if split is not None:
         meta["set"] = split
+    if labelled_half_m:
+        meta[LABELLED_AREA_KEY] = labelled_half_m
     (out / "meta.json").write_text(json.dumps(meta))
     return out
 
@@ -221,10 +229,12 @@ def run_link(args: argparse.Namespace) -> int:
     if len(names) != 1:
         raise ValueError(f"link writes one split: give --split once with one name, got {list(names)}")
     split = names[0]
-    out = link_folder(
-        args.sequence, args.labels, args.out, split, _frames(args.frame_numbers, 10**6) if args.frame_numbers else None
-    )
-    print(f"{out}: {len(read_sequence(out, estimate_poses=False))} scans, split {split}")
+    if args.labelled_half_m < 0:
+        raise ValueError(f"--labelled-half-m must be >= 0 metres, got {args.labelled_half_m}")
+    frames = _frames(args.frame_numbers, 10**6) if args.frame_numbers else None
+    out = link_folder(args.sequence, args.labels, args.out, split, frames, args.labelled_half_m)
+    area = f", labelled within {args.labelled_half_m:g} m" if args.labelled_half_m else ""
+    print(f"{out}: {len(read_sequence(out, estimate_poses=False))} scans, split {split}{area}")
     return 0
 
 
@@ -268,6 +278,14 @@ def build_parser() -> argparse.ArgumentParser:
     k.add_argument("out", type=Path, metavar="OUT", help="the sequence folder to write")
     flags.add_split(k, "the meta.json set of the written folder, e.g. train or val (one name)", required=True)
     k.add_argument("--frame-numbers", metavar="LIST", help="frame numbers to keep, e.g. 1-11 (default: all)")
+    k.add_argument(
+        "--labelled-half-m",
+        type=float,
+        default=30.0,
+        metavar="M",
+        help="the square |x|, |y| <= M around the radar holds every vehicle's label (default %(default)s: the "
+        "protocol's); training and evaluation ignore the scans outside it (0: no such square)",
+    )
     return parser
 
 

@@ -53,6 +53,25 @@ def build_parser() -> argparse.ArgumentParser:
     recipe.add_argument("--optimizer", choices=("adam", "adamw"), help="optimizer")
     recipe.add_argument("--lr-schedule", choices=("constant", "cosine"), help="learning-rate schedule over the epochs")
     recipe.add_argument("--augment", action=argparse.BooleanOptionalAction, help="window-consistent flip + rotation")
+    recipe.add_argument(
+        "--max-rotation-deg",
+        type=float,
+        metavar="DEG",
+        help="ROOT's windows turn by up to +-DEG about the crop's centre (180: any bearing; not the --mix-data's)",
+    )
+    recipe.add_argument(
+        "--shift-max-m",
+        type=float,
+        metavar="M",
+        help="ROOT's crops are cut around a point up to M metres from the radar (full-scan tiles; keep it inside "
+        "the labelled area of a few labelled scans; not the --mix-data's)",
+    )
+    recipe.add_argument(
+        "--shift-probability",
+        type=float,
+        metavar="P",
+        help="the share of ROOT's windows cut away from the radar (not the --mix-data's)",
+    )
     recipe.add_argument("--flow-stride", type=int, help="input pixels per flow cell (4 = the paper's)")
     recipe.add_argument("--enhance-window", type=int, help="attention window side in cells (0 = the paper's Hf/2)")
     recipe.add_argument(
@@ -104,6 +123,25 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--max-windows", type=int, help="use at most N (evenly spaced) training windows")
     flags.add_warm_up_windows(parser)
     parser.add_argument("--max-val-windows", type=int, help="use at most N validation windows")
+    mix = parser.add_argument_group(
+        "a second data root mixed into every epoch (e.g. simulated drives replayed while fine-tuning on real scans)"
+    )
+    mix.add_argument(
+        "--mix-data",
+        type=Path,
+        metavar="ROOT2",
+        help="every epoch holds each window of ROOT once plus windows of ROOT2 up to --mix-share of the epoch "
+        "(ROOT2's windows in turn over the epochs, augmented as the recipe says)",
+    )
+    flags.add_split(mix, "ROOT2's splits (default: --split)", flag="--mix-split")
+    mix.add_argument("--mix-cache", type=Path, metavar="CACHE", help="scan cache of ROOT2 (rafd prepare)")
+    mix.add_argument(
+        "--mix-share",
+        type=float,
+        default=0.5,
+        metavar="FRACTION",
+        help="share of each epoch's windows drawn from ROOT2, in (0, 1) (default %(default)s: as many as ROOT has)",
+    )
     parser.add_argument("--max-steps-per-epoch", type=int, help="cap optimizer steps per epoch (smoke runs)")
     flags.add_workers(parser, None, "DataLoader workers per process (default: 4 on CUDA, 0 on CPU)")
     flags.add_threads(parser, None, "torch's CPU threads per process (default: CPUs / processes)")
@@ -142,6 +180,7 @@ def train_run(args: argparse.Namespace) -> TrainRun:
     }
     values["split"] = flags.split_names(args.split)
     values["val_split"] = flags.split_names(args.val_split) if args.val_split else None
+    values["mix_split"] = flags.split_names(args.mix_split) if args.mix_split else None
     values["freeze"] = tuple(args.freeze)
     values["progress"] = not args.quiet
     # --resume continues --out; the deprecated --resume PATH continues PATH

@@ -29,6 +29,9 @@ from rafd.geometry import RADIATE_RESOLUTION, RADIATE_SCAN_SIZE, box_to_radiate
 
 IGNORE_CLASS = "ignore"
 LABEL_CLASSES = ("car", "van", "truck", "bus", "motorbike", "bicycle", IGNORE_CLASS)
+# meta.json key: half the side of the square around the radar in which every vehicle is labelled (the protocol's
+# 30 m, docs/labelling.md); outside it the sequence's frames carry ignore regions (outside_square).
+LABELLED_AREA_KEY = "labelled_half_m"
 
 
 @dataclass(frozen=True)
@@ -125,3 +128,21 @@ def index_by_frame(entries: list[dict[str, object]], frames_by_timestamp: Mappin
                 indexed[frame - 1] = box
         out.append({**track, "bboxes": indexed})
     return out
+
+
+def outside_square(half_m: float, extent_m: float) -> np.ndarray:
+    """[4, 5] boxes (x, y, width, length, yaw) covering everything outside the square |x|, |y| <= half_m, out to
+    extent_m from the radar: where nobody labelled. As ignore regions they keep a training crop cut away from the
+    radar (a tile shift, a rotation) from teaching that the unlabelled vehicles beyond the square are background,
+    and keep evaluation from counting detections there as false positives."""
+    if not 0.0 < half_m < extent_m:
+        raise ValueError(f"the labelled half side must be in (0, {extent_m}) m, got {half_m}")
+    depth, centre = extent_m - half_m, (extent_m + half_m) / 2.0
+    return np.array(
+        [
+            [centre, 0.0, depth, 2.0 * extent_m, 0.0],  # right of the square, the whole height
+            [-centre, 0.0, depth, 2.0 * extent_m, 0.0],  # left
+            [0.0, centre, 2.0 * half_m, depth, 0.0],  # ahead, between the side strips
+            [0.0, -centre, 2.0 * half_m, depth, 0.0],  # behind
+        ]
+    )

@@ -8,7 +8,8 @@ Folder layout (RADIATE's, docs/data.md):
     radar/<microseconds>.png ...       or the scans in the sensor's native layout (Oxford Radar RobotCar, Boreas;
                                        rafd.data.native_folder), converted on load (rafd.native)
     annotations/annotations.json      [{"id", "class_name", "bboxes"}], bboxes[k] = frame k + 1 ([] if absent)
-    meta.json                          {"name", "set" (the split), ...; simulated: "image_size", "resolution"}
+    meta.json                          {"name", "set" (the split), ...; simulated: "image_size", "resolution";
+                                       labelled scans: "labelled_half_m", the labelled square, ignored outside}
     ego_poses.csv                      optional, ours (rafd.data.poses): frame, timestamp, x, y, yaw
 
 Rules: annotations are indexed by frame number (the list can be longer than the frames on disk);
@@ -36,7 +37,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from rafd.data.labels import IGNORE_CLASS, index_by_frame, timestamp_keyed
+from rafd.data.labels import IGNORE_CLASS, LABELLED_AREA_KEY, index_by_frame, outside_square, timestamp_keyed
 from rafd.data.native_folder import (
     GROUND_TRUTH_ODOMETRY,
     MVDNET_LABELS,
@@ -514,6 +515,18 @@ def _mvdnet_objects(
     return objects
 
 
+def _ignore_outside_labelled_area(
+    objects: dict[int, list[RadarObject]], half_m: object, folder: Path, image_size: int, resolution: float
+) -> None:
+    """meta.json's labelled_half_m: every frame gains ignore regions over the scan outside the labelled square."""
+    if isinstance(half_m, bool) or not isinstance(half_m, (int, float)):
+        raise ValueError(f"{folder / META_FILE}: {LABELLED_AREA_KEY} must be a number of metres, got {half_m!r}")
+    boxes = outside_square(float(half_m), image_size * resolution)  # the scan's half diagonal is less
+    polygons = box_polygons_pixels(boxes, image_size, resolution)
+    for frame_objects in objects.values():
+        frame_objects += [RadarObject(-1 - k, IGNORE_CLASS, polygons[k], boxes[k]) for k in range(len(boxes))]
+
+
 def read_sequence(path: str | Path, estimate_poses: bool = True) -> RadarSequence:
     """One RADIATE sequence folder -> RadarSequence. estimate_poses=False skips odometry when the folder has no
     ego_poses.csv (poses None, pose_source None): for tools that only need frames and annotations."""
@@ -535,6 +548,8 @@ def read_sequence(path: str | Path, estimate_poses: bool = True) -> RadarSequenc
     else:
         log.warning("%s not found: the %d frames carry no objects", annotations_path, len(numbers))
         objects = {n: [] for n in numbers}
+    if annotated and LABELLED_AREA_KEY in meta:
+        _ignore_outside_labelled_area(objects, meta[LABELLED_AREA_KEY], folder, image_size, resolution)
     frames = [
         RadarFrame(n, t, p, objects[n], listing.polar, text)
         for n, t, p, text in zip(numbers, stamps, listing.image_paths, listing.timestamp_texts)

@@ -91,11 +91,23 @@ def predict_full_scan(
                 flows.append(batched(model.pair_flow, features[-1], encoded, relative).float())
             features.append(encoded)
             poses.append(pose)
-            if (s, k) not in wanted or len(features) < frames_per_window:
+            if (s, k) not in wanted:
                 continue
-            window_poses = torch.stack(list(poses), 1).float().to(device)  # [n, T, 3]
-            stacked = torch.stack(list(features), 1)  # [n, T, C, Hf, Wf]
-            pair_flows = torch.stack(list(flows), 1) if frames_per_window > 1 else None  # [n, T-1, 2, Hf, Wf]
+            window_features, window_pose_list, window_flows = list(features), list(poses), list(flows)
+            missing = frames_per_window - len(window_features)
+            if missing > 0:
+                # a warm-up window (the dataset's warm_up): the old end padded by repeating the oldest frame at its
+                # pose, as the dataset and the service pad a stream's first frames; its pairs' flow as the model
+                # computes it between two identical frames
+                oldest, oldest_pose = window_features[0], window_pose_list[0]
+                still = relative_pose_torch(oldest_pose, oldest_pose).float().to(device)  # [n, 3] zeros
+                repeated = batched(model.pair_flow, oldest, oldest, still).float()
+                window_features = [oldest] * missing + window_features
+                window_pose_list = [oldest_pose] * missing + window_pose_list
+                window_flows = [repeated] * missing + window_flows
+            window_poses = torch.stack(window_pose_list, 1).float().to(device)  # [n, T, 3]
+            stacked = torch.stack(window_features, 1)  # [n, T, C, Hf, Wf]
+            pair_flows = torch.stack(window_flows, 1) if frames_per_window > 1 else None  # [n, T-1, 2, Hf, Wf]
             boxes, scores = [], []
             for start in range(0, len(stacked), tiles_per_batch):
                 part = slice(start, start + tiles_per_batch)

@@ -49,6 +49,10 @@ class TrainRun:
     optimizer: str | None = None
     lr_schedule: str | None = None
     augment: bool | None = None  # None: the recipe's augmentation
+    # overrides of the augmentation of `data` (None: the recipe's); the mix data keep the recipe's (mix_augmentation)
+    max_rotation_deg: float | None = None
+    shift_max_m: float | None = None
+    shift_probability: float | None = None
     num_workers: int | None = None
     max_steps_per_epoch: int | None = None
     precision: str = "fp32"
@@ -71,6 +75,11 @@ class TrainRun:
     val_cache: Path | None = None
     val_every: int = 1
     max_val_windows: int | None = None
+    # a second data root mixed into every epoch (rafd.train.mixing): e.g. simulated drives replayed under real scans
+    mix_data: Path | None = None
+    mix_split: tuple[str, ...] | None = None  # None: `split`
+    mix_cache: Path | None = None
+    mix_share: float = 0.5  # share of each epoch's windows drawn from mix_data
 
 
 def model_config(run: TrainRun, base: RaFDConfig) -> RaFDConfig:
@@ -140,7 +149,29 @@ def train_config(run: TrainRun, base: Any) -> Any:
 
 
 def augmentation(run: TrainRun, recipe_augment: AugmentConfig | None) -> AugmentConfig | None:
-    """The recipe's augmentation; run.augment True turns it on (the default one when the recipe has none), False off."""
+    """The augmentation of `run.data`: the recipe's; run.augment True turns it on (the default one when the recipe has
+    none), False off; then the run's overrides (max_rotation_deg, shift_max_m, shift_probability)."""
+    base = mix_augmentation(run, recipe_augment)
+    overrides: dict[str, Any] = {
+        name: value
+        for name, value in (
+            ("max_rotation_deg", run.max_rotation_deg),
+            ("shift_max_m", run.shift_max_m),
+            ("shift_probability", run.shift_probability),
+        )
+        if value is not None
+    }
+    if not overrides:
+        return base
+    if base is None and run.augment is False:
+        raise ValueError(f"--no-augment contradicts the augmentation overrides {sorted(overrides)}")
+    return dataclasses.replace(base or AugmentConfig(), **overrides)
+
+
+def mix_augmentation(run: TrainRun, recipe_augment: AugmentConfig | None) -> AugmentConfig | None:
+    """The augmentation of `run.mix_data`: the recipe's, turned on or off by run.augment, without the overrides, which
+    fit the augmentation to the primary data (e.g. tile shifts kept inside a few real scans' labelled area) while
+    the replayed simulation keeps the augmentation it was trained with."""
     if run.augment is None:
         return recipe_augment
     return (recipe_augment or AugmentConfig()) if run.augment else None
@@ -207,6 +238,12 @@ def _prepare(run: TrainRun) -> _Prepared:
     loss_cfg = LossConfig(flow_weight=0.0 if run.no_flow_supervision else 1.0)
     if run.init is not None and run.resume is not None:
         raise ValueError("--init starts a new run and --resume continues one: give one of them")
+    if run.mix_data is None and (run.mix_split is not None or run.mix_cache is not None):
+        raise ValueError("--mix-split and --mix-cache describe --mix-data ROOT: give it too")
+    if not 0.0 < run.mix_share < 1.0:
+        raise ValueError(
+            f"--mix-share is the share of each epoch's windows from --mix-data, in (0, 1); got {run.mix_share}"
+        )
     for flag, path in (("--resume", run.resume), ("--init", run.init)):
         if path is not None and not Path(path).is_file():
             raise DatasetError(f"{flag} {path} does not exist")
@@ -221,6 +258,9 @@ def _prepare(run: TrainRun) -> _Prepared:
         seed=run.seed,
         warm_up=run.warm_up_windows,
     )
+    mix_meta = None
+    if run.mix_data is not None:
+        train_set, mix_meta = _mixed(run, cfg, train_set, mix_augmentation(run, recipe.augment))
     val_set = None
     if run.val_data is not None or run.val_split is not None:
         val_root = run.val_data if run.val_data is not None else run.data
@@ -243,7 +283,46 @@ def _prepare(run: TrainRun) -> _Prepared:
         "augment": None if augment is None else dataclasses.asdict(augment),
         "precision": train_cfg.precision,
     }
+    if mix_meta is not None:
+        run_meta["mix"] = mix_meta
     return _Prepared(run, recipe, cfg, train_cfg, loss_cfg, train_set, val_set, ctx, run_meta)
+
+
+def _mixed(run: TrainRun, cfg: RaFDConfig, primary: Any, augment: AugmentConfig | None) -> tuple[Any, dict[str, Any]]:
+    """The primary windows topped up with run.mix_data's to run.mix_share of each epoch -> (dataset, what the
+    checkpoint records of the mix)."""
+    from rafd.train.datasets import open_windows
+    from rafd.train.mixing import MixedWindows
+
+    splits = list(run.mix_split or run.split)
+    mix = open_windows(
+        run.mix_data,  # type: ignore[arg-type]
+        splits,
+        cfg,
+        augment=augment,
+        cache=run.mix_cache,
+        estimate_poses=run.estimate_poses,
+        seed=run.seed + 1,  # its windows' augmentation independent of the primary windows' with the same index
+        warm_up=run.warm_up_windows,
+    )
+    mixed = MixedWindows(primary, mix, run.mix_share, run.seed)
+    log.info(
+        "each epoch: the %d windows of %s and %d of the %d windows of %s (share %.2f)",
+        len(primary),
+        run.data,
+        mixed.per_epoch,
+        len(mix),
+        run.mix_data,
+        run.mix_share,
+    )
+    meta = {
+        "data": str(run.mix_data),
+        "splits": splits,
+        "share": run.mix_share,
+        "windows_per_epoch": mixed.per_epoch,
+        "augment": None if augment is None else dataclasses.asdict(augment),
+    }
+    return mixed, meta
 
 
 def _fit(p: _Prepared) -> list[dict[str, Any]]:

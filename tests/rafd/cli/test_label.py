@@ -70,7 +70,11 @@ def test_apply_compare_and_link(folder: Path, tmp_path: Path, capsys: pytest.Cap
         == 0
     )
     sequence = read_sequence(linked, estimate_poses=False)
-    assert sequence.split == "train" and len(sequence) == 2 and [len(f.objects) for f in sequence.frames] == [1, 2]
+    assert sequence.split == "train" and len(sequence) == 2
+    # the labelled boxes, and the scan outside the protocol's 30 m square as 4 ignore regions (--labelled-half-m)
+    labelled = [[o for o in f.objects if o.id >= 0] for f in sequence.frames]
+    assert [len(objects) for objects in labelled] == [1, 2]
+    assert all(sum(o.id < 0 and o.class_name == "ignore" for o in f.objects) == 4 for f in sequence.frames)
     bad = tmp_path / "bad.txt"
     bad.write_text("123 1 car 1 1 2 4 0\n")
     assert main(["apply", str(folder), str(bad), "--out", str(tmp_path / "bad.json")]) == 2

@@ -149,3 +149,20 @@ def test_propagation_norm_flag_reaches_the_model_config(sim_root: Path, tmp_path
     assert main(argv) == 0
     _, cfg, _ = load_checkpoint(out, map_location="cpu")
     assert cfg.propagation.norm == "post"
+
+
+@pytest.mark.parametrize(
+    ("extra", "message"),
+    [
+        (["--mix-split", "train"], "--mix-split and --mix-cache describe --mix-data"),
+        (["--mix-data", "ROOT", "--mix-share", "1"], "--mix-share is the share"),
+        (["--no-augment", "--max-rotation-deg", "90"], "--no-augment contradicts"),
+    ],
+)
+def test_mix_and_augmentation_flags_that_contradict_fail_clearly(
+    sim_root: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str], extra: list[str], message: str
+) -> None:
+    argv = [str(sim_root), "--split", "train", "--out", str(tmp_path / "m.pt"), "--device", "cpu", "--quiet"]
+    assert main(argv + [str(sim_root) if a == "ROOT" else a for a in extra]) == 2
+    assert message in capsys.readouterr().err
+    assert not (tmp_path / "m.pt").exists()

@@ -13,11 +13,19 @@ import pytest
 from rafd.config import RaFDConfig
 from rafd.data import read_sequence
 from rafd.data.dataset import RadarWindowDataset
-from rafd.data.labels import IGNORE_CLASS, index_by_frame, parse_box_lines, to_annotations, write_annotations
+from rafd.data.labels import (
+    IGNORE_CLASS,
+    LABELLED_AREA_KEY,
+    index_by_frame,
+    outside_square,
+    parse_box_lines,
+    to_annotations,
+    write_annotations,
+)
 from rafd.data.native_folder import read_mvdnet_labels
 from rafd.data.targets import build_targets
 from rafd.eval.predict import outside_ignored
-from rafd.geometry import box_corners
+from rafd.geometry import box_corners, points_in_boxes
 from tests.rafd.data.test_native_folder import STAMPS, write_folder
 
 TEXT = f"""# a comment
@@ -89,6 +97,36 @@ def test_ignore_regions_are_no_heatmap_negatives_and_no_false_positives():
     assert build_targets([car], [np.array([1])], np.zeros((1, 3)), cfg)["heatmap_weight"].min() == 1.0
     predictions = np.array([[-6.2, 3.1, 2.0, 4.5, 0.0, 0.9], [5.0, 5.0, 2.0, 4.5, 0.0, 0.8]])
     np.testing.assert_array_equal(outside_ignored(predictions, ignore), predictions[1:])
+
+
+def test_outside_square_covers_the_scan_beyond_the_labelled_square_once():
+    boxes = outside_square(30.0, 200.0)
+    grid = np.stack(np.meshgrid(np.linspace(-199, 199, 81), np.linspace(-199, 199, 81)), -1).reshape(-1, 2)
+    covered = points_in_boxes(grid, boxes).sum(axis=1)
+    inside = (np.abs(grid) < 30.0).all(axis=1)
+    assert (covered[inside] == 0).all() and (covered[~inside] == 1).all()  # no overlap, no gap, no label lost
+    with pytest.raises(ValueError, match=r"in \(0, 200"):
+        outside_square(250.0, 200.0)
+
+
+def test_a_labelled_area_in_meta_json_ignores_the_scan_outside_it(tmp_path: Path):
+    folder = write_folder(tmp_path / "seq", STAMPS[:2])
+    write_annotations(folder / "annotations" / "annotations.json", to_annotations(parse_box_lines(TEXT.splitlines())))
+    (folder / "meta.json").write_text(json.dumps({"name": "seq", "set": "train", LABELLED_AREA_KEY: 20.0}))
+    sequence = read_sequence(folder, estimate_poses=False)
+    assert [[o.class_name for o in f.objects] for f in sequence.frames] == [
+        ["car"] + [IGNORE_CLASS] * 4,
+        ["car", IGNORE_CLASS] + [IGNORE_CLASS] * 4,
+    ]
+    area = np.array([o.box for o in sequence.frames[0].objects[1:]])
+    assert points_in_boxes(np.array([[25.0, 0.0], [0.0, -40.0], [5.0, 6.0]]), area).any(axis=1).tolist() == [
+        True,
+        True,
+        False,  # the car
+    ]
+    (folder / "meta.json").write_text(json.dumps({"name": "seq", "set": "train", LABELLED_AREA_KEY: "30 m"}))
+    with pytest.raises(ValueError, match="labelled_half_m must be a number of metres"):
+        read_sequence(folder, estimate_poses=False)
 
 
 def test_mvdnet_label_files_read_in_this_projects_convention(tmp_path: Path):

@@ -11,6 +11,7 @@ import pytest
 from rafd.runtime import OnnxRunner, OpenVinoRunner
 
 pytest.importorskip("openvino", reason="the serve extra installs openvino")
+from rafd.runtime.backend import DYNAMIC  # noqa: E402
 from rafd.runtime.openvino_backend import openvino_supports_bf16  # noqa: E402
 
 
@@ -79,10 +80,10 @@ def test_bf16_refused_where_the_cpu_lacks_it(shipped_onnx, monkeypatch):
 def test_concurrent_runs_give_the_serial_results(shipped_onnx):
     runner = OpenVinoRunner(shipped_onnx, "fp32", threads=1, concurrent_runs=2)
     rng = np.random.default_rng(3)
-    feeds = [
-        {name: rng.random(shape, dtype=np.float32) for name, shape in runner.backend.input_shapes.items()}
-        for _ in range(6)
-    ]
+    shapes = {  # a free axis (the shipped model's dynamic batch: -1) fed as one stream
+        name: tuple(1 if d == DYNAMIC else d for d in shape) for name, shape in runner.backend.input_shapes.items()
+    }
+    feeds = [{name: rng.random(shape, dtype=np.float32) for name, shape in shapes.items()} for _ in range(6)]
     serial = [runner.run(f) for f in feeds]
     with concurrent.futures.ThreadPoolExecutor(4) as pool:
         parallel = list(pool.map(runner.run, feeds))

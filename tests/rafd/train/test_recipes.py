@@ -15,5 +15,5 @@ def test_the_shipped_checkpoint_is_the_default_recipes_network_calibrated_on_a_v
     threshold = meta["operating_threshold"]
     assert math.isfinite(threshold) and 0.0 < threshold < 1.0
     point = meta["operating_point"]
-    # the threshold was chosen on simulated validation drives' whole scans, never on a test split
+    # the threshold was chosen on validation whole scans (the real Oxford validation scans), never on a test split
     assert point["full_scan"] and "test" not in point["split"] and point["fp_per_frame_budget"] > 0
