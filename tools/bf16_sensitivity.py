@@ -22,9 +22,10 @@ import numpy as np
 import torch
 from torch import nn
 
+from export.gate import SourceFigures, compare_frame
 from rafd.checkpoint import load_checkpoint
-from rafd.detections import decode_detections
 from rafd.protocol import operating_threshold
+from rafd.runtime.streaming import StepResult
 
 MODULES = (
     "encoder.normalise",
@@ -40,16 +41,17 @@ MODULES = (
 KEYS = ("boxes", "scores", "heatmap")
 
 
+def _result(out: dict[str, np.ndarray], num_frames: int) -> StepResult:
+    """One window's outputs as a runner's step result, as compare_frame reads it (no flow compared)."""
+    return StepResult(out["heatmap"], out["boxes"], out["scores"], None, num_frames)
+
+
 def _has(model: nn.Module, name: str) -> bool:
     try:
         model.get_submodule(name)
     except AttributeError:
         return False
     return True
-
-
-def _p99(values: list[float]) -> float:
-    return float(np.percentile(values, 99)) if values else float("nan")
 
 
 def _cast(value: Any, dtype: torch.dtype) -> Any:
@@ -130,7 +132,7 @@ def main(argv: list[str] | None = None) -> int:
                 except RuntimeError as error:  # an operation without a bf16 kernel on this CPU
                     failed[name] = str(error).splitlines()[0][:100]
                     continue
-                outputs[name].append({k: out[k].float().numpy()[0] for k in KEYS if k in out})
+                outputs[name].append({k: out[k].float().numpy()[0] for k in KEYS})
     print(f"{len(windows)} held-out windows (seed {args.seed}), threshold {threshold:.4f}, cell {cfg.cell_size} m")
     print(
         f"{'variant':<36} {'dets fp32/var':>14} {'changed':>8} {'centre p99 m':>13} {'score p99':>10} {'heat max':>9}"
@@ -142,37 +144,18 @@ def main(argv: list[str] | None = None) -> int:
         if name in failed:
             print(f"{name:<36} cannot run: {failed[name]}")
             continue
-        reference_count = candidate_count = changed = 0
-        shifts: list[float] = []
-        score_diffs: list[float] = []
-        heat = 0.0
-        finite = all(np.isfinite(v).all() for out in outputs[name] for v in out.values())
-        if not finite:
+        if not all(np.isfinite(v).all() for out in outputs[name] for v in out.values()):
             print(f"{name:<36} non-finite outputs")
             continue
-        for ref, cand in zip(outputs["float32"], outputs[name]):
-            r = decode_detections(ref["boxes"], ref["scores"], threshold)
-            c = decode_detections(cand["boxes"], cand["scores"], threshold)
-            reference_count += len(r.scores)
-            candidate_count += len(c.scores)
-            used = np.zeros(len(c.scores), bool)
-            for i in range(len(r.scores)):  # the gate's matching (export/gate.py compare_frame)
-                distance = np.linalg.norm(c.boxes[:, :2] - r.boxes[i, :2], axis=1) if len(c.scores) else np.zeros(0)
-                distance[used] = np.inf
-                j = int(np.argmin(distance)) if len(distance) else -1
-                if j < 0 or distance[j] > cfg.cell_size:
-                    changed += 1
-                    continue
-                used[j] = True
-                shifts.append(float(distance[j]))
-                score_diffs.append(float(abs(r.scores[i] - c.scores[j])))
-            changed += int((~used).sum())
-            if "heatmap" in ref:
-                heat = max(heat, float(np.abs(ref["heatmap"] - cand["heatmap"]).max()))
-        share = changed / max(1, reference_count)
+        figures = SourceFigures()
+        heat = 0.0
+        for ref, cand in zip(outputs["float32"], outputs[name]):  # the gate's matching and figures
+            compare_frame(figures, _result(ref, cfg.num_frames), _result(cand, cfg.num_frames), cfg, threshold)
+            heat = max(heat, float(np.abs(ref["heatmap"] - cand["heatmap"]).max()))
+        counts = f"{figures.reference_detections}/{figures.candidate_detections}"
         print(
-            f"{name:<36} {reference_count:>6}/{candidate_count:<7} {share:>8.1%} {_p99(shifts):>13.3f} "
-            f"{_p99(score_diffs):>10.4f} {heat:>9.4f}"
+            f"{name:<36} {counts:>14} {figures.changed_fraction:>8.1%} {figures.centre_p99:>13.3f} "
+            f"{figures.score_p99:>10.4f} {heat:>9.4f}"
         )
     return 0
 

@@ -100,12 +100,7 @@ def build_parser() -> argparse.ArgumentParser:
 def parse(argv: Sequence[str] | None = None) -> argparse.Namespace:
     parser = build_parser()
     args = parser.parse_args(argv)
-    option = getattr(args, "data_option", None)
-    if option is not None and args.data is not None:
-        parser.error("give the data root once: as the positional ROOT")
-    args.data = args.data or option
-    if args.data is None:
-        parser.error("the data root ROOT is required")
+    flags.resolve_data_root(parser, args)
     return args
 
 

@@ -223,6 +223,17 @@ def add_resume(parser: argparse.ArgumentParser | argparse._ArgumentGroup, what: 
     )
 
 
+def resolve_data_root(parser: argparse.ArgumentParser, args: argparse.Namespace) -> None:
+    """args.data from the positional ROOT or the deprecated --data (stored as data_option); exit 2 when both or
+    neither are given."""
+    option = getattr(args, "data_option", None)
+    if option is not None and args.data is not None:
+        parser.error("give the data root once: as the positional ROOT")
+    args.data = args.data or option
+    if args.data is None:
+        parser.error("the data root ROOT is required")
+
+
 def legacy_resume_path(argv: Sequence[str], program: str) -> tuple[list[str], Path | None]:
     """The old `--resume PATH` of rafd train (a checkpoint file, not a directory: a data root is one), kept for one
     release: -> (argv without PATH, PATH), with a warning; else (argv, None)."""

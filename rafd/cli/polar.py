@@ -15,6 +15,7 @@ import dataclasses
 import shutil
 import sys
 import time
+from collections.abc import Callable
 from pathlib import Path
 
 import cv2
@@ -100,6 +101,25 @@ def _fail(message: str) -> int:
     return 2
 
 
+def _print_timing(what: str, convert: Callable[[], object], repeats: int) -> None:
+    """Time one scan's conversion `repeats` times (at least once) and print the median."""
+    seconds = []
+    for _ in range(max(1, repeats)):
+        start = time.perf_counter()
+        convert()
+        seconds.append(time.perf_counter() - start)
+    print(f"conversion {what}: median {1e3 * float(np.median(seconds)):.2f} ms over {len(seconds)} runs (maps cached)")
+
+
+def _write_scans(image_dir: Path, scans: dict[int, np.ndarray]) -> int | None:
+    """Each scan as image_dir/NNNNNN.png; the exit status of the first failure, else None."""
+    image_dir.mkdir(parents=True, exist_ok=True)
+    for number, scan in scans.items():
+        if not cv2.imwrite(str(image_dir / f"{number:06d}.png"), scan):
+            return _fail(f"could not write {image_dir / f'{number:06d}.png'}")
+    return None
+
+
 def convert_native(args: argparse.Namespace) -> int:
     """A native folder (rafd.data.native_folder) -> its scans on RADIATE's grid, timed, optionally written out."""
     if args.compare is not None or args.fit:
@@ -118,21 +138,16 @@ def convert_native(args: argparse.Namespace) -> int:
         }
     except (OSError, ValueError) as error:
         return _fail(str(error))
-    seconds = []
-    for _ in range(max(1, args.repeats)):
-        start = time.perf_counter()
-        native_to_cartesian(first, size)
-        seconds.append(time.perf_counter() - start)
-    print(
-        f"conversion {first.power.shape[0]} azimuths x {first.range_bins} bins ({first.fmt.name}) -> {size} px: "
-        f"median {1e3 * float(np.median(seconds)):.2f} ms over {len(seconds)} runs (maps cached)"
+    _print_timing(
+        f"{first.power.shape[0]} azimuths x {first.range_bins} bins ({first.fmt.name}) -> {size} px",
+        lambda: native_to_cartesian(first, size),
+        args.repeats,
     )
     if args.out is not None:
         image_dir = args.out / "Navtech_Cartesian"
-        image_dir.mkdir(parents=True, exist_ok=True)
-        for number, scan in scans.items():
-            if not cv2.imwrite(str(image_dir / f"{number:06d}.png"), scan):
-                return _fail(f"could not write {image_dir / f'{number:06d}.png'}")
+        failure = _write_scans(image_dir, scans)
+        if failure is not None:
+            return failure
         (args.out / "Navtech_Cartesian.txt").write_text(
             "".join(f"Frame: {f.number:06d} Time: {f.timestamp_text}\n" for f in sequence.frames)
         )
@@ -187,21 +202,16 @@ def main(argv: list[str] | None = None) -> int:
     elif args.fit:
         return _fail("--fit needs --compare CARTESIAN_SEQ")
     first = next(iter(polars.values()))
-    seconds = []
-    for _ in range(max(1, args.repeats)):
-        start = time.perf_counter()
-        polar_to_cartesian(first, args.scan_size)
-        seconds.append(time.perf_counter() - start)
-    print(
-        f"conversion {first.shape[0]}x{first.shape[1]} -> {scans[listed[0][0]].shape[0]} px: "
-        f"median {1e3 * float(np.median(seconds)):.2f} ms over {len(seconds)} runs (maps cached)"
+    _print_timing(
+        f"{first.shape[0]}x{first.shape[1]} -> {scans[listed[0][0]].shape[0]} px",
+        lambda: polar_to_cartesian(first, args.scan_size),
+        args.repeats,
     )
     if args.out is not None:
         image_dir = args.out / "Navtech_Cartesian"
-        image_dir.mkdir(parents=True, exist_ok=True)
-        for number, scan in scans.items():
-            if not cv2.imwrite(str(image_dir / f"{number:06d}.png"), scan):
-                return _fail(f"could not write {image_dir / f'{number:06d}.png'}")
+        failure = _write_scans(image_dir, scans)
+        if failure is not None:
+            return failure
         shutil.copyfile(args.sequence / POLAR_TIMESTAMPS_FILE, args.out / "Navtech_Cartesian.txt")
         print(f"wrote {len(scans)} scans to {image_dir}")
     return 0

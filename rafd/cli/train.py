@@ -161,12 +161,7 @@ def parse(argv: Sequence[str] | None = None) -> argparse.Namespace:
     argv, legacy_resume = flags.legacy_resume_path(sys.argv[1:] if argv is None else argv, parser.prog)
     args = parser.parse_args(argv)
     args.resume = legacy_resume or args.resume
-    option = getattr(args, "data_option", None)
-    if option is not None and args.data is not None:
-        parser.error("give the data root once: as the positional ROOT")
-    args.data = args.data or option
-    if args.data is None:
-        parser.error("the data root ROOT is required")
+    flags.resolve_data_root(parser, args)
     return args
 
 
