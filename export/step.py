@@ -41,7 +41,7 @@ class StepGraph(nn.Module):
         relative = relative_pose_torch(poses[:, -2], poses[:, -1])
         flow = self.model.pair_flow_encoded(past_flow_features, flow_features, relative)[:, None]
         flows = flow if past_flows is None else torch.cat([past_flows, flow], 1)
-        out = self.model.detect(torch.cat([past_features, features[:, None]], 1), flows, poses)
+        out = self.model.detect_newest(past_features, features, flows, poses)
         return out["heatmap"], out["scores"], out["boxes"], flows, features, flow_features
 
 
@@ -84,6 +84,6 @@ def example_inputs(cfg: RaFDConfig, form: str, channels: int, seed: int = 0) -> 
         inputs += (torch.randn(1, T - 1, channels, F, F, generator=generator),)
     if T > 2:
         inputs += (torch.randn(1, T - 2, 2, F, F, generator=generator),)
-    if T > 1:  # past_flow_features: phi of the previous frame, C/2 channels on the flow grid
-        inputs += (torch.randn(1, channels // 2, cfg.flow_size, cfg.flow_size, generator=generator),)
+    if T > 1:  # past_flow_features: phi of the previous frame, cfg.flow_channels on the flow grid
+        inputs += (torch.randn(1, cfg.flow_channels, cfg.flow_size, cfg.flow_size, generator=generator),)
     return inputs

@@ -11,6 +11,8 @@ from rafd.geometry import RADIATE_RESOLUTION
 
 ALLOWED_FRAMES = (1, 2, 4)
 BOX_ENCODINGS = ("symmetric", "as_labelled")
+ENHANCE_KINDS = ("window_attention", "conv")
+PROPAGATION_MODES = ("chain", "joint")
 FREEZABLE = ("encoder", "flow", "propagation", "head")  # RaFD's top-level parts, for rafd-train --freeze
 
 
@@ -52,6 +54,13 @@ class EnhanceConfig:
     # 2 x 2 windows). A smaller window (e.g. 16 cells at 64 x 64) cuts the quadratic attention cost;
     # the shifted layer shifts by half a window. Must divide the feature map side and be even.
     window: int = 0
+    # "window_attention": the paper's Swin-style blocks; "conv": residual blocks of two 3x3 convolutions (the second
+    # dilated by 2 for context), a few large operations in place of the attention's many small ones (the CPU recipe).
+    kind: str = "window_attention"
+
+    def __post_init__(self) -> None:
+        if self.kind not in ENHANCE_KINDS:
+            raise ValueError(f"enhance.kind must be one of {ENHANCE_KINDS}, got {self.kind!r}")
 
 
 @dataclass(frozen=True)
@@ -63,6 +72,13 @@ class FlowConfig:
     # 8 runs phi, alignment, cross-attention and the cost volume on a 2x average-pooled map (4x fewer
     # cells, 16x smaller cost volume) and upsamples the flow (metres) bilinearly to the detection grid.
     stride: int = 4
+    # Matching: 0 = the paper's global correlation (softmax over every previous cell); r > 0 = a local cost volume
+    # over the (2r + 1)^2 previous cells around each cell (a bounded displacement: r flow cells per frame), so no cell
+    # can match far away content, and the cost volume is Hm*Wm*(2r+1)^2 instead of (Hm*Wm)^2.
+    local_radius: int = 0
+    # Channels of the flow features E = phi(S) that are matched; 0 = C/2 (the paper). The cost volume's cost is per
+    # channel, so the CPU recipe matches on fewer.
+    channels: int = 0
 
 
 @dataclass(frozen=True)
@@ -77,10 +93,17 @@ class PropagationConfig:
     # that start as the identity (rafd.model.deformable.DeformableLayer), so the newest frame's features reach the
     # head unchanged until the propagation learns what the past adds.
     norm: str = "post"
+    # "chain": the paper's, T_t = blocks(S_t, T_{t-1}) oldest -> newest ((T-1) x num_blocks blocks per window);
+    # "joint": the newest frame's cells read every past frame's features in ONE deformable sampling (values: the
+    # cached past S maps; references: the cell moved back by age x the newest flow, constant velocity, then through
+    # the ego motion into that frame), num_blocks blocks per window whatever T.
+    mode: str = "chain"
 
     def __post_init__(self) -> None:
         if self.norm not in ("post", "pre"):
             raise ValueError(f"propagation.norm must be 'post' or 'pre', got {self.norm!r}")
+        if self.mode not in PROPAGATION_MODES:
+            raise ValueError(f"propagation.mode must be one of {PROPAGATION_MODES}, got {self.mode!r}")
 
 
 @dataclass(frozen=True)
@@ -142,6 +165,8 @@ class RaFDConfig:
                 f"flow.stride {self.flow.stride} must be a multiple of output_stride "
                 f"{self.output_stride} and divide input_size {self.input_size}"
             )
+        if self.flow.local_radius < 0 or self.flow.local_radius >= self.flow_size // 2:
+            raise ValueError(f"flow.local_radius {self.flow.local_radius} must be in [0, {self.flow_size // 2})")
         window = self.enhance.window
         if window and (window < 2 or window % 2 or self.feature_size % window):
             raise ValueError(
@@ -163,6 +188,11 @@ class RaFDConfig:
     def flow_size(self) -> int:
         """Side of the map the flow is matched on (= feature_size unless flow.stride is coarser)."""
         return self.input_size // self.flow.stride
+
+    @property
+    def flow_channels(self) -> int:
+        """Channels of the flow features E = phi(S) (flow.channels, 0 = half the neck's)."""
+        return self.flow.channels or self.neck.channels // 2
 
     @property
     def enhance_window(self) -> int:

@@ -14,6 +14,7 @@ from rafd.model.detector import FrameEncoder, RaFD
 from rafd.model.enhance import build_enhancement
 from rafd.model.flow import FlowEstimator, build_flow_encoder
 from rafd.model.head import DetectionHead, HeatmapHead
+from rafd.model.joint_propagation import JointDeformableAttention, JointPropagation
 from rafd.model.neck import FPNNeck
 from rafd.model.normalise import build_normalisation
 from rafd.model.position import sine_position_encoding
@@ -40,35 +41,63 @@ def build_model(cfg: RaFDConfig) -> RaFD:
         build_normalisation(cfg.input.normalisation, cfg.input.window),
         backbone,
         FPNNeck(backbone.out_channels, channels),
-        build_enhancement(channels, size, cfg.enhance.num_blocks, cfg.enhance.ffn_ratio, cfg.enhance.enabled, window),
+        build_enhancement(
+            channels,
+            size,
+            cfg.enhance.num_blocks,
+            cfg.enhance.ffn_ratio,
+            cfg.enhance.enabled,
+            window,
+            cfg.enhance.kind,
+        ),
     )
 
-    flow = propagation = None
+    flow: FlowEstimator | None = None
+    propagation: FlowGuidedPropagation | JointPropagation | None = None
     if cfg.num_frames > 1:
-        half, flow_size = channels // 2, cfg.flow_size  # flow.stride: matching grid Hm = Wm = flow_size
+        half, flow_size = cfg.flow_channels, cfg.flow_size  # flow.stride: matching grid Hm = Wm = flow_size
         flow = FlowEstimator(
-            build_flow_encoder(channels),
+            build_flow_encoder(channels, half),
             [AttentionLayer(half, cfg.flow.ffn_ratio) for _ in range(cfg.flow.num_cross_blocks)],
             sine_position_encoding(half, flow_size, flow_size),
             cell_centres(flow_size, cfg.input_size, cfg.resolution),
             half_extent,
             pool=cfg.flow.stride // cfg.output_stride,
+            local_radius=cfg.flow.local_radius,
         )
         prop_cfg = cfg.propagation
-        propagation = FlowGuidedPropagation(
-            [
-                DeformableLayer(
-                    DeformableAttention(channels, prop_cfg.num_points, (size, size)),
-                    channels,
-                    prop_cfg.ffn_ratio,
-                    norm=prop_cfg.norm,
-                )
-                for _ in range(prop_cfg.num_blocks)
-            ],
-            centres.clone(),
-            half_extent,
-            prop_cfg.flow_guided,
-        )
+        if prop_cfg.mode == "joint":
+            past = cfg.num_frames - 1
+            propagation = JointPropagation(
+                [
+                    DeformableLayer(
+                        JointDeformableAttention(channels, past, prop_cfg.num_points, (size, size), channels // 2),
+                        channels,
+                        prop_cfg.ffn_ratio,
+                        norm=prop_cfg.norm,
+                    )
+                    for _ in range(prop_cfg.num_blocks)
+                ],
+                centres.clone(),
+                half_extent,
+                prop_cfg.flow_guided,
+                cfg.num_frames,
+            )
+        else:
+            propagation = FlowGuidedPropagation(
+                [
+                    DeformableLayer(
+                        DeformableAttention(channels, prop_cfg.num_points, (size, size)),
+                        channels,
+                        prop_cfg.ffn_ratio,
+                        norm=prop_cfg.norm,
+                    )
+                    for _ in range(prop_cfg.num_blocks)
+                ],
+                centres.clone(),
+                half_extent,
+                prop_cfg.flow_guided,
+            )
 
     head_cfg = cfg.head
     if head_cfg.num_queries > size * size:

@@ -2,11 +2,13 @@
 
 from __future__ import annotations
 
+import torch
 from torch import Tensor, nn
 
 from rafd.model.align import relative_pose_torch
 from rafd.model.flow import FlowEstimator
 from rafd.model.head import DetectionHead
+from rafd.model.joint_propagation import JointPropagation
 from rafd.model.propagation import FlowGuidedPropagation
 
 
@@ -37,7 +39,7 @@ class RaFD(nn.Module):
         self,
         encoder: FrameEncoder,
         flow: FlowEstimator | None,
-        propagation: FlowGuidedPropagation | None,
+        propagation: FlowGuidedPropagation | JointPropagation | None,
         head: DetectionHead,
         num_frames: int,
     ) -> None:
@@ -89,15 +91,19 @@ class RaFD(nn.Module):
         num_frames = features.shape[1]
         if num_frames != self.num_frames:
             raise ValueError(f"model expects {self.num_frames} frames, got {num_frames}")
-        propagated = features[:, 0]  # T_1 = S_1
+        propagated = features[:, 0]  # T = 1: S_1
         if num_frames > 1:
             if flows is None or self.propagation is None:
                 raise ValueError("multi-frame detect needs the pair flows")
-            # relative poses in the poses' own dtype (float64 world coordinates keep cm precision)
-            relative = relative_pose_torch(poses[:, :-1], poses[:, 1:]).to(features.dtype)  # [B, T-1, 3]
-            for t in range(1, num_frames):  # oldest -> newest, one shared module for every pair
-                propagated = self.propagation(features[:, t], propagated, flows[:, t - 1], relative[:, t - 1])
+            propagated = self.propagation.propagate(features, flows, poses)  # [B, C, Hf, Wf]
         return self.head(propagated, gt_indices, gt_mask)
+
+    def detect_newest(self, past_features: Tensor, features: Tensor, flows: Tensor, poses: Tensor) -> dict[str, Tensor]:
+        """detect for a stream's step: past_features [B, T-1, C, Hf, Wf] (cached), the newest features [B, C, Hf, Wf].
+        The joint propagation reads the two apart, so the window is never copied into one tensor."""
+        if isinstance(self.propagation, JointPropagation):
+            return self.head(self.propagation.propagate_split(past_features, features, flows, poses))
+        return self.detect(torch.cat([past_features, features[:, None]], 1), flows, poses)
 
     def forward(
         self, frames: Tensor, poses: Tensor, gt_indices: Tensor | None = None, gt_mask: Tensor | None = None

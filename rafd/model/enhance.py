@@ -128,10 +128,46 @@ class FeatureEnhancement(nn.Module):
         return x.transpose(1, 2).reshape(batch, channels, height, width)  # [B, C, Hf, Wf]
 
 
+class ConvBlock(nn.Module):
+    """Residual block of two 3x3 conv + BN, the second dilated by 2 (a 7 x 7 cell context per block):
+    [B, C, H, W] -> [B, C, H, W]. The CPU recipe's enhancement: two large operations per block where a window
+    attention block runs dozens of small ones; its last BN scale starts at zero, so a block starts as the identity."""
+
+    def __init__(self, channels: int) -> None:
+        super().__init__()
+        self.conv1 = nn.Sequential(nn.Conv2d(channels, channels, 3, padding=1, bias=False), nn.BatchNorm2d(channels))
+        self.conv2 = nn.Sequential(
+            nn.Conv2d(channels, channels, 3, padding=2, dilation=2, bias=False), nn.BatchNorm2d(channels)
+        )
+        nn.init.zeros_(self.conv2[1].weight)
+
+    def forward(self, x: Tensor) -> Tensor:
+        return torch.relu(x + self.conv2(torch.relu(self.conv1(x))))
+
+
+class ConvEnhancement(nn.Module):
+    """[B, C, Hf, Wf] -> [B, C, Hf, Wf]: ConvBlocks on the channel-major map (no transposes)."""
+
+    def __init__(self, blocks: list[ConvBlock]) -> None:
+        super().__init__()
+        self.blocks = nn.Sequential(*blocks)
+
+    def forward(self, features: Tensor) -> Tensor:
+        return self.blocks(features)
+
+
 def build_enhancement(
-    channels: int, feature_size: int, num_blocks: int, ffn_ratio: int, enabled: bool, window: int = 0
-) -> FeatureEnhancement:
-    """window: side in cells, 0 = half the map (the paper)."""
+    channels: int,
+    feature_size: int,
+    num_blocks: int,
+    ffn_ratio: int,
+    enabled: bool,
+    window: int = 0,
+    kind: str = "window_attention",
+) -> nn.Module:
+    """window: side in cells, 0 = half the map (the paper); kind: rafd.config.EnhanceConfig.kind."""
+    if kind == "conv":
+        return ConvEnhancement([ConvBlock(channels) for _ in range(num_blocks if enabled else 0)])
     size = (feature_size, feature_size)
     windows = (window, window) if window else None
     count = num_blocks if enabled else 0

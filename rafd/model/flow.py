@@ -40,9 +40,62 @@ def flow_from_correlation(correlation: Tensor, grid: Tensor) -> Tensor:
         return grid[None] - matched  # [B, N, 2]
 
 
-def build_flow_encoder(channels: int) -> nn.Sequential:
-    """phi: [B, C, Hf, Wf] -> [B, C/2, Hf, Wf], two conv3x3 + BN (ReLU between), shared by all frames."""
-    half = channels // 2
+LOCAL_MASKED = -1.0e4  # additive logit of an offset outside the map: exp(-1e4) == 0 in float32
+
+
+def shift_kernels(channels: int, radius: int) -> Tensor:
+    """One-hot 3x3.. kernels that copy every channel at every offset: [C * D, 1, k, k], D = k^2, k = 2r + 1.
+
+    A grouped convolution (groups = C) with them turns [B, C, H, W] into [B, C * D, H, W] whose channel c * D + d is
+    channel c read at offset d = (di, dj) row-major from (-r, -r): out[i, j] = x[i + di, j + dj], zeros outside."""
+    size = 2 * radius + 1
+    offsets = size * size
+    kernels = torch.zeros(offsets, 1, size, size)
+    kernels.view(offsets, size * size)[torch.arange(offsets), torch.arange(offsets)] = 1.0
+    return kernels.repeat(channels, 1, 1, 1)  # [C * D, 1, k, k]
+
+
+def local_offsets(radius: int, cell: float) -> Tensor:
+    """-> [D, 2] metres (x right, y forward) from a cell to the previous cell it is compared with at offset d."""
+    steps = torch.arange(-radius, radius + 1, dtype=torch.float32)
+    di, dj = torch.meshgrid(steps, steps, indexing="ij")  # rows down, columns right
+    return torch.stack([dj.flatten() * cell, -di.flatten() * cell], dim=-1)  # [D, 2]
+
+
+def outside_mask(size: int, radius: int) -> Tensor:
+    """-> [1, D, H, W] additive logits: LOCAL_MASKED where offset d leaves the H x W map (a zero-padded match)."""
+    steps = torch.arange(-radius, radius + 1)
+    di, dj = torch.meshgrid(steps, steps, indexing="ij")
+    rows = torch.arange(size)[None, :, None] + di.flatten()[:, None, None]  # [D, H, 1]
+    cols = torch.arange(size)[None, None, :] + dj.flatten()[:, None, None]  # [D, 1, W]
+    inside = (rows >= 0) & (rows < size) & (cols >= 0) & (cols < size)  # [D, H, W]
+    return torch.where(inside, 0.0, LOCAL_MASKED)[None]
+
+
+def local_correlation(current: Tensor, previous: Tensor, kernels: Tensor) -> Tensor:
+    """Local cost volume: E_cur, E_prev [B, C, H, W] -> [B, D, H, W], E_cur . E_prev(offset d) / sqrt(C)."""
+    batch, channels, height, width = previous.shape
+    with torch.autocast(current.device.type, enabled=False):  # float32, as the global cost volume
+        radius = kernels.shape[-1] // 2
+        shifted = F.conv2d(previous.float(), kernels, padding=radius, groups=channels)  # [B, C*D, H, W]
+        shifted = shifted.reshape(batch, channels, -1, height, width)  # [B, C, D, H, W]
+        scaled = current.float() * (1.0 / math.sqrt(channels))  # [B, C, H, W]
+        return (shifted * scaled[:, :, None]).sum(dim=1)  # [B, D, H, W]
+
+
+def flow_from_local_correlation(correlation: Tensor, offsets: Tensor, mask: Tensor) -> Tensor:
+    """[B, D, H, W] costs, offsets [D, 2] m, mask [1, D, H, W] -> flow [B, 2, H, W] m: V = -sum_d softmax_d(C) o_d
+    (the content now at the cell was at the cell + the expected offset)."""
+    with torch.autocast(correlation.device.type, enabled=False):
+        probability = (correlation.float() + mask).softmax(dim=1)  # [B, D, H, W]
+        # the expectation over D as one 1x1 convolution with the (negated) offsets as weights
+        return F.conv2d(probability, -offsets.t()[:, :, None, None])  # [B, 2, H, W]
+
+
+def build_flow_encoder(channels: int, out_channels: int | None = None) -> nn.Sequential:
+    """phi: [B, C, Hf, Wf] -> [B, Ce, Hf, Wf] (Ce = out_channels, default C/2), two conv3x3 + BN (ReLU between),
+    shared by all frames."""
+    half = out_channels or channels // 2
     return nn.Sequential(
         nn.Conv2d(channels, half, 3, padding=1, bias=False),
         nn.BatchNorm2d(half),
@@ -62,6 +115,9 @@ class FlowEstimator(nn.Module):
     # buffers (register_buffer in __init__), declared so that type checkers know them as tensors
     position: Tensor
     centres: Tensor
+    kernels: Tensor
+    offsets: Tensor
+    mask: Tensor
 
     def __init__(
         self,
@@ -71,15 +127,24 @@ class FlowEstimator(nn.Module):
         centres: Tensor,
         half_extent: float,
         pool: int = 1,
+        local_radius: int = 0,
     ) -> None:
         super().__init__()
         self.encoder = encoder
         self.cross_layers = nn.ModuleList(cross_layers)
         self.half_extent = half_extent
         self.pool = pool
+        self.local_radius = local_radius  # 0: global matching (the paper)
         # Static per config, rebuilt by build_model: kept out of the state dict.
         self.register_buffer("position", position, persistent=False)  # [Hm*Wm, C/2]
         self.register_buffer("centres", centres, persistent=False)  # [Hm*Wm, 2] metres
+        size = math.isqrt(centres.shape[0])
+        channels = position.shape[1]
+        if local_radius:
+            cell = 2.0 * half_extent / size
+            self.register_buffer("kernels", shift_kernels(channels, local_radius), persistent=False)
+            self.register_buffer("offsets", local_offsets(local_radius, cell), persistent=False)  # [D, 2] m
+            self.register_buffer("mask", outside_mask(size, local_radius), persistent=False)  # [1, D, Hm, Wm]
 
     def encode(self, features: Tensor) -> Tensor:
         """phi on the matching grid: [B, C, Hf, Wf] -> [B, C/2, Hm, Wm]."""
@@ -92,14 +157,28 @@ class FlowEstimator(nn.Module):
         """E_prev, E_cur [B, C/2, Hm, Wm], relative_pose [B, 3] -> flow [B, 2, Hf, Wf] metres."""
         batch, _, height, width = e_cur.shape
         e_prev = align_to_current(e_prev, e_cur, relative_pose, self.centres, self.half_extent)  # current grid
-        e_prev = e_prev.flatten(2).transpose(1, 2) + self.position  # [B, Hm*Wm, C/2]
-        e_cur = e_cur.flatten(2).transpose(1, 2) + self.position  # [B, Hm*Wm, C/2]
-        for layer in self.cross_layers:
-            # paper eq. (2): previous attends current, then current attends the updated previous (shared T_c)
-            e_prev = layer(e_prev, e_cur)
-            e_cur = layer(e_cur, e_prev)
-        flow = flow_from_correlation(global_correlation(e_cur, e_prev), self.centres)  # [B, Hm*Wm, 2]
-        flow = flow.transpose(1, 2).reshape(batch, 2, height, width)  # [B, 2, Hm, Wm]
+        if self.local_radius and len(self.cross_layers) == 0:
+            # the CPU recipe: the local cost volume on the maps themselves, no token layout at all
+            correlation = local_correlation(e_cur, e_prev, self.kernels)  # [B, D, Hm, Wm]
+            flow = flow_from_local_correlation(correlation, self.offsets, self.mask)  # [B, 2, Hm, Wm]
+        else:
+            e_prev_tokens = e_prev.flatten(2).transpose(1, 2) + self.position  # [B, Hm*Wm, C/2]
+            e_cur_tokens = e_cur.flatten(2).transpose(1, 2) + self.position  # [B, Hm*Wm, C/2]
+            for layer in self.cross_layers:
+                # paper eq. (2): previous attends current, then current attends the updated previous (shared T_c)
+                e_prev_tokens = layer(e_prev_tokens, e_cur_tokens)
+                e_cur_tokens = layer(e_cur_tokens, e_prev_tokens)
+            if self.local_radius:
+                as_map = (batch, -1, height, width)
+                correlation = local_correlation(
+                    e_cur_tokens.transpose(1, 2).reshape(as_map),
+                    e_prev_tokens.transpose(1, 2).reshape(as_map),
+                    self.kernels,
+                )  # [B, D, Hm, Wm]
+                flow = flow_from_local_correlation(correlation, self.offsets, self.mask)  # [B, 2, Hm, Wm]
+            else:
+                flow = flow_from_correlation(global_correlation(e_cur_tokens, e_prev_tokens), self.centres)
+                flow = flow.transpose(1, 2).reshape(batch, 2, height, width)  # [B, 2, Hm, Wm]
         if self.pool > 1:
             # metres are metres on any grid: only resample (half-pixel centres match the cell geometry)
             flow = F.interpolate(

@@ -12,7 +12,7 @@ from typing import cast
 
 from torch import Tensor, nn
 
-from rafd.model.align import align_to_current, metres_to_grid
+from rafd.model.align import align_to_current, metres_to_grid, relative_pose_torch
 from rafd.model.deformable import DeformableLayer
 
 
@@ -37,6 +37,16 @@ class FlowGuidedPropagation(nn.Module):
             here = here.expand(flow.shape[0], -1, -1)  # [B, Hf*Wf, 2]
         # metres_to_grid flips y: flow forward (+y) is image up, i.e. towards smaller rows
         return metres_to_grid(here, self.half_extent)
+
+    def propagate(self, features: Tensor, flows: Tensor, poses: Tensor) -> Tensor:
+        """The window: features [B, T, C, Hf, Wf], flows [B, T-1, 2, Hf, Wf], poses [B, T, 3] -> T_T [B, C, Hf, Wf],
+        chained oldest -> newest with one shared module for every pair."""
+        # relative poses in the poses' own dtype (float64 world coordinates keep cm precision)
+        relative = relative_pose_torch(poses[:, :-1], poses[:, 1:]).to(features.dtype)  # [B, T-1, 3]
+        propagated = features[:, 0]  # T_1 = S_1
+        for t in range(1, features.shape[1]):
+            propagated = self(features[:, t], propagated, flows[:, t - 1], relative[:, t - 1])
+        return propagated
 
     def forward(self, current: Tensor, previous: Tensor, flow: Tensor, relative_pose: Tensor) -> Tensor:
         aligned = align_to_current(previous, current, relative_pose, self.centres, self.half_extent)  # [B, C, Hf, Wf]

@@ -37,6 +37,19 @@ def shipped_model_config() -> RaFDConfig:
     )
 
 
+def cpu_model_config() -> RaFDConfig:
+    """The `cpu` recipe's network: the default network reshaped for a CPU's few large operations (docs/model.md,
+    "The CPU network"): residual dilated-convolution enhancement in place of window attention, a local cost volume
+    (radius 3 flow cells = 8.3 m per frame at stride 8) without the cross-attention blocks, and one joint propagation
+    block that samples all past frames at once; the input, backbone, neck and head are the default's."""
+    base = shipped_model_config()
+    return base.replace(
+        enhance=dataclasses.replace(base.enhance, kind="conv", window=0),
+        flow=dataclasses.replace(base.flow, num_cross_blocks=0, local_radius=3, channels=8),
+        propagation=dataclasses.replace(base.propagation, mode="joint", num_blocks=1, num_points=2),
+    )
+
+
 RECIPES: dict[str, Recipe] = {
     recipe.name: recipe
     for recipe in (
@@ -63,6 +76,14 @@ RECIPES: dict[str, Recipe] = {
             "cosine decay, batch 4, 6 epochs, bf16-friendly; flip + rotation, radar intensity changes and crops up to "
             "65 m from the radar (full-scan tiles)",
             shipped_model_config(),
+            TrainConfig(epochs=6, batch_size=4, lr=1e-3, weight_decay=1e-2, optimizer="adamw", lr_schedule="cosine"),
+            augment=AugmentConfig(intensity_probability=0.8, shift_probability=0.6, shift_max_m=65.0),
+        ),
+        Recipe(
+            "cpu",
+            "the default recipe's training with the network reshaped for a CPU: convolutional enhancement, a local "
+            "cost volume without cross-attention, one joint propagation block over all past frames",
+            cpu_model_config(),
             TrainConfig(epochs=6, batch_size=4, lr=1e-3, weight_decay=1e-2, optimizer="adamw", lr_schedule="cosine"),
             augment=AugmentConfig(intensity_probability=0.8, shift_probability=0.6, shift_max_m=65.0),
         ),
