@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import math
 from functools import partial
+from typing import cast
 
 import torch
 from torch import Tensor, nn
@@ -139,7 +140,7 @@ class ConvBlock(nn.Module):
         self.conv2 = nn.Sequential(
             nn.Conv2d(channels, channels, 3, padding=2, dilation=2, bias=False), nn.BatchNorm2d(channels)
         )
-        nn.init.zeros_(self.conv2[1].weight)
+        nn.init.zeros_(cast(nn.BatchNorm2d, self.conv2[1]).weight)  # (Conv2d, BatchNorm2d)
 
     def forward(self, x: Tensor) -> Tensor:
         return torch.relu(x + self.conv2(torch.relu(self.conv1(x))))
