@@ -450,11 +450,50 @@ def run_export_gates(
 
 
 def gate_metadata(reports: dict[str, GateReport]) -> dict[str, str]:
-    """ONNX metadata entries for the gate verdicts (rafd.runtime.runners.GATE_KEY)."""
+    """ONNX metadata entries for the gate verdicts (rafd.runtime.runners.GATE_KEY). The figures also say on which
+    CPU and when the gate ran: a verdict on another CPU's bf16 kernels is evidence, not proof, for this one's."""
+    import datetime
+
+    from rafd import __version__
+    from rafd.bench.machine import cpu_model_and_flags
+
+    cpu, cpu_flags = cpu_model_and_flags()
+    units = [f for f in ("avx512_bf16", "amx_bf16", "amx_int8", "avx512_vnni") if f in cpu_flags]
+    made = {
+        "cpu": f"{cpu} ({', '.join(units) or 'no bf16 or int8 units'})",
+        "date": datetime.date.today().isoformat(),
+        "rafd_version": __version__,
+    }
     out = {}
     for precision, report in reports.items():
         out[f"gate_{precision}"] = "pass" if report.ok else "fail"
         out[f"gate_{precision}_figures"] = json.dumps(
-            {"candidate": report.candidate, "reference": report.reference, "figures": report.figures()}, sort_keys=True
+            {"candidate": report.candidate, "reference": report.reference, "figures": report.figures(), **made},
+            sort_keys=True,
         )
     return out
+
+
+def record_gates(
+    onnx_path: str | Path, reports: dict[str, GateReport], out: str | Path | None = None
+) -> dict[str, str]:
+    """Write the gate verdicts into an existing ONNX model's metadata (`rafd gate`), in place or to `out`, without
+    re-exporting: the graph and every other metadata entry are kept; a precision's earlier record is replaced, other
+    precisions' records are kept. Atomic (a temporary file beside the target, then a rename). Returns the entries
+    written."""
+    import onnx
+
+    source, target = Path(onnx_path), Path(out if out is not None else onnx_path)
+    entries = gate_metadata(reports)
+    proto = onnx.load(str(source))
+    kept = [(p.key, p.value) for p in proto.metadata_props if p.key not in entries]
+    del proto.metadata_props[:]
+    for key, value in [*kept, *entries.items()]:
+        proto.metadata_props.add(key=key, value=value)
+    tmp = target.with_name(f".{target.name}.{os.getpid()}.tmp")
+    try:
+        onnx.save(proto, str(tmp))
+        os.replace(tmp, target)
+    finally:
+        tmp.unlink(missing_ok=True)
+    return entries

@@ -36,6 +36,12 @@ from rafd.polar import RADIATE_RANGE_BINS, PolarConventions, polar_to_cartesian
 HEADER_COLUMNS = 11  # 8 timestamp bytes + 2 encoder bytes + 1 valid flag
 RADIATE_MAX_RANGE_M = RADIATE_RANGE_BINS * RADIATE_RESOLUTION  # 100 m: RADIATE's scans end there
 ENCODER_COUNTS = 5600  # encoder counts per turn (Navtech CTS350-X and CIR304-H)
+# What a real sensor's header holds (parse_native_scan refuses the rest, naming the rule): azimuth times in UNIX
+# microseconds from 1970 to 2100 (the service's timestamp range), one sweep turning at 1-10 Hz (the documented sensors
+# turn at 4 Hz: 0.248-0.253 s on the Oxford sample), and at least half of the azimuths measured (valid flag 255).
+MAX_TIMESTAMP_US = 4_102_444_800_000_000  # 2100-01-01T00:00:00Z
+SWEEP_PERIOD_S = (0.1, 1.0)
+MIN_VALID_FRACTION = 0.5
 
 
 @dataclass(frozen=True)
@@ -104,9 +110,79 @@ class NativeScan:
         return int(self.power.shape[1])
 
 
-def is_native_shape(width: int, height: int) -> bool:
-    """Whether a PNG of this size can be a native scan: some hundreds of azimuth rows, far more range columns."""
-    return 100 <= height <= 1000 and width > HEADER_COLUMNS + 2 * height
+@dataclass(frozen=True)
+class NativeShape:
+    """The native scan sizes accepted: azimuth rows and range-bin columns (after the 11 header columns). The defaults
+    are the documented sensors' (Oxford's CTS350-X: 400 azimuths x 3768 bins; Boreas' CIR304-H: 400 azimuths, at most
+    6848 bins, its 300 m at 0.04381 m), so what a PNG's header declares bounds the inflate and the conversion before
+    any work: an all-zero 400 x 400,000 PNG is 389 KB and would inflate to 160 MB."""
+
+    min_azimuths: int = 100
+    max_azimuths: int = 400
+    max_range_bins: int = 6848
+
+    def accepts(self, width: int, height: int) -> bool:
+        bins = width - HEADER_COLUMNS
+        return self.min_azimuths <= height <= self.max_azimuths and 2 * height < bins <= self.max_range_bins
+
+    def describe(self) -> str:
+        return (
+            f"{self.min_azimuths}-{self.max_azimuths} azimuth rows, {HEADER_COLUMNS} header columns + more than twice "
+            f"the rows and at most {self.max_range_bins} range bins"
+        )
+
+
+SENSOR_SHAPE = NativeShape()  # the documented sensors' sizes
+
+
+def is_native_shape(width: int, height: int, shape: NativeShape = SENSOR_SHAPE) -> bool:
+    """Whether a PNG of this size can be a native scan: some hundreds of azimuth rows, far more range columns, within
+    the sensors' sizes (`shape`)."""
+    return shape.accepts(width, height)
+
+
+def check_header(timestamps: np.ndarray, encoder: np.ndarray, valid: np.ndarray, fmt: NativeFormat) -> None:
+    """ValueError naming the rule when a scan's header columns are not one sweep of a real sensor: azimuth times in
+    range and strictly increasing, spanning about one rotation (SWEEP_PERIOD_S); encoder angles within the encoder's
+    counts and strictly increasing over at most one turn (wrapping once through 0); at least MIN_VALID_FRACTION of
+    the azimuths measured. Degenerate headers (all angles equal, reversed, random or two turns; times all equal,
+    negative or at INT64_MAX) otherwise bend the conversion and the motion compensation of every later frame."""
+    if np.any(timestamps < 0) or np.any(timestamps > MAX_TIMESTAMP_US):
+        raise ValueError(
+            "rule azimuth_time_range: the azimuth timestamps must be UNIX microseconds from 1970 to 2100, "
+            f"got {int(timestamps.min())} to {int(timestamps.max())}"
+        )
+    steps = np.diff(timestamps)  # no overflow: both ends are within [0, MAX_TIMESTAMP_US]
+    if np.any(steps < 0):
+        raise ValueError(
+            "rule azimuth_time_increasing: the native scan's azimuth timestamps decrease (not a native scan, or a "
+            "corrupt one)"
+        )
+    if np.any(steps == 0):
+        raise ValueError("rule azimuth_time_increasing: two azimuths share a timestamp; they must increase strictly")
+    counts = fmt.encoder_counts
+    if np.any(encoder >= counts):
+        raise ValueError(
+            f"rule encoder_range: encoder angles reach {int(encoder.max())}, beyond {counts} counts per turn"
+        )
+    turned = np.diff(encoder) % counts  # counts advanced from each azimuth to the next, wrapping through 0
+    if np.any(turned == 0) or int(turned.sum()) >= counts:
+        raise ValueError(
+            "rule encoder_one_turn: the encoder angles must increase strictly over less than one turn "
+            f"({counts} counts, wrapping through 0 at most once); these advance {int(turned.sum())} counts"
+            + (" with repeated angles" if np.any(turned == 0) else "")
+        )
+    period_s = float(timestamps[-1] - timestamps[0]) * counts / float(turned.sum()) / 1e6
+    if not SWEEP_PERIOD_S[0] <= period_s <= SWEEP_PERIOD_S[1]:
+        raise ValueError(
+            f"rule sweep_period: the azimuth times imply one rotation in {period_s:.4g} s; a radar's sweep turns in "
+            f"{SWEEP_PERIOD_S[0]:g}-{SWEEP_PERIOD_S[1]:g} s (Oxford and Boreas: 0.25 s)"
+        )
+    if valid.mean() < MIN_VALID_FRACTION:
+        raise ValueError(
+            f"rule valid_azimuths: {int(valid.sum())} of {valid.size} azimuths are measured (valid flag 255); at "
+            f"least {MIN_VALID_FRACTION:.0%} must be"
+        )
 
 
 def parse_native_scan(image: np.ndarray, fmt: str | NativeFormat = "oxford") -> NativeScan:
@@ -118,11 +194,9 @@ def parse_native_scan(image: np.ndarray, fmt: str | NativeFormat = "oxford") -> 
     timestamps = header[:, :8].copy().view("<i8").ravel().astype(np.int64)
     encoder = header[:, 8:10].copy().view("<u2").ravel().astype(np.int64)
     fmt = format_for(fmt, int(timestamps[0]))
-    if np.any(np.diff(timestamps) < 0):
-        raise ValueError("the native scan's azimuth timestamps decrease (not a native scan, or a corrupt one)")
-    if np.any(encoder >= fmt.encoder_counts):
-        raise ValueError(f"encoder angles reach {int(encoder.max())}, beyond {fmt.encoder_counts} counts per turn")
-    return NativeScan(timestamps, encoder, header[:, 10] == 255, np.ascontiguousarray(image[:, HEADER_COLUMNS:]), fmt)
+    valid = header[:, 10] == 255
+    check_header(timestamps, encoder, valid, fmt)
+    return NativeScan(timestamps, encoder, valid, np.ascontiguousarray(image[:, HEADER_COLUMNS:]), fmt)
 
 
 def read_native_scan(path: str | Path, fmt: str | NativeFormat = "oxford") -> NativeScan:
@@ -158,10 +232,15 @@ def to_polar(
     # azimuth of row j in steps of a uniform grid of `azimuths` per turn, from the encoder
     steps = scan.azimuths / (2.0 * np.pi) * azimuths  # [A], increasing
     offset = float(steps[0])
-    if np.max(np.abs(steps - (offset + np.arange(azimuths)))) > 1e-3:  # not uniform: resample each range row
+    valid = np.asarray(scan.valid, bool)
+    # Not uniform, or some azimuths not measured (valid flag not 255): resample each range row from the measured
+    # azimuths only, so an unmeasured azimuth's bins never reach the converted scan.
+    if not valid.all() or np.max(np.abs(steps - (offset + np.arange(azimuths)))) > 1e-3:
         target = offset + np.arange(azimuths, dtype=np.float64)
-        wrapped_steps = np.concatenate([steps - azimuths, steps, steps + azimuths])
-        polar = np.stack([np.interp(target, wrapped_steps, np.tile(row, 3)) for row in polar]).astype(np.float32)
+        kept = steps[valid] if valid.any() else steps
+        source = polar[:, valid] if valid.any() else polar
+        wrapped_steps = np.concatenate([kept - azimuths, kept, kept + azimuths])
+        polar = np.stack([np.interp(target, wrapped_steps, np.tile(row, 3)) for row in source]).astype(np.float32)
     offset = offset % azimuths
     conventions = PolarConventions(azimuth_offset=offset, range_offset=0.5, range_bin=bin_m, centre_offset=(0.0, 0.0))
     return polar, conventions

@@ -77,7 +77,8 @@ def create_app(
     settings = settings or get_settings()
     service_metrics = ServiceMetrics()
     api_keys = load_api_keys(settings)
-    live = LiveView.from_settings(settings, service_metrics)  # ValueError naming the extra when foxglove is absent
+    # ValueError naming the extra when foxglove is absent, or when keys are configured and the view names none
+    live = LiveView.from_settings(settings, service_metrics, tuple(name for name, _ in api_keys.keys))
 
     async def load(app: FastAPI) -> None:
         try:
@@ -132,8 +133,14 @@ def create_app(
 
     # /docs (Swagger UI) and /redoc with their JavaScript and CSS served by this process (fastapi-offline ships them,
     # under /static-offline-docs/), never from a CDN: the pages work on a network without internet.
+    # redirect_slashes off: `DELETE /streams/` answered a 307 to GET's `/streams` (a redirect a client may follow with
+    # another method, and no JSON error); a path no route has is 404 `not_found`, with or without a trailing slash.
     app = FastAPIOffline(
-        title="RaFD radar detection service", version=__version__, lifespan=lifespan, description=ANY_ROUTE_ERRORS
+        title="RaFD radar detection service",
+        version=__version__,
+        lifespan=lifespan,
+        description=ANY_ROUTE_ERRORS,
+        redirect_slashes=False,
     )
     app.state.settings = settings
     app.state.live = live

@@ -42,6 +42,7 @@ ERRORS: Mapping[str, ErrorCode] = {
     "empty_body": ErrorCode(400, "the request body is empty"),
     "invalid_json": ErrorCode(400, "the body is not valid JSON (NaN, Infinity and out-of-range numbers included)"),
     "invalid_multipart": ErrorCode(400, "the multipart/form-data body cannot be parsed (boundary, part headers)"),
+    "ambiguous_content_type": ErrorCode(400, "the request has more than one Content-Type header"),
     "missing_api_key": ErrorCode(401, "API keys are configured and the request carries none"),
     "invalid_api_key": ErrorCode(401, "API keys are configured and the request's key is not one of them"),
     "not_found": ErrorCode(404, "no such route"),
@@ -88,6 +89,14 @@ ERRORS: Mapping[str, ErrorCode] = {
         422,
         "the image is not valid base64 / not a PNG / corrupt, or its chunk structure is refused before "
         "decoding (too many or too large ancillary chunks, image data that inflates beyond its header's size)",
+    ),
+    "timestamp_gap_too_small": ErrorCode(
+        422, "the frame follows the stream's last accepted frame by less than RAFD_MIN_FRAME_GAP_S seconds"
+    ),
+    "implausible_motion": ErrorCode(
+        422,
+        "the frame's pose (the request's or odometry's) moved faster than RAFD_MAX_SPEED_MPS since the stream's last "
+        "accepted frame; the frame is refused and the stream keeps its last pose",
     ),
     "unsupported_image_size": ErrorCode(422, "the PNG is not one of the accepted square sizes"),
     "unsupported_image_format": ErrorCode(422, "the PNG is not 8-bit greyscale (colour type 0, bit depth 8)"),
@@ -193,6 +202,8 @@ PENALISED_CODES = frozenset(
         "empty_body",
         "invalid_json",
         "invalid_multipart",
+        "ambiguous_content_type",
+        "timestamp_gap_too_small",
         "body_timeout",
         "body_too_slow",
         "request_too_large",

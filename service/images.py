@@ -23,7 +23,14 @@ import cv2
 import numpy as np
 
 from rafd.geometry import RADIATE_RESOLUTION, RADIATE_SCAN_SIZE
-from rafd.native import HEADER_COLUMNS, NATIVE_FORMATS, is_native_shape, parse_native_scan
+from rafd.native import (
+    HEADER_COLUMNS,
+    NATIVE_FORMATS,
+    SENSOR_SHAPE,
+    NativeShape,
+    is_native_shape,
+    parse_native_scan,
+)
 from rafd.native import to_cartesian as native_to_cartesian
 from rafd.polar import RADIATE_AZIMUTHS, RADIATE_RANGE_BINS
 from rafd.preprocess import model_crop, polar_to_cartesian, to_model_input
@@ -95,23 +102,26 @@ def native_format_name(width: int) -> str:
     return "oxford" if width - HEADER_COLUMNS == OXFORD_RANGE_BINS else "boreas"
 
 
-def native_description() -> dict[str, object]:
+def native_description(shape: NativeShape = SENSOR_SHAPE) -> dict[str, object]:
     """What GET /model says about native scans (rafd.native): the shape rule and each dataset's range bin."""
     return {
-        "rows": "one per azimuth, 100-1000 (Oxford and Boreas: 400)",
+        "rows": f"one per azimuth, {shape.min_azimuths}-{shape.max_azimuths} (Oxford and Boreas: 400; "
+        "RAFD_NATIVE_MAX_AZIMUTHS)",
         "columns": f"{HEADER_COLUMNS} header columns (timestamp, encoder angle, valid flag) + the range bins, more "
-        "than twice the rows",
+        f"than twice the rows and at most {shape.max_range_bins} (RAFD_NATIVE_MAX_RANGE_BINS)",
         "formats": {name: fmt.range_bin_m for name, fmt in NATIVE_FORMATS.items()},
         "format_rule": f"{OXFORD_RANGE_BINS} range bins: oxford; any other number: boreas (boreas-2021 after its "
         "sensor upgrade, by the scan's timestamp)",
     }
 
 
-def _check_size(header: png.PngHeader, input_size: int, resolution: float) -> None:
-    """422 unless the PNG is an accepted square Cartesian size or (where accepted) a RADIATE polar or a native scan."""
+def _check_size(header: png.PngHeader, input_size: int, resolution: float, native: NativeShape = SENSOR_SHAPE) -> None:
+    """422 unless the PNG is an accepted square Cartesian size or (where accepted) a RADIATE polar or a native scan
+    of a real sensor's size (`native`): from the header alone, so the inflate and the conversion are bounded before
+    any work."""
     sizes = accepted_sizes(input_size, resolution)
     polar = accepts_polar(input_size, resolution)
-    if polar and ((header.height, header.width) == POLAR_SHAPE or is_native_shape(header.width, header.height)):
+    if polar and ((header.height, header.width) == POLAR_SHAPE or is_native_shape(header.width, header.height, native)):
         return
     if header.width != header.height or header.width not in sizes:
         accepted = " or ".join(f"{s}x{s}" for s in sizes)
@@ -119,7 +129,7 @@ def _check_size(header: png.PngHeader, input_size: int, resolution: float) -> No
             accepted += (
                 f" (Cartesian), or {POLAR_SHAPE[1]}x{POLAR_SHAPE[0]} (a polar scan: {POLAR_SHAPE[1]} "
                 f"azimuth columns x {POLAR_SHAPE[0]} range rows, RADIATE's Navtech_Polar layout), or a native scan "
-                "(Oxford / Boreas: one row per azimuth, 11 header columns + the range bins)"
+                f"(Oxford / Boreas: one row per azimuth, {native.describe()})"
             )
         raise ApiError(
             "unsupported_image_size",
@@ -127,14 +137,16 @@ def _check_size(header: png.PngHeader, input_size: int, resolution: float) -> No
         )
 
 
-def check_posted_image(image: PostedImage, input_size: int, resolution: float) -> png.PngLayout:
+def check_posted_image(
+    image: PostedImage, input_size: int, resolution: float, native: NativeShape = SENSOR_SHAPE
+) -> png.PngLayout:
     """Chunk structure, format and size from the headers alone: 422 before any pixel is decoded."""
     layout = png.read_layout(_source(image))
-    _check_size(layout.header, input_size, resolution)
+    _check_size(layout.header, input_size, resolution, native)
     return layout
 
 
-def upload_check(input_size: int, resolution: float) -> Callable[[bytes], None]:
+def upload_check(input_size: int, resolution: float, native: NativeShape = SENSOR_SHAPE) -> Callable[[bytes], None]:
     """A feeder for a PNG file upload as it streams in: refuses by chunk headers, format and size as soon as they
     arrive, so a hostile upload is answered before the rest of its body is received."""
     check = png.StreamingCheck()
@@ -143,17 +155,19 @@ def upload_check(input_size: int, resolution: float) -> Callable[[bytes], None]:
         had_header = check.header is not None
         check.feed(data)
         if not had_header and check.header is not None:
-            _check_size(check.header, input_size, resolution)
+            _check_size(check.header, input_size, resolution, native)
 
     return feed
 
 
-def decode_frame(image: PostedImage, input_size: int, resolution: float) -> DecodedFrame:
+def decode_frame(
+    image: PostedImage, input_size: int, resolution: float, native: NativeShape = SENSOR_SHAPE
+) -> DecodedFrame:
     """A posted PNG (bytes, or base64 text; Cartesian or polar) -> the model's [S, S] uint8 crop; 422 naming what
     was expected. No input gives anything else: a failure of the decoding libraries on a posted file is that file's
     fault (422 `invalid_image`, logged as a warning), never a 500."""
     try:
-        return _decode_frame(image, input_size, resolution)
+        return _decode_frame(image, input_size, resolution, native)
     except ApiError:
         raise
     except Exception as exc:
@@ -161,8 +175,8 @@ def decode_frame(image: PostedImage, input_size: int, resolution: float) -> Deco
         raise ApiError("invalid_image", f"the image could not be decoded ({type(exc).__name__})") from exc
 
 
-def _decode_frame(image: PostedImage, input_size: int, resolution: float) -> DecodedFrame:
-    layout = check_posted_image(image, input_size, resolution)
+def _decode_frame(image: PostedImage, input_size: int, resolution: float, native: NativeShape) -> DecodedFrame:
+    layout = check_posted_image(image, input_size, resolution, native)
     if isinstance(image, str):
         try:
             data = png.a2b_base64_strict(strip_data_url(image))

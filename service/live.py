@@ -11,6 +11,12 @@ busy CPU never slows /detect. The scan published is the centre of the posted sca
 full RADIATE scan, the model's crop in its middle), the boxes drawn on it in its pixels; flow arrows only where the
 flow means something (cells with returns or near a box, rafd.viz.plots.meaningful_cells).
 
+Who sees what: foxglove-sdk's WebSocket server has no authentication of its own, so whoever reaches its port sees
+every stream published there (ids, scans, poses, boxes). Without API keys that is every stream (one namespace, as
+for the HTTP API). With API keys only the streams of ONE key are published, the key named by RAFD_FOXGLOVE_KEY
+(required then: the service does not start without it): other keys' answers never leave the service's process, so
+two keys' streams that share an id are never merged on one topic, and no other key's stream id is advertised.
+
 foxglove-sdk is the `live` extra (not in `serve`: the serving image stays without it unless built with
 EXTRAS=serve,live); without it --foxglove-port stops the service at start-up saying which extra to install.
 """
@@ -59,9 +65,18 @@ def check_available() -> None:
 class LiveView:
     """The service's side of the live view: a bounded queue to the publisher process, and its metrics."""
 
-    def __init__(self, host: str, port: int, queue_frames: int, metrics: ServiceMetrics | None = None) -> None:
+    def __init__(
+        self,
+        host: str,
+        port: int,
+        queue_frames: int,
+        metrics: ServiceMetrics | None = None,
+        key: str | None = None,
+    ) -> None:
         check_available()
         self.host, self.requested_port, self.queue_frames = host, port, queue_frames
+        # With API keys: the name of the one key whose streams are published (None: no keys, every stream).
+        self.key = key
         self.port: int | None = None  # bound at start()
         self.resolution = 0.0  # metres per pixel of the posted scans: the model's, set once it is loaded
         self._context = multiprocessing.get_context("spawn")  # never fork a process holding runtime threads
@@ -80,11 +95,27 @@ class LiveView:
         )
 
     @classmethod
-    def from_settings(cls, settings: Settings, metrics: ServiceMetrics | None = None) -> LiveView | None:
-        """The live view the settings ask for (None when RAFD_FOXGLOVE_PORT is unset); ValueError without the extra."""
+    def from_settings(
+        cls, settings: Settings, metrics: ServiceMetrics | None = None, key_names: tuple[str, ...] = ()
+    ) -> LiveView | None:
+        """The live view the settings ask for (None when RAFD_FOXGLOVE_PORT is unset); ValueError without the extra,
+        or when the key it shows is not one of the API keys configured (`key_names`), or keys are configured and it
+        names none (the view has no authentication: it must not show every key's streams to whoever connects)."""
         if settings.foxglove_port is None:
             return None
-        return cls(settings.foxglove_host, settings.foxglove_port, settings.foxglove_queue_frames, metrics)
+        key = settings.foxglove_key
+        if key_names and key is None:
+            raise ValueError(
+                "with API keys the live view shows the streams of one key only: name it with RAFD_FOXGLOVE_KEY "
+                "(--foxglove-key, the key's NAME); its WebSocket has no authentication, so whoever reaches "
+                "RAFD_FOXGLOVE_HOST:RAFD_FOXGLOVE_PORT sees that key's streams"
+            )
+        if key is not None and key not in key_names:
+            raise ValueError(
+                "RAFD_FOXGLOVE_KEY names no configured API key"
+                + ("" if key_names else " (no API keys are configured: leave it unset to show every stream)")
+            )
+        return cls(settings.foxglove_host, settings.foxglove_port, settings.foxglove_queue_frames, metrics, key)
 
     def start(self) -> None:
         """Start the publisher process and its server; RuntimeError with its reason when it cannot (port taken)."""
@@ -111,8 +142,11 @@ class LiveView:
             "live view: Foxglove WebSocket server on ws://%s:%d (one topic prefix per stream)", self.host, self.port
         )
 
-    def offer(self, answer: dict[str, Any], decoded: DecodedFrame) -> None:
-        """Queue one answered frame for publishing; never blocks (a full queue drops it and counts the drop)."""
+    def offer(self, answer: dict[str, Any], decoded: DecodedFrame, caller: str | None = None) -> None:
+        """Queue one answered frame for publishing; never blocks (a full queue drops it and counts the drop). With
+        API keys only the shown key's frames (`caller`: the key's name) are published; the rest never leave here."""
+        if caller != self.key:
+            return
         if self._queue is None:
             self.dropped.inc()
             return

@@ -43,6 +43,9 @@ def open_runner(settings: Settings) -> Any:
         path, settings.runtime, settings.precision, threads=settings.threads, concurrent_runs=settings.concurrent_runs
     )
     log.info("serving on %s", runner.describe())
+    choice = getattr(runner, "precision_choice", None)
+    if choice:
+        log.info("precision: %s", choice["reason"])
     return runner
 
 

@@ -40,6 +40,11 @@ class Part:
 
 
 def boundary_of(content_type: str) -> bytes:
+    # Two boundary parameters: python-multipart keeps the last, another parser (a proxy's, a WAF's) may keep the first
+    # and read other parts than this service does. Refuse the ambiguity. (A boundary cannot hold ';', RFC 2046.)
+    names = [param.split("=", 1)[0].strip().lower() for param in content_type.split(";")[1:]]
+    if names.count("boundary") > 1:
+        raise ApiError("invalid_multipart", "the multipart/form-data Content-Type has more than one boundary parameter")
     _, options = parse_options_header(content_type)
     boundary = options.get(b"boundary", b"")
     if not boundary or len(boundary) > 70:  # RFC 2046: 1-70 characters

@@ -55,6 +55,41 @@ def check_request_pose(stream_pose_source: str | None) -> None:
         )
 
 
+def check_gap(previous_timestamp: float | None, timestamp: float, min_gap_s: float) -> None:
+    """422 `timestamp_gap_too_small` when a frame follows the stream's last accepted frame by less than `min_gap_s`
+    (RAFD_MIN_FRAME_GAP_S): no radar scans that fast, and a gap of 1e-300 s makes every speed and flow meaningless."""
+    if previous_timestamp is not None and timestamp - previous_timestamp < min_gap_s:
+        raise ApiError(
+            "timestamp_gap_too_small",
+            f"rule min_frame_gap: timestamp {timestamp!r} follows the stream's last accepted frame "
+            f"({previous_timestamp!r}) by {timestamp - previous_timestamp:.6g} s, less than the {min_gap_s:g} s a "
+            "sensor's frames are at least apart (RAFD_MIN_FRAME_GAP_S)",
+        )
+
+
+def check_motion(
+    previous_pose: np.ndarray | None,
+    previous_timestamp: float | None,
+    pose: np.ndarray,
+    timestamp: float,
+    max_speed_mps: float,
+) -> None:
+    """422 `implausible_motion` when the frame's pose (the request's or odometry's) is further from the stream's last
+    pose than a road vehicle travels in the time between them (RAFD_MAX_SPEED_MPS): the frame is refused and the
+    chain keeps its last pose, instead of every later frame being offset by the jump."""
+    if previous_pose is None or previous_timestamp is None or max_speed_mps <= 0:
+        return
+    distance = float(np.hypot(pose[0] - previous_pose[0], pose[1] - previous_pose[1]))
+    elapsed = timestamp - previous_timestamp
+    if not distance <= max_speed_mps * elapsed:  # also refuses a non-finite distance
+        raise ApiError(
+            "implausible_motion",
+            f"rule max_speed: the pose moved {distance:.6g} m in {elapsed:.6g} s since the stream's last accepted "
+            f"frame, faster than {max_speed_mps:g} m/s (RAFD_MAX_SPEED_MPS); the frame is refused and the stream "
+            "keeps its last pose. Check the pose (or, without one, the scans), or DELETE the stream to start over",
+        )
+
+
 def remember(view: np.ndarray, timestamp: float, sweep: Sweep | None) -> OdometryMemory:
     """A frame whose pose needed no odometry (a stream's first, or a request pose): kept raw, prepared only if a
     later frame needs odometry from it."""

@@ -11,7 +11,10 @@ keeps uvicorn's parser and request cycle (the fastest path measured here) and ad
 - the head complete within `header_timeout_s` of the connection (for its first request) or of the request's first
   byte (on a kept-alive connection): 408 beyond. uvicorn itself times out only idle kept-alive connections;
 - a connection whose response ended before its request body had fully arrived (a refusal that did not read the
-  body) is closed, so an unread body cannot be trickled in forever;
+  body) is closed, so an unread body cannot be trickled in forever; and every response that STARTS before its
+  request's body has fully arrived says so with `Connection: close` (whichever layer answered: 401, 408, 413, 429,
+  503, ...), so a pooled client (nginx's upstream keep-alive, httpx) never sends its next request on a connection the
+  server is about to close ("Server disconnected without sending a response");
 - closing after a refusal lingers: the answer is sent, the sending side shut (the client reads the answer and an
   end of file), and what the client still sends is read and dropped for at most `LINGER_S` seconds or
   `LINGER_BYTES` bytes before the socket is closed. A socket closed with unread input is reset, which can drop
@@ -84,6 +87,7 @@ class LimitedHttpToolsProtocol(HttpToolsProtocol):
         self._header_bytes = 0
         self._head_timer: asyncio.TimerHandle | None = None
         self._lingering = -1  # bytes dropped since the connection started closing (-1: not closing)
+        self._close_announced: object | None = None  # the cycle whose answer said `Connection: close` (this layer)
 
     # ------------------------------------------------------------------ connection
     def connection_made(self, transport: asyncio.Transport) -> None:  # type: ignore[override]
@@ -160,7 +164,31 @@ class LimitedHttpToolsProtocol(HttpToolsProtocol):
         self._in_head = False
         self._crossed = True
         self._cancel_head_timer()
+        previous = self.cycle
         super().on_headers_complete()
+        if self.cycle is not None and self.cycle is not previous:
+            self._announce_early_close(self.cycle)
+
+    def _announce_early_close(self, cycle: Any) -> None:
+        """Wrap the cycle's `send` (its ASGI task has not started yet): an answer that starts while the request's body
+        is still arriving gets `Connection: close`, since this connection closes after it (`on_response_complete`).
+        uvicorn, seeing the header, would close the socket outright at the answer's end, which resets a connection
+        with unread input and can drop the answer; the lingering close here is kept instead."""
+        send = cycle.send
+
+        async def send_announcing_close(message: Any) -> None:
+            if message["type"] != "http.response.start" or cycle.response_started or not cycle.more_body:
+                await send(message)
+                return
+            headers = list(message.get("headers", []))
+            if not any(name.lower() == b"connection" and b"close" in value.lower() for name, value in headers):
+                headers.append((b"connection", b"close"))
+            keep_alive = cycle.keep_alive
+            await send({**message, "headers": headers})
+            cycle.keep_alive = keep_alive  # uvicorn cleared it for the header: the lingering close ends this one
+            self._close_announced = cycle
+
+        cycle.send = send_announcing_close
 
     def on_message_complete(self) -> None:
         super().on_message_complete()
@@ -170,7 +198,8 @@ class LimitedHttpToolsProtocol(HttpToolsProtocol):
     def on_response_complete(self) -> None:
         cycle = self.cycle
         super().on_response_complete()
-        if cycle is not None and cycle.more_body and not self.transport.is_closing():
+        announced = cycle is not None and cycle is self._close_announced
+        if cycle is not None and (cycle.more_body or announced) and not self.transport.is_closing():
             self._linger()  # answered before its body arrived: the rest of it is not waited for
 
     # ------------------------------------------------------------------ refusals

@@ -6,8 +6,9 @@ counted as it streams in (`StructureCount`: a detect request has a few keys, one
 array), and a body with more is refused as soon as its count passes the bound, unparsed and unread past that piece
 (a body of 200k keys or numbers: after its first 64 KiB); the rest is parsed on the parse executor, off the event
 loop, by orjson (strict: UTF-8, no NaN / Infinity, no trailing data). Multipart: fields stream_id, timestamp, optional
-pose_x, pose_y, pose_yaw (all three or none) and the file field `image`, each at most once; numbers are written
-as JSON numbers. Unknown fields are refused (a typo like `pose_yw` must not silently drop the pose).
+pose_x, pose_y, pose_yaw (all three or none), optional previous_timestamp and the file field `image`, each at most
+once; numbers are written as JSON numbers. Unknown fields are refused (a typo like `pose_yw` must not silently drop
+the pose).
 The stream id may come from the body, the X-Stream-Id header or the path; all that are given must agree.
 """
 
@@ -32,7 +33,7 @@ from service.schemas import DetectBody, DetectFields, DetectJson, Pose
 JSON = "application/json"
 MULTIPART = "multipart/form-data"
 POSE_FORM_FIELDS = ("pose_x", "pose_y", "pose_yaw")
-FORM_FIELDS = ("stream_id", "timestamp", *POSE_FORM_FIELDS)
+FORM_FIELDS = ("stream_id", "timestamp", *POSE_FORM_FIELDS, "previous_timestamp")
 FORM_FILES = ("image",)
 JSON_FIELDS = frozenset(DetectJson.model_fields)
 POSE_FIELDS = frozenset(Pose.model_fields)
@@ -64,6 +65,8 @@ async def parse_detect_request(
 
     `upload_check()` gives a feeder that sees a multipart image upload piece by piece as it streams in;
     `parse_json` runs `parse_json_body` (the service: on its parse executor)."""
+    if len(request.headers.getlist("content-type")) > 1:  # which one would a proxy or another parser have read?
+        raise ApiError("ambiguous_content_type", "the request has more than one Content-Type header; send exactly one")
     media_type = request.headers.get("content-type", "").split(";")[0].strip().lower()
     image: PostedImage  # text from a JSON body, bytes from a form
     if media_type == JSON:
@@ -91,7 +94,14 @@ def resolve_stream_id(body: DetectBody, stream_hint: str | None) -> DetectFields
             f"the body's stream_id {body.stream_id!r} differs from "
             f"{stream_hint!r} given in the X-Stream-Id header or the path",
         )
-    return DetectFields(stream_id=stream_id, timestamp=body.timestamp, pose=body.pose)
+    previous = body.previous_timestamp
+    if previous is not None and previous >= body.timestamp:
+        raise ApiError(
+            "validation_error",
+            f"previous_timestamp ({previous!r}) must be before timestamp ({body.timestamp!r}): it names the frame "
+            "this stream sent before this one",
+        )
+    return DetectFields(stream_id=stream_id, timestamp=body.timestamp, pose=body.pose, previous_timestamp=previous)
 
 
 # ---------------------------------------------------------------------------------------------------- JSON
@@ -273,6 +283,8 @@ async def _parse_form(request: Request, inspect: dict[str, Callable[[bytes], Non
         values["stream_id"] = _text(parts["stream_id"])
     if "timestamp" in parts:
         values["timestamp"] = _number("timestamp", _text(parts["timestamp"]))
+    if "previous_timestamp" in parts:
+        values["previous_timestamp"] = _number("previous_timestamp", _text(parts["previous_timestamp"]))
     given = [name for name in POSE_FORM_FIELDS if name in parts]
     if given and len(given) != len(POSE_FORM_FIELDS):
         raise ApiError(

@@ -24,6 +24,22 @@ StreamId = Annotated[
     Field(min_length=1, max_length=128, pattern=STREAM_ID_PATTERN, description=STREAM_ID_RULE),
 ]
 
+# Physical ranges (422 `validation_error` beyond, the bound named): timestamps are seconds since the UNIX epoch from
+# 0 (1970; small values such as 1, 2, 3 are fine: time since a sensor started) to 2100-01-01; poses are metres within
+# 1e8 of the world origin (UTM northings reach 1e7, Earth-centred coordinates 6.4e6) and yaws within 1e4 rad
+# (unwrapped: 1591 turns), where float64 still resolves a millimetre and a sine means something.
+MAX_TIMESTAMP_S = 4_102_444_800.0
+MAX_POSE_M = 1e8
+MAX_YAW_RAD = 1e4
+Timestamp = Annotated[
+    float,
+    Field(
+        ge=0.0,
+        le=MAX_TIMESTAMP_S,
+        description="seconds since the UNIX epoch (or since the sensor started), 0 to 4102444800 (2100-01-01)",
+    ),
+]
+
 # No coercion: a JSON timestamp is a number (an integer is a number), never "1.5" or true.
 Strict = ConfigDict(extra="forbid", allow_inf_nan=False, strict=True)
 
@@ -32,9 +48,9 @@ class Pose(BaseModel):
     """World pose of the radar's ego frame: world = R(yaw) @ ego + (x, y)."""
 
     model_config = Strict
-    x: float = Field(description="metres")
-    y: float = Field(description="metres")
-    yaw: float = Field(description="radians, counter-clockwise")
+    x: float = Field(ge=-MAX_POSE_M, le=MAX_POSE_M, description="metres, within 1e8 of the world origin")
+    y: float = Field(ge=-MAX_POSE_M, le=MAX_POSE_M, description="metres, within 1e8 of the world origin")
+    yaw: float = Field(ge=-MAX_YAW_RAD, le=MAX_YAW_RAD, description="radians, counter-clockwise, within 1e4")
 
 
 class DetectBody(BaseModel):
@@ -46,8 +62,18 @@ class DetectBody(BaseModel):
         description="required unless the X-Stream-Id header or the path names the stream; "
         "must equal them when both are given",
     )
-    timestamp: float = Field(description="seconds (e.g. UNIX time); must increase within a stream")
+    timestamp: Timestamp = Field(
+        description="seconds since the UNIX epoch (or since the sensor started), 0 to 4102444800 (2100-01-01); must "
+        "increase within a stream, by at least RAFD_MIN_FRAME_GAP_S"
+    )
     pose: Pose | None = Field(default=None, description="omit to estimate ego motion from the radar (odometry)")
+    previous_timestamp: Timestamp | None = Field(
+        default=None,
+        description="optional: the timestamp of this stream's previous frame that the client got an answer (200) for; "
+        "a replica whose last accepted frame of the stream is another one restarts the stream's buffer "
+        '(stream_restarted: "previous_timestamp_mismatch") instead of continuing a chain that is not the client\'s. '
+        "Must be before timestamp; omit on a stream's first frame",
+    )
 
 
 class DetectJson(DetectBody):
@@ -62,8 +88,9 @@ class DetectFields(BaseModel):
 
     model_config = Strict
     stream_id: StreamId
-    timestamp: float
+    timestamp: Timestamp
     pose: Pose | None = None
+    previous_timestamp: Timestamp | None = None
 
 
 class Answer(BaseModel):
@@ -137,11 +164,19 @@ class DetectResponse(Answer):
     frames_used: int
     num_frames: int
     warming_up: bool = Field(description="true while fewer than num_frames frames are buffered")
-    stream_restarted: Literal["evicted", "expired"] | None = Field(
+    stream_restarted: Literal["evicted", "expired", "gap", "previous_timestamp_mismatch"] | None = Field(
         default=None,
         description="present only on the first answer of a chain that the service restarted: the stream id's "
-        "previous chain was evicted (its key's quota or the store's cap) or expired (idle past RAFD_STREAM_TTL_S); "
-        "frames_used starts again at 1",
+        "previous chain was evicted (its key's quota or the store's cap), expired (idle past RAFD_STREAM_TTL_S), "
+        "is too old for this frame (gap: more than RAFD_STREAM_GAP_RESTART_S seconds of timestamps before it) or "
+        "is not the client's (previous_timestamp_mismatch: its last frame is not the request's previous_timestamp); "
+        "frames_used starts again at 1 and the odometry world frame restarts at this frame",
+    )
+    replayed: bool | None = Field(
+        default=None,
+        description="present (true) only when the frame repeats the stream's last accepted frame (same timestamp, "
+        "image and pose, e.g. a retry after a lost answer): the answer is that frame's answer again, and the stream "
+        "did not change",
     )
     pose_source: Literal["request", "odometry"]
     pose: Pose
@@ -174,6 +209,18 @@ class StreamsResponse(Answer):
     streams: list[StreamOut]
 
 
+class PrecisionChoiceOut(Answer):
+    cpu_precisions: list[str] = Field(description="the precisions this CPU can run the model in (fp32, bf16)")
+    gate_records: dict[str, str] = Field(
+        description="per reduced precision, the model's accuracy-gate record: pass, fail, none, or "
+        "'pass on too little evidence' (`rafd gate MODEL` makes one)"
+    )
+    allowed_precisions: list[str] = Field(
+        description="the precisions RAFD_PRECISION=auto may pick: fp32 and those this CPU runs whose gate passed"
+    )
+    reason: str = Field(description="why the service serves what it serves, in one sentence (also logged at start-up)")
+
+
 class RuntimeOut(Answer):
     runtime: str
     precision: str
@@ -187,6 +234,9 @@ class RuntimeOut(Answer):
         description="most streams' steps in one model run (RAFD_MAX_BATCH; 1 when off or the graph has no batch axis)"
     )
     batch_window_ms: float = Field(description="how long a ready step waits for company when the model is idle")
+    precision_choice: PrecisionChoiceOut | None = Field(
+        default=None, description="the precisions this CPU runs, which the model's gate records allow, and why"
+    )
 
 
 class ModelInfo(Answer):

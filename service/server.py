@@ -7,6 +7,8 @@
   overhead", `python -m tools.server_overhead`).
 - Graceful shutdown: on SIGTERM the server stops accepting, lets requests in progress finish for at most
   RAFD_SHUTDOWN_TIMEOUT_S, then cancels what is left (a slow client cannot hold the exit).
+- Keep-alive: idle connections stay open RAFD_KEEP_ALIVE_TIMEOUT_S (75 s), longer than a proxy's upstream keep-alive
+  (nginx 60 s), so the proxy closes first and never reuses a connection the service is closing (docs/deployment.md).
 - Proxy headers: uvicorn's defaults (X-Forwarded-For trusted from FORWARDED_ALLOW_IPS, 127.0.0.1 unless set).
 """
 
@@ -47,6 +49,7 @@ def uvicorn_options(app: FastAPI, settings: Settings) -> dict[str, Any]:
     return {
         "http": http_protocol(app, settings),
         "timeout_graceful_shutdown": settings.shutdown_timeout_s,
+        "timeout_keep_alive": settings.keep_alive_timeout_s,  # longer than the proxy's (RAFD_KEEP_ALIVE_TIMEOUT_S)
         "lifespan": "on",
     }
 

@@ -75,6 +75,10 @@ class Settings(BaseSettings):
     # Answered frames waiting to be published to the live view; beyond it a frame is dropped (counted), never waited
     # for.
     foxglove_queue_frames: int = Field(default=32, ge=1)
+    # With API keys: the NAME of the one key whose streams the live view publishes (required then: its WebSocket has
+    # no authentication, so whoever reaches it sees these streams; other keys' streams are never published). Unset
+    # without keys: every stream.
+    foxglove_key: str | None = Field(default=None, min_length=1, max_length=64)
     # Live streams held at once (streams with an accepted frame; a stream whose frames were all refused or are still
     # in flight counts toward no cap). A key over its quota or over this cap evicts its OWN least recently used
     # idle stream, never another key's.
@@ -85,6 +89,12 @@ class Settings(BaseSettings):
     max_streams_per_key: int | None = Field(default=None, ge=1)
     # A stream idle for longer than this is forgotten (its next frame starts a new buffer).
     stream_ttl_s: float = Field(default=300.0, gt=0)
+    # The MAXIMUM timestamp gap a stream's chain survives: a frame more than this many seconds (of its own
+    # timestamps) after the stream's last accepted frame starts a new buffer and odometry world frame, and its answer
+    # says `stream_restarted: "gap"`. A replica that held a stream, lost it to another in a failover and gets it
+    # back must not stack the new frame on frames from before. 1.0 s is 4 periods of a 4 Hz radar: one or two
+    # dropped frames (gaps of 0.5, 0.75 s) keep the chain. 0 turns the rule off.
+    stream_gap_restart_s: float = Field(default=1.0, ge=0)
     # Request bodies above this many bytes get 413. A 1152 px RADIATE scan is ~0.65 MB as a PNG (~0.9 MB in base64);
     # the worst a valid one can be (incompressible pixels, 64 KiB of ancillary chunks) is 1.40 MB, 1.87 MB in base64:
     # 2.5 MiB leaves 40% headroom over that.
@@ -121,6 +131,11 @@ class Settings(BaseSettings):
     order_hold_s: float = Field(default=0.5, ge=0)
     # On SIGTERM, seconds the server waits for requests in progress before it drops them and exits.
     shutdown_timeout_s: float = Field(default=10.0, ge=0)
+    # Seconds an idle kept-alive connection stays open (uvicorn's timeout_keep_alive; its own default is 5 s). It
+    # must exceed the keep-alive of any proxy in front (deploy/nginx.conf's upstream `keepalive_timeout` 60 s,
+    # ingress-nginx's `upstream-keepalive-timeout` 60 s): the proxy then always closes an idle connection first and
+    # never sends a request on one the service is closing at that moment (a 502 of a frame the proxy cannot retry).
+    keep_alive_timeout_s: float = Field(default=75.0, gt=0)
     # Each stage runs on its own threads with its own queue limit (jobs waiting beyond the running ones); a full
     # queue answers 503 + Retry-After at once. The model stage runs `concurrent_runs` steps at once (the runner shares
     # the threads out among them).
@@ -162,6 +177,20 @@ class Settings(BaseSettings):
     # Detections with a score below this are dropped from the answer. None: the model's operating threshold (ONNX
     # metadata "operating_threshold", chosen on validation data by `rafd-eval --calibrate`), else 0.3.
     score_threshold: float | None = Field(default=None, ge=0.0, le=1.0)
+    # Native scans (Oxford / Boreas polar PNGs) accepted: at most this many azimuth rows and range bins, checked from
+    # the PNG's header before anything is inflated (the documented sensors: 400 azimuths, 3768 bins for Oxford's
+    # CTS350-X, at most 6848 for Boreas' CIR304-H). Raise them for another sensor; the inflate and the conversion grow
+    # with rows x bins (docs/api.md, "Image").
+    native_max_azimuths: int = Field(default=400, ge=100, le=4096)
+    native_max_range_bins: int = Field(default=6848, ge=256, le=65536)
+    # Frames of a stream at least this many seconds apart (the last accepted frame to the next; 422
+    # `timestamp_gap_too_small` closer): no radar scans faster than 100 Hz (Navtech: 4 Hz), and a gap of 1e-300 s
+    # would make every speed meaningless.
+    min_frame_gap_s: float = Field(default=0.01, ge=0.0, le=10.0)
+    # A frame whose pose (the request's, or odometry's) moved faster than this since the stream's last accepted frame
+    # is refused (422 `implausible_motion`) rather than bending the chain: 70 m/s is 252 km/h, beyond a road vehicle.
+    # 0 turns the check off.
+    max_speed_mps: float = Field(default=70.0, ge=0.0, le=1000.0)
 
 
 @lru_cache(maxsize=1)

@@ -12,7 +12,9 @@ bytes arrived, `service.intake`): at once with the X-Stream-Id header or the pat
 when only the body names the stream (it is then inserted ahead of frames that arrived after it and have not
 started; `service.ordering` holds those for a bounded time while it is parsed). Frames of one stream change the
 stream strictly in that order. A frame that can no longer be in order (its timestamp is not after the stream's last
-accepted frame, or after that of a frame queued ahead of it) is refused at once instead of waiting its turn.
+accepted frame, or after that of a frame queued ahead of it) is refused at once instead of waiting its turn, except
+the same frame posted again (a retry after a lost answer, same timestamp): it waits its turn and gets the last
+frame's answer again when it is that frame (`replay_of`: same image and pose), else it is refused (409).
 
 Exact bookkeeping: only an accepted frame (`commit`) moves a stream in the LRU order or refreshes its idle time;
 a refused frame changes nothing, and a new stream whose frames were all refused leaves nothing behind. Each
@@ -45,7 +47,9 @@ if TYPE_CHECKING:
 
 StreamKey = tuple[str | None, str]  # (owner: the API key's name or None, stream id)
 ArrivalKey = tuple[float, int]  # (monotonic time of the request's first bytes, arrival sequence number)
-RestartReason = Literal["evicted", "expired"]
+# evicted / expired: the store ended the previous chain; gap / previous_timestamp_mismatch: the frame itself showed
+# that the chain held here is not its own (service/detector.py, `chain_break`), and it starts a new one.
+RestartReason = Literal["evicted", "expired", "gap", "previous_timestamp_mismatch"]
 MIN_TOMBSTONES = 64  # per owner; at least 4x its quota (chains ended by eviction or expiry, remembered for a notice)
 
 
@@ -79,6 +83,10 @@ class StreamEntry:
     last_pose: np.ndarray | None = None  # [3] world pose of the last accepted frame
     pose_source: str | None = None  # source of the FIRST frame: fixes which world frame the stream uses
     restarted: RestartReason | None = None  # how the previous chain of this id ended, when the store ended it
+    # The last accepted frame's identity (digest of its image and pose) and its answer: the same frame posted again
+    # (a retry after a lost answer) is answered with that answer, not refused and not stepped twice.
+    last_digest: bytes | None = None
+    last_answer: dict[str, Any] | None = None
 
     @property
     def key(self) -> StreamKey:
@@ -89,16 +97,37 @@ class StreamEntry:
         return int(self.state.frames_used)
 
     def commit(
-        self, state: Any, timestamp: float, odometry: OdometryMemory, pose: np.ndarray, pose_source: str
+        self,
+        state: Any,
+        timestamp: float,
+        odometry: OdometryMemory,
+        pose: np.ndarray,
+        pose_source: str,
+        digest: bytes | None = None,
+        new_chain: bool = False,
     ) -> None:
-        """Swap in the runner's new state and the frame's bookkeeping (only after a successful step)."""
+        """Swap in the runner's new state and the frame's bookkeeping (only after a successful step); `new_chain`: the
+        frame started a new chain on this entry (its world frame is anchored anew)."""
         self.state = state
         self.last_timestamp = timestamp
         self.odometry = odometry
         self.last_pose = pose
-        if self.pose_source is None:
+        if self.pose_source is None or new_chain:
             self.pose_source = pose_source
         self.frames_seen += 1
+        self.last_digest = digest
+        self.last_answer = None  # set once the answer is complete (`remember_answer`)
+
+    def remember_answer(self, timestamp: float, digest: bytes | None, answer: dict[str, Any]) -> None:
+        """Keep the answer of the frame just accepted (when it is still the last one) for a retry of it."""
+        if digest is not None and timestamp == self.last_timestamp and digest == self.last_digest:
+            self.last_answer = answer
+
+    def replay_of(self, timestamp: float, digest: bytes | None) -> dict[str, Any] | None:
+        """The last accepted frame's answer when this frame is that frame again (same timestamp and digest)."""
+        if digest is None or self.last_answer is None or timestamp != self.last_timestamp:
+            return None
+        return self.last_answer if digest == self.last_digest else None
 
     def wake_all(self) -> None:
         for ticket in self.queue:
@@ -110,11 +139,14 @@ class StreamEntry:
         if t is None:
             return None
         if self.last_timestamp is not None and t <= self.last_timestamp:
-            return f"timestamp {t!r} is not after this stream's last accepted frame ({self.last_timestamp!r})"
+            # Equal: maybe the last frame again (a retry), answered again at its turn if it is (`replay_of`).
+            if not (t == self.last_timestamp and self.last_answer is not None):
+                return f"timestamp {t!r} is not after this stream's last accepted frame ({self.last_timestamp!r})"
         for other in self.queue:
             if other is ticket:
                 break
-            if other.timestamp is not None and other.timestamp >= t:
+            # Equal: a retry of a frame still queued or running waits for it (then replays it, or takes its place).
+            if other.timestamp is not None and other.timestamp > t:
                 return (
                     f"timestamp {t!r} is not after {other.timestamp!r}, a frame of this stream that arrived "
                     "earlier and is still queued"
@@ -261,11 +293,22 @@ class StreamStore:
         odometry: OdometryMemory,
         pose: np.ndarray,
         pose_source: str,
+        digest: bytes | None = None,
+        chain_break: RestartReason | None = None,
     ) -> None:
-        """The frame was accepted: the only place a stream changes, moves in the LRU order and stops being idle."""
+        """The frame was accepted: the only place a stream changes, moves in the LRU order and stops being idle.
+
+        `chain_break`: the frame found the chain held here stale or not its own and was stepped on a fresh buffer; the
+        entry starts a new chain (a new generation) with it, and its answer says why."""
         entry = self.check_turn(ticket)
         assert entry.queue and entry.queue[0] is ticket, "commit out of turn"
-        entry.commit(state, timestamp, odometry, pose, pose_source)
+        new_chain = chain_break is not None and entry.frames_seen > 0
+        entry.commit(state, timestamp, odometry, pose, pose_source, digest, new_chain)
+        if new_chain:
+            entry.generation = next(self._generations)
+            ticket.restarted = chain_break
+            if self._on_restart is not None and chain_break is not None:
+                self._on_restart(chain_break)
         entry.last_used = self._clock()
         if self._entries.get(entry.key) is entry:
             self._entries.move_to_end(entry.key)

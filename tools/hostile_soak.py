@@ -16,7 +16,13 @@ next attack, ... for as many rounds as fit in --minutes (at least one). Each att
 - json-floats: 4 connections posting, back to back, JSON bodies of floats just under RAFD_MAX_REQUEST_BYTES
   (finding 3; larger ones get 413 from their Content-Length at once);
 - json-keys: 8 connections posting JSON bodies of ~200k keys, just under the limit (finding 3);
-- png-flood: 8 connections posting a scan padded with zTXt chunks to just under the limit (tools/attack_load.py).
+- png-flood: 8 connections posting a scan padded with zTXt chunks to just under the limit (tools/attack_load.py);
+- wide-native (issue 40, finding 1): 8 connections posting an all-zero native scan 400 x 400,000 (389 KB, 160 MB
+  inflated; before, 15 s and +3.3 GB each), multipart;
+- degenerate-native (finding 4): 4 connections posting an Oxford-size native scan whose encoder angles are all
+  equal (1.1 MB, multipart): it costs an inflate and a decode before its header is refused;
+- forwarded (finding 3): 64 slow-body connections, each with a made-up X-Forwarded-For of its own (the attacker
+  reaches the replica directly: its address is not a trusted proxy), so they are one client's 16 requests.
 
 A warm-up comes first and is not measured: the normal load alone, then each attack for 5 s. The first second of
 every block is left out (the attack starting or stopping). Prints per phase the normal streams' requests and
@@ -36,16 +42,21 @@ import multiprocessing
 import os
 import select
 import socket
+import struct
 import subprocess
 import sys
 import threading
 import time
+import zlib
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import TYPE_CHECKING
 
+import numpy as np
+
 from rafd.bench.server import free_port, rss_bytes, serve_command, wait_ready
 from rafd.bench.timing import percentile
+from service.png import PNG_SIGNATURE, png_chunk
 from tools.attack_load import multipart_request, padded_png, scans_from
 
 if TYPE_CHECKING:
@@ -61,7 +72,16 @@ RSS_GROWTH_LIMIT = 0.10
 SETTLE_S = 1.0  # left out at the start of each block
 WARM_UP_ATTACK_S = 5.0
 BODY_LIMIT = 5 * 512 * 1024  # RAFD_MAX_REQUEST_BYTES's default
-ATTACKS = ("headers", "slow-bodies", "json-floats", "json-keys", "png-flood")
+ATTACKS = (
+    "headers",
+    "slow-bodies",
+    "json-floats",
+    "json-keys",
+    "png-flood",
+    "wide-native",
+    "degenerate-native",
+    "forwarded",
+)
 DEFAULT_ATTACKS = ("headers", "slow-bodies", "json-floats", "json-keys")
 
 
@@ -134,10 +154,36 @@ def endless_header(port: int, stop: threading.Event) -> str:
         return _status(sock)
 
 
-def slow_body(port: int, stop: threading.Event) -> str:
+def wide_native_request() -> bytes:
+    """The all-zero 400 x 400,000 native scan of issue 40 (389 KB as a PNG), multipart."""
+    header = png_chunk(b"IHDR", struct.pack(">IIBBBBB", 400_000, 400, 8, 0, 0, 0, 0))
+    deflate = zlib.compressobj(9)
+    row = bytes(400_001)
+    data = b"".join(deflate.compress(row) for _ in range(400)) + deflate.flush()
+    image = PNG_SIGNATURE + header + png_chunk(b"IDAT", data) + png_chunk(b"IEND", b"")
+    return multipart_request(image, "wide", 1.0)
+
+
+def degenerate_native_request() -> bytes:
+    """An Oxford-size native scan (speckle returns) whose encoder angles are all equal, multipart."""
+    import cv2
+
+    rng = np.random.default_rng(40)
+    image = rng.integers(0, 40, (400, 11 + 3768), dtype=np.uint8)
+    times = 1_547_131_046_353_776 + np.round(np.arange(400) * 625.0).astype(np.int64)
+    image[:, :8] = times.astype("<i8").view(np.uint8).reshape(400, 8)
+    image[:, 8:10] = 0  # every encoder angle 0
+    image[:, 10] = 255
+    return multipart_request(cv2.imencode(".png", image)[1].tobytes(), "degenerate", 1.0)
+
+
+def slow_body(port: int, stop: threading.Event, forwarded: str | None = None) -> str:
     with _connect(port) as sock:
+        extra = f"X-Forwarded-For: {forwarded}\r\n".encode() if forwarded else b""
         sock.sendall(
-            b"POST /detect HTTP/1.1\r\nHost: x\r\nContent-Type: application/json\r\nContent-Length: 100000\r\n\r\n{"
+            b"POST /detect HTTP/1.1\r\nHost: x\r\nContent-Type: application/json\r\n"
+            + extra
+            + b"Content-Length: 100000\r\n\r\n{"
         )
         while not stop.is_set():
             if select.select([sock], [], [], 1.0)[0]:
@@ -165,7 +211,21 @@ def attack(
         request = float_body()
     elif name == "json-keys":
         request = key_body()
-    connections = {"headers": 8, "slow-bodies": 64, "json-floats": 4, "json-keys": 8, "png-flood": 8}[name]
+    elif name == "wide-native":
+        request = wide_native_request()
+    elif name == "degenerate-native":
+        request = degenerate_native_request()
+    connections = {
+        "headers": 8,
+        "slow-bodies": 64,
+        "json-floats": 4,
+        "json-keys": 8,
+        "png-flood": 8,
+        "wide-native": 8,
+        "degenerate-native": 4,
+        "forwarded": 64,
+    }[name]
+    made_up = iter(range(1 << 30))  # a new X-Forwarded-For per connection of the forwarded attack
 
     def loop() -> None:
         while not local_stop.is_set():
@@ -174,6 +234,10 @@ def attack(
                     outcome = endless_header(port, local_stop)
                 elif name == "slow-bodies":
                     outcome = slow_body(port, local_stop)
+                elif name == "forwarded":
+                    with lock:
+                        k = next(made_up)
+                    outcome = slow_body(port, local_stop, f"10.{k >> 16 & 255}.{k >> 8 & 255}.{k & 255}")
                 else:
                     outcome = one_request(port, request)
             except OSError as exc:

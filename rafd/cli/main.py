@@ -37,6 +37,7 @@ COMMANDS = (
     Command("serve", "service.cli:main", "serve the model over HTTP (FastAPI, onnxruntime or OpenVINO, no torch)"),
     Command("client", "rafd.cli.client:main", "stream a RADIATE-format sequence to a running service"),
     Command("export", "export.cli:main", "export a checkpoint to ONNX; parity with PyTorch; the accuracy gate"),
+    Command("gate", "export.gate_cli:main", "run the accuracy gate of reduced precision on an ONNX model; record it"),
     Command("train", "rafd.cli.train:main", "train RaFD (one process, or several under torchrun)"),
     Command("eval", "rafd.cli.evaluate:main", "score a checkpoint on a split: mAP, centre matching, EPE; calibrate"),
     Command("simulate", "rafd.cli.simulate:main", "simulate RADIATE-format sequences; realism against real scans"),

@@ -21,8 +21,8 @@ from rafd.runtime.streaming import StreamRunner
 
 log = logging.getLogger(__name__)
 
-# Metadata key rafd-export --gate writes ("pass"/"fail" per reduced precision): precision "auto" picks a reduced
-# precision only where this model's gate passed (fp32 is the reference and needs no gate).
+# Metadata key `rafd gate` and rafd-export --gate write ("pass"/"fail" per reduced precision): precision "auto"
+# picks a reduced precision only where this model's gate passed (fp32 is the reference and needs no gate).
 GATE_KEY = "gate_{precision}"
 
 
@@ -49,6 +49,74 @@ def gate_evidence(figures_json: str | None) -> tuple[int, int]:
         return int(pooled["frames"]), int(pooled["reference_detections"])
     except (ValueError, KeyError, TypeError, StopIteration):
         return 0, 0
+
+
+def gate_record(metadata: dict[str, str], precision: str) -> str:
+    """What the model records for a reduced precision's accuracy gate: "pass" (on enough evidence, as gate_passed),
+    "fail", "pass on too little evidence" (a file gated before the gate refused to judge too little) or "none"."""
+    verdict = metadata.get(GATE_KEY.format(precision=precision))
+    if verdict is None:
+        return "none"
+    if verdict != "pass":
+        return "fail"
+    return "pass" if gate_passed(metadata, precision) else "pass on too little evidence"
+
+
+def gate_origin(metadata: dict[str, str], precision: str) -> str:
+    """ " (made on CPU, date)" from a gate record's figures (rafd gate and rafd export --gate write them), else ""."""
+    try:
+        figures = json.loads(metadata.get(GATE_KEY.format(precision=precision) + "_figures") or "")
+        made = [str(figures[key]) for key in ("cpu", "date") if figures.get(key)]
+    except (ValueError, TypeError, AttributeError):
+        return ""
+    return f" (made on {', '.join(made)})" if made else ""
+
+
+def precision_choice(
+    model_path: str | os.PathLike[str],
+    metadata: dict[str, str],
+    requested: tuple[str, str],
+    served: tuple[str, str],
+    selection: dict[str, float],
+    supported: list[tuple[str, str]],
+) -> dict[str, object]:
+    """Why `served` (runtime, precision) serves this model: the precisions this CPU could run (`supported`, as
+    supported_choices), what the model's gate records say of each reduced one, which precisions they allow, and one
+    sentence saying why (rafd serve logs it at start-up; GET /model reports all of it)."""
+    cpu = sorted({p for _, p in supported}, key=PRECISIONS.index)
+    reduced = [p for p in cpu if p != "fp32"]
+    records = {p: gate_record(metadata, p) for p in PRECISIONS if p != "fp32"}
+    allowed = [p for p in cpu if p == "fp32" or records[p] == "pass"]
+    runtime, precision = served
+    serving = f"serving {runtime}/{precision}"
+    if len(selection) > 1:
+        others = ", ".join(f"{name} {ms:g} ms" for name, ms in selection.items() if name != f"{runtime}/{precision}")
+        serving += f", the fastest timed at start-up ({selection[f'{runtime}/{precision}']:g} ms a run; {others})"
+    if requested[1] != "auto":
+        if precision != "fp32" and records.get(precision) != "pass":
+            reason = f"precision {precision} set by the operator, without a passed accuracy gate: {serving}"
+        else:
+            reason = f"precision {precision} set by the operator: {serving}"
+    elif not reduced:
+        reason = (
+            "this CPU runs no reduced precision (bf16 needs the openvino package and avx512_bf16 or AMX): " + serving
+        )
+    else:
+        parts = []
+        for p in reduced:
+            record = records[p]
+            origin = gate_origin(metadata, p)
+            if record == "none":
+                parts.append(f"{p} capable, no gate record for this model")
+            elif record == "pass":
+                parts.append(f"{p} capable, gate passed{origin}")
+            else:
+                parts.append(f"{p} capable, gate record {record}{origin}")
+        reason = "; ".join(parts) + ": " + serving
+        missing = [p for p in reduced if records[p] in ("none", "pass on too little evidence")]
+        if missing and precision == "fp32":
+            reason += f"; run `rafd gate {model_path}`"
+    return {"cpu_precisions": cpu, "gate_records": records, "allowed_precisions": allowed, "reason": reason}
 
 
 def crowd_threads(threads: int, concurrent_runs: int) -> int | None:
@@ -177,16 +245,20 @@ def create_runner(
         raise ValueError(f"runtime must be one of {RUNTIMES} or 'auto', got {runtime!r}")
     if precision not in PRECISIONS + ("auto",):
         raise ValueError(f"precision must be one of {PRECISIONS} or 'auto', got {precision!r}")
+    supported = supported_choices()
     if runtime != "auto" and precision != "auto":
         runner = open_runner(model_path, runtime, precision, threads, concurrent_runs)
         if not gate_passed(runner.metadata, runner.precision):
-            log.warning("%s runs in %s without a passed accuracy gate (rafd-export --gate)", model_path, precision)
+            log.warning("%s runs in %s without a passed accuracy gate (rafd gate)", model_path, precision)
+        runner.precision_choice = precision_choice(
+            model_path, runner.metadata, (runtime, precision), (runner.runtime, runner.precision), {}, supported
+        )
         return runner
-    candidates = [(r, p) for r, p in supported_choices() if runtime in ("auto", r) and precision in ("auto", p)]
+    candidates = [(r, p) for r, p in supported if runtime in ("auto", r) and precision in ("auto", p)]
     if not candidates:
         raise ValueError(
             f"no supported runtime for runtime={runtime!r}, precision={precision!r} on this machine "
-            f"(supported: {supported_choices()})"
+            f"(supported: {supported})"
         )
     runners: list[StreamRunner] = []
     metadata: dict[str, str] | None = None  # known after the first candidate is open
@@ -203,11 +275,14 @@ def create_runner(
     if not runners:
         raise ValueError(
             f"no runtime for runtime={runtime!r}, precision={precision!r}: {model_path} has no passed "
-            "accuracy gate for a reduced precision (rafd-export --gate), and fp32 was excluded"
+            "accuracy gate for a reduced precision (rafd gate MODEL), and fp32 was excluded"
         )
     selection = {f"{r.runtime}/{r.precision}": (timer(r) if len(runners) > 1 else 0.0) for r in runners}
     best = min(runners, key=lambda r: selection[f"{r.runtime}/{r.precision}"])
     selection = {name: round(seconds * 1e3, 3) for name, seconds in selection.items()}
     log.info("runtime %s/%s (median ms per run: %s)", best.runtime, best.precision, selection)
     best.selection = selection
+    best.precision_choice = precision_choice(
+        model_path, best.metadata, (runtime, precision), (best.runtime, best.precision), selection, supported
+    )
     return best

@@ -151,6 +151,8 @@ class StreamRunner:
         self.backend, self.crowd = backend, crowd
         self.path = path = getattr(backend, "path", "the model")
         self.selection: dict[str, float] = {}  # create_runner("auto"): median ms per run of each candidate
+        # create_runner: the precisions this CPU runs, the model's gate records, and why it serves what it serves
+        self.precision_choice: dict[str, object] | None = None
         self.metadata: dict[str, str] = dict(backend.metadata)
         if "config" not in self.metadata:
             raise ValueError(
@@ -210,7 +212,7 @@ class StreamRunner:
     def describe(self) -> dict[str, object]:
         """How the graph runs: runtime, precision, threads of a lone run, concurrent runs and their threads."""
         crowd = self.crowd or self.backend
-        return {
+        described: dict[str, object] = {
             "runtime": self.runtime,
             "precision": self.precision,
             "threads": self.threads,
@@ -218,6 +220,9 @@ class StreamRunner:
             "threads_per_concurrent_run": crowd.threads,
             "selection_ms_per_run": dict(self.selection),
         }
+        if self.precision_choice is not None:  # a runner create_runner chose (the service's)
+            described["precision_choice"] = self.precision_choice
+        return described
 
     # ------------------------------------------------------------------ API
     def new_state(self) -> StreamState:

@@ -27,7 +27,9 @@ async def model_info(service: DetectService = Depends(get_service)) -> ModelInfo
         accepted_image_sizes=list(service.accepted_sizes),
         # a Navtech_Polar scan [range rows, azimuth columns] is accepted where a full RADIATE scan is
         accepted_polar_shape=list(POLAR_SHAPE) if accepts_polar(cfg.input_size, cfg.resolution) else None,
-        accepted_native=native_description() if accepts_polar(cfg.input_size, cfg.resolution) else None,
+        accepted_native=native_description(service.native_shape)
+        if accepts_polar(cfg.input_size, cfg.resolution)
+        else None,
         score_threshold=service.score_threshold,
         # how the graph runs: runtime, precision, threads per run, concurrent runs, start-up timings, batching
         runtime=RuntimeOut.model_validate(

@@ -360,9 +360,13 @@ def test_api_keys_come_from_a_secret_file_readable_by_the_pod_only():
 
 
 def test_forwarded_addresses_are_trusted_only_from_the_ingress_controller():
-    """The replicas trust X-Forwarded-For from any peer so the per-client limits count each client; that is safe
-    only while nothing but the controller can connect to them (compose: the replicas publish no port)."""
-    assert env()["FORWARDED_ALLOW_IPS"] == "*"
+    """The replicas trust X-Forwarded-For only from the pod network (never "*", issue 40: uvicorn then takes the
+    leftmost entry, which a client chooses), and the NetworkPolicy lets only the controller connect from there."""
+    import ipaddress
+
+    trusted = env()["FORWARDED_ALLOW_IPS"]
+    assert "*" not in trusted
+    assert all(ipaddress.ip_network(item.strip()) for item in trusted.split(","))
     policy = resource("NetworkPolicy")["spec"]
     assert policy["podSelector"]["matchLabels"].items() <= pod_labels().items()
     assert "Ingress" in policy["policyTypes"]

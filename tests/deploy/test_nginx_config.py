@@ -70,13 +70,24 @@ def test_compose_file_places_exactly_the_replicas_nginx_routes_to():
     assert "./nginx.conf:/etc/nginx/nginx.conf:ro" in compose
 
 
-def test_replicas_trust_forwarded_addresses_only_because_they_publish_no_port():
-    """Behind nginx every request comes from nginx's address; the replicas trust its X-Forwarded-For so the refusal
-    penalty counts per client. That trust is safe only while no replica is reachable except through nginx."""
+def test_replicas_trust_forwarded_addresses_only_from_nginx_and_publish_no_port():
+    """Behind nginx every request comes from nginx's address; the replicas trust X-Forwarded-For from nginx's fixed
+    address only (never "*", issue 40), so the refusal penalty counts per client and a client that reaches a replica
+    otherwise cannot choose its own address; and no replica publishes a port."""
+    import ipaddress
+
+    import yaml
+
     compose = (NGINX_CONF.parent / "compose.yaml").read_text()
     replica = compose.split("x-replica: &replica", 1)[1].split("\nservices:", 1)[0]
-    assert 'FORWARDED_ALLOW_IPS: "*"' in replica
     assert "ports:" not in replica
+    parsed = yaml.safe_load(compose)
+    trusted = parsed["x-replica"]["environment"]["FORWARDED_ALLOW_IPS"]
+    nginx = parsed["services"]["nginx"]["networks"]["rafd"]["ipv4_address"]
+    assert trusted == nginx and "*" not in trusted
+    subnet = parsed["networks"]["rafd"]["ipam"]["config"][0]["subnet"]
+    assert ipaddress.ip_address(nginx) in ipaddress.ip_network(subnet)
+    assert all(parsed["services"][f"rafd-{k}"]["networks"] == ["rafd"] for k in (1, 2, 3))
     # nginx sets the header to the client's address, replacing the client's own: with every proxy trusted, uvicorn
     # takes the header's first address, which a client could otherwise choose (and so escape its per-client limits)
     assert "X-Forwarded-For $remote_addr;" in NGINX_CONF.read_text()

@@ -156,3 +156,78 @@ def test_oxford_conventions_agree_with_the_ground_truth_odometry(oxford_sample: 
     assert all(np.sign(estimate[2]) == -np.sign(truth[2]) for estimate, truth in mirrored)
     turned = _motion_signs(oxford_sample, lambda scan: scan[::-1, ::-1])  # forward at azimuth 180 degrees
     assert all(estimate[1] < 0 < truth[1] for estimate, truth in turned)
+
+
+# ---------------------------------------------------------------- what a real sensor's header holds (issue 40)
+def _with_header(image: np.ndarray, times: np.ndarray | None = None, encoder: np.ndarray | None = None) -> np.ndarray:
+    image = image.copy()
+    if times is not None:
+        image[:, :8] = np.asarray(times, np.int64).astype("<i8").view(np.uint8).reshape(-1, 8)
+    if encoder is not None:
+        image[:, 8:10] = np.asarray(encoder, np.int64).astype("<u2").view(np.uint8).reshape(-1, 2)
+    return image
+
+
+_RNG = np.random.default_rng(40)
+_ROWS = np.arange(AZIMUTHS)
+DEGENERATE_HEADERS = {
+    "angles all equal": (None, np.full(AZIMUTHS, 100), "encoder_one_turn"),
+    "angles reversed": (None, (13 + 14 * _ROWS)[::-1], "encoder_one_turn"),
+    "angles random": (None, _RNG.integers(0, 5600, AZIMUTHS), "encoder_one_turn"),
+    "angles over two turns": (None, (13 + 28 * _ROWS) % 5600, "encoder_one_turn"),
+    "times all equal": (np.full(AZIMUTHS, START_US), None, "azimuth_time_increasing"),
+    "times at INT64_MAX": (np.full(AZIMUTHS, np.iinfo(np.int64).max), None, "azimuth_time_range"),
+    "times negative": (-START_US + 625 * _ROWS, None, "azimuth_time_range"),
+    "times overflowing their differences": (
+        np.where(_ROWS < 200, -(2**62), 2**62),
+        None,
+        "azimuth_time_range",
+    ),
+    "a sweep of 0.4 ms": (START_US + _ROWS, None, "sweep_period"),
+    "a sweep of 10 s": (START_US + 25_000 * _ROWS, None, "sweep_period"),
+}
+
+
+@pytest.mark.parametrize("case", sorted(DEGENERATE_HEADERS))
+def test_a_degenerate_header_is_refused_naming_its_rule(case: str):
+    times, encoder, rule = DEGENERATE_HEADERS[case]
+    image = _with_header(native_png(3768, [(30.0, 20.0)], 0.0432), times, encoder)
+    with pytest.raises(ValueError, match=f"rule {rule}"):
+        parse_native_scan(image)
+
+
+def test_a_real_sensors_header_passes_the_rules():
+    """The rules accept the layouts the datasets write: wrapping once through 0, and a wobbling Boreas encoder."""
+    wrapped = (5000 + 14 * _ROWS) % 5600  # starts late in the turn and wraps through 0
+    scan = parse_native_scan(_with_header(native_png(3768, [], 0.0432), encoder=wrapped))
+    assert np.all(np.diff(scan.azimuths) > 0)
+    wobble = _RNG.integers(-5, 6, AZIMUTHS)
+    wobble[0], wobble[-1] = 0, min(0, wobble[-1])
+    parse_native_scan(native_png(3360, [], 0.0596, wobble=wobble), "boreas")
+
+
+def test_unmeasured_azimuths_do_not_reach_the_converted_scan():
+    """The valid flag is honoured: a return only on azimuths flagged not measured is not in the converted scan, and
+    the same return on measured azimuths is; a scan with fewer than half its azimuths measured is refused."""
+    image = native_png(3768, [(90.0, 40.0)], 0.0432)
+    bright_rows = np.flatnonzero(image[:, HEADER_COLUMNS:].max(axis=1) > 0)
+    assert bright_rows.size == 3
+    measured = to_cartesian(parse_native_scan(image))
+    unmeasured = image.copy()
+    unmeasured[bright_rows, 10] = 0
+    converted = to_cartesian(parse_native_scan(unmeasured))
+    assert measured.max() > 100 and converted.max() < 10
+    mostly_invalid = image.copy()
+    mostly_invalid[: AZIMUTHS // 2 + 1, 10] = 0
+    with pytest.raises(ValueError, match="rule valid_azimuths"):
+        parse_native_scan(mostly_invalid)
+
+
+def test_the_native_shape_is_bounded_by_the_sensors():
+    """Oxford's and Boreas' sizes pass; columns or rows beyond the documented sensors' do not, unless allowed."""
+    from rafd.native import NativeShape
+
+    assert is_native_shape(11 + 3768, 400) and is_native_shape(11 + 6848, 400)
+    assert not is_native_shape(400_000, 400) and not is_native_shape(11 + 6849, 400)
+    assert not is_native_shape(11 + 3768, 401) and not is_native_shape(11 + 3768, 99)
+    assert is_native_shape(11 + 8000, 800, NativeShape(max_azimuths=800, max_range_bins=8000))

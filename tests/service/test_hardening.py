@@ -194,8 +194,8 @@ def test_frames_sent_in_order_on_separate_connections_are_all_served_in_that_ord
     count = 6
     real = service.detector.decode_frame
 
-    def slow_early_frames(image, size, resolution):
-        decoded = real(image, size, resolution)
+    def slow_early_frames(image, size, resolution, *native):
+        decoded = real(image, size, resolution, *native)
         time.sleep(0.02 * (count + 1 - decoded.crop[0, 0] // 8))  # frame i: (count + 1 - i) * 20 ms
         return decoded
 

@@ -102,3 +102,76 @@ def test_without_foxglove_the_flag_names_the_extra(monkeypatch, capsys, tmp_path
 def test_the_live_view_is_off_by_default(client):
     assert client.app.state.live is None
     assert "rafd_live_view" not in client.get("/metrics").text
+
+
+# ---------------------------------------------------------------- who sees what (issue 40, finding 2)
+ALICE, BOB = "alice:alice-key-0123456789abcdef", "bob:bob-key-0123456789abcdef01"
+AS_ALICE, AS_BOB = {"X-API-Key": ALICE.split(":")[1]}, {"X-API-Key": BOB.split(":")[1]}
+
+
+def test_with_api_keys_the_live_view_must_name_the_one_key_it_shows():
+    pytest.importorskip("foxglove", reason="foxglove-sdk is not installed (the live extra)")
+    from service.live import LiveView
+
+    with pytest.raises(ValueError, match="RAFD_FOXGLOVE_KEY"):
+        create_app(Settings(threads=1, foxglove_port=0, api_keys=[ALICE, BOB]), runner=FakeRunner())
+    with pytest.raises(ValueError, match="names no configured API key"):
+        create_app(Settings(threads=1, foxglove_port=0, api_keys=[ALICE], foxglove_key="carol"), runner=FakeRunner())
+    with pytest.raises(ValueError, match="no API keys are configured"):
+        LiveView.from_settings(Settings(threads=1, foxglove_port=0, foxglove_key="alice"))
+    shown = LiveView.from_settings(Settings(threads=1, foxglove_port=0, foxglove_key="alice"), key_names=("alice",))
+    assert shown is not None and shown.key == "alice"
+
+
+def test_only_the_shown_keys_answers_leave_the_service():
+    """Another key's answer is never queued for the publisher (so never advertised nor merged), nor counted dropped."""
+    pytest.importorskip("foxglove", reason="foxglove-sdk is not installed (the live extra)")
+    from service.live import LiveView
+
+    live = LiveView("127.0.0.1", 0, 4, key="alice")
+    live._queue = queue.Queue(maxsize=4)  # no publisher: only what is offered
+    decoded = types.SimpleNamespace(odometry_view=None, crop=None, posted_size=128)
+    live.offer({"stream_id": "car-2", "pose": "bob's"}, decoded, "bob")
+    live.offer({"stream_id": "car-2", "pose": "alice's"}, decoded, "alice")
+    live.offer({"stream_id": "car-3"}, decoded, None)
+    assert live._queue.qsize() == 1 and live._queue.get_nowait()[0]["pose"] == "alice's"
+    assert live.dropped._value.get() == 0.0
+
+
+def test_a_viewer_sees_only_the_shown_keys_streams_never_merged_with_anothers():
+    """The finding: `/car-2/*` carried key A's and key B's poses alternately, and B's stream ids were advertised.
+    Now, with the view showing alice's streams, bob's `car-2` and `bob-only` never reach the viewer."""
+    pytest.importorskip("foxglove", reason="foxglove-sdk is not installed (the live extra)")
+    pytest.importorskip("websockets", reason="websockets is not installed (the dev extra)")
+    from tests.utils.foxglove_testing import Viewer
+
+    frame = blob_frame(128, [(40, 60, 250)])
+    settings = Settings(threads=1, score_threshold=0.3, foxglove_port=0, api_keys=[ALICE, BOB], foxglove_key="alice")
+    with TestClient(create_app(settings, runner=FakeRunner(), odometry=FakeOdometry())) as client:
+        wait_ready(client)
+
+        def post(stream: str, t: float, x: float, headers: dict[str, str]) -> None:
+            response = client.post("/detect", json=detect_json(stream, t, frame, (x, 0.0, 0.0)), headers=headers)
+            assert response.status_code == 200, response.text
+
+        post("car-2", 1.0, 1.0, AS_ALICE)
+        post("car-2", 1.0, 50.0, AS_BOB)
+        post("bob-only", 1.0, 0.0, AS_BOB)
+        post("alice-marker", 1.0, 0.0, AS_ALICE)  # published after everything above (one FIFO queue)
+        viewer = Viewer(client.app.state.live.port)
+        try:
+            viewer.wait_for_topic("/alice-marker/tf")
+            assert not [topic for topic in viewer.channels if "bob-only" in topic]
+            tf = viewer.subscribe("/car-2/tf")
+            post("car-2", 2.0, 2.0, AS_ALICE)
+            post("car-2", 2.0, 60.0, AS_BOB)
+            post("car-2", 3.0, 3.0, AS_ALICE)
+            seen: list[float] = []
+            for _ in range(6):  # bounded: the two frames of alice's, maybe her first one again
+                seen.append(round(viewer.next_message(tf).translation.x, 6))
+                if seen[-1] == 3.0:
+                    break
+        finally:
+            viewer.close()
+    assert seen[-1] == 3.0 and 2.0 in seen
+    assert set(seen) <= {1.0, 2.0, 3.0}, seen  # never bob's 50 or 60

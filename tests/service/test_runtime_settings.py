@@ -53,3 +53,38 @@ def test_the_served_runtime_is_reported(runtime):
         answer = client.post("/detect", json=detect_json("s", 1.0, np.zeros((size, size), np.uint8), (0, 0, 0)))
         assert answer.status_code == 200, answer.text
         assert answer.json()["model"]["runtime"] == runtime and answer.json()["model"]["precision"] == "fp32"
+
+
+def test_model_says_which_precisions_the_cpu_runs_and_why_it_serves_what_it_serves(tmp_path, caplog):
+    """An ungated model on auto: fp32 served; on a bf16 CPU the reason names `rafd gate` (the fallback), elsewhere
+    it says the CPU has no reduced precision. Logged at start-up and reported in GET /model."""
+    import logging
+
+    onnx = pytest.importorskip("onnx")
+    from rafd.assets import default_onnx
+    from rafd.runtime import supported_choices
+
+    proto = onnx.load(str(default_onnx()))
+    kept = [(p.key, p.value) for p in proto.metadata_props if not p.key.startswith("gate_")]
+    del proto.metadata_props[:]
+    for key, value in kept:
+        proto.metadata_props.add(key=key, value=value)
+    model = tmp_path / "ungated.onnx"
+    onnx.save(proto, str(model))
+    settings = Settings(threads=1, concurrent_runs=1, runtime="auto", precision="auto", model_path=model)
+    with caplog.at_level(logging.INFO, logger="service.loading"), TestClient(create_app(settings)) as client:
+        wait_ready(client, timeout=60.0)
+        served = client.get("/model").json()["runtime"]
+    choice = served["precision_choice"]
+    assert served["precision"] == "fp32" and choice["allowed_precisions"] == ["fp32"]
+    assert choice["gate_records"] == {"bf16": "none"}
+    if ("openvino", "bf16") in supported_choices():
+        assert choice["cpu_precisions"] == ["fp32", "bf16"]
+        assert choice["reason"].startswith(
+            f"bf16 capable, no gate record for this model: serving {served['runtime']}/fp32"
+        )
+        assert choice["reason"].endswith(f"; run `rafd gate {model}`")
+    else:
+        assert choice["cpu_precisions"] == ["fp32"]
+        assert choice["reason"].startswith("this CPU runs no reduced precision")
+    assert f"precision: {choice['reason']}" in caplog.text

@@ -1,0 +1,88 @@
+"""rafd gate: run the accuracy gate of every reduced precision this CPU has on an exported ONNX model and record the
+verdicts in the model's metadata, without re-exporting (the checkpoint is not needed).
+
+`rafd export --gate` does the same at export time; this command is for a model exported on a CPU that had no bf16
+(the verdicts are what lets `rafd serve` pick a reduced precision automatically).
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+import time
+from pathlib import Path
+
+from rafd.cli import flags
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(
+        prog=flags.prog("gate"),
+        description="Run the accuracy gate of every reduced precision this CPU runs (OpenVINO bf16 where the CPU has "
+        "avx512_bf16 or AMX) against onnxruntime fp32 on held-out simulated sequences and, with "
+        "RAFD_RADIATE_SAMPLE, the real sample's frames; record each verdict and its figures in the ONNX "
+        "model's metadata (in place unless --out). The service picks a reduced precision automatically only "
+        "after a recorded pass.",
+    )
+    parser.add_argument("model", metavar="MODEL.onnx", type=Path, help="the exported ONNX model (step form)")
+    flags.add_out(parser, "MODEL.onnx", "write the gated model here instead of replacing MODEL.onnx", type=Path)
+    parser.add_argument(
+        "--gate-sequences", type=flags.positive_int, default=12, help="simulated sequences (default %(default)s)"
+    )
+    parser.add_argument(
+        "--gate-sequence-frames",
+        dest="gate_frames",
+        type=flags.positive_int,
+        default=60,
+        metavar="N",
+        help="frames per simulated sequence (default %(default)s)",
+    )
+    parser.add_argument(
+        "--gate-seed",
+        type=int,
+        default=None,
+        help="simulation seed; must be one the model was never trained or tested on "
+        "(default: export.gate.DEFAULT_SEED)",
+    )
+    flags.add_threads(parser, None, "onnxruntime's and OpenVINO's threads per run (default: every usable core)")
+    flags.add_quiet(parser)
+    return parser
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    flags.apply_quiet(args)
+    from rafd.model_files import checkpoint_given_for_onnx
+
+    if not args.model.is_file():
+        print(f"{parser.prog}: error: {args.model} is not a file", file=sys.stderr)
+        return 1
+    wrong_kind = checkpoint_given_for_onnx(args.model)
+    if wrong_kind:
+        print(f"{parser.prog}: error: {wrong_kind}", file=sys.stderr)
+        return 1
+    # Heavy imports (torch for the simulated windows, onnx) after argument parsing: --help stays fast.
+    from export.gate import DEFAULT_SEED, GateOptions, record_gates, run_export_gates
+
+    seed = DEFAULT_SEED if args.gate_seed is None else args.gate_seed
+    options = GateOptions(sequences=args.gate_sequences, frames=args.gate_frames, seed=seed, threads=args.threads)
+    start = time.perf_counter()
+    try:
+        reports = run_export_gates(args.model, options, lambda message: print(message, flush=True))
+    except ValueError as error:  # not a RaFD step graph, or not loadable
+        print(f"{parser.prog}: error: {error}", file=sys.stderr)
+        return 1
+    seconds = time.perf_counter() - start
+    if not reports:
+        print(f"nothing recorded: {args.model} is unchanged")
+        return 0
+    target = args.out or args.model
+    record_gates(args.model, reports, target)
+    verdicts = ", ".join(f"{precision} gate {'PASS' if r.ok else 'FAIL'}" for precision, r in reports.items())
+    print(f"recorded in {target}: {verdicts} ({seconds:.0f} s)")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,104 @@
+"""rafd gate: the verdicts recorded in an existing ONNX model without re-exporting (graph and metadata kept, a
+precision's old record replaced), read back where the service reads them; the command on a real model."""
+
+from __future__ import annotations
+
+import json
+import shutil
+
+import pytest
+
+from export.gate import GateReport, GateThresholds, SourceFigures, record_gates
+from rafd.runtime import OnnxRunner, supported_choices
+from rafd.runtime.runners import gate_passed, gate_record
+
+onnx = pytest.importorskip("onnx")
+
+
+@pytest.fixture
+def model_copy(tmp_path):
+    from rafd.assets import default_onnx
+
+    try:
+        shipped = default_onnx()
+    except FileNotFoundError as error:
+        pytest.skip(f"the shipped model is not built: {error}")
+    # any gate record the shipped file may carry is dropped: each test starts from an ungated model
+    proto = onnx.load(str(shipped))
+    kept = [(p.key, p.value) for p in proto.metadata_props if not p.key.startswith("gate_")]
+    del proto.metadata_props[:]
+    for key, value in kept:
+        proto.metadata_props.add(key=key, value=value)
+    path = tmp_path / "model.onnx"
+    onnx.save(proto, str(path))
+    return path
+
+
+def _report(frames: int, detections: int, changed: int) -> GateReport:
+    figures = SourceFigures(frames=frames, reference_detections=detections, candidate_detections=detections)
+    figures.changed = changed
+    figures.centre_shifts, figures.score_differences = [0.01] * (detections - changed), [0.001] * detections
+    return GateReport("onnxruntime/fp32", "openvino/bf16", GateThresholds(), {"simulated": figures})
+
+
+def test_a_recorded_pass_is_read_back_by_the_runtime_and_nothing_else_changes(model_copy, tmp_path):
+    before = onnx.load(str(model_copy))
+    out = tmp_path / "gated.onnx"
+    entries = record_gates(model_copy, {"bf16": _report(699, 1909, 10)}, out)
+    assert entries["gate_bf16"] == "pass"
+    after = onnx.load(str(out))
+    assert after.graph.SerializeToString() == before.graph.SerializeToString()  # not re-exported
+    old = {p.key: p.value for p in before.metadata_props}
+    new = {p.key: p.value for p in after.metadata_props}
+    assert {k: v for k, v in new.items() if not k.startswith("gate_")} == old
+    metadata = OnnxRunner(out, threads=1).metadata
+    assert gate_passed(metadata, "bf16") and gate_record(metadata, "bf16") == "pass"
+    made = json.loads(metadata["gate_bf16_figures"])
+    assert made["figures"]["simulated"]["frames"] == 699 and made["cpu"] and made["date"]
+    assert onnx.load(str(model_copy)).metadata_props == before.metadata_props  # --out leaves the input alone
+
+
+def test_a_new_record_replaces_the_old_one_in_place(model_copy):
+    record_gates(model_copy, {"bf16": _report(699, 1909, 10)})
+    assert gate_passed(OnnxRunner(model_copy, threads=1).metadata, "bf16")
+    record_gates(model_copy, {"bf16": _report(699, 1909, 200)})  # 10% changed: FAIL
+    keys = [p.key for p in onnx.load(str(model_copy)).metadata_props]
+    assert keys.count("gate_bf16") == 1 and keys.count("gate_bf16_figures") == 1
+    metadata = OnnxRunner(model_copy, threads=1).metadata
+    assert gate_record(metadata, "bf16") == "fail" and not gate_passed(metadata, "bf16")
+    assert not list(model_copy.parent.glob(".*.tmp"))  # the atomic write left nothing behind
+
+
+def test_the_command_records_this_cpus_verdicts(model_copy, capsys, monkeypatch):
+    """A short gate (5 windows): too little to judge, so FAIL where the CPU has a reduced precision; where it has
+    none, nothing is written."""
+    pytest.importorskip("torch")  # the simulated windows
+    from export.gate_cli import main
+
+    monkeypatch.delenv("RAFD_RADIATE_SAMPLE", raising=False)
+    reduced = [p for _, p in supported_choices() if p != "fp32"]
+    before = model_copy.read_bytes()
+    assert main([str(model_copy), "--gate-sequences", "1", "--gate-sequence-frames", "8", "--threads", "1"]) == 0
+    out = capsys.readouterr().out
+    if not reduced:
+        assert "nothing to gate" in out and "is unchanged" in out and model_copy.read_bytes() == before
+        return
+    metadata = OnnxRunner(model_copy, threads=1).metadata
+    for precision in reduced:
+        assert metadata[f"gate_{precision}"] == "fail" and "too little to judge" in out
+        assert json.loads(metadata[f"gate_{precision}_figures"])["figures"]["simulated"]["frames"] == 8 - 3
+    assert f"recorded in {model_copy}: " in out and "bf16 gate FAIL" in out
+
+
+def test_the_command_refuses_a_checkpoint_and_a_missing_file(tmp_path, capsys):
+    from export.gate_cli import main
+    from rafd.assets import default_checkpoint
+
+    try:
+        checkpoint = shutil.copy(default_checkpoint(), tmp_path / "model.pt")
+    except FileNotFoundError as error:
+        pytest.skip(f"the shipped checkpoint is not built: {error}")
+    assert main([str(checkpoint)]) == 1
+    assert "is a PyTorch checkpoint, not an ONNX model" in capsys.readouterr().err
+    assert main([str(tmp_path / "absent.onnx")]) == 1
+    assert "is not a file" in capsys.readouterr().err
