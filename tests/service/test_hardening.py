@@ -252,7 +252,8 @@ def test_with_the_stream_named_in_a_header_a_frame_is_placed_before_its_body_arr
 
 
 def test_a_slow_body_holds_its_streams_place_only_until_the_body_timeout():
-    app = create_app(Settings(threads=1, body_timeout_s=0.5, stream_gap_restart_s=10.0)  # frame 2 is lost: no gap restart, runner=FakeRunner())
+    # frame 2 is lost to the timeout: the gap rule must not restart the chain over the 2 s from frame 1 to 3
+    app = create_app(Settings(threads=1, body_timeout_s=0.5, stream_gap_restart_s=10.0), runner=FakeRunner())
     with serve_in_thread(app) as url, httpx.Client(base_url=url, timeout=10.0) as http:
         wait_ready(http)
         assert http.post("/detect", json=detect_json("slow", 1.0, uniform(1), (1.0, 0, 0))).status_code == 200
