@@ -114,6 +114,22 @@ class LoopbackCluster:
         process.send_signal(signal.SIGKILL)
         process.wait(timeout=10.0)
 
+    def terminate(self, index: int, timeout: float = 30.0) -> None:
+        """SIGTERM one replica (a graceful stop: requests in progress finish) and wait for it to exit."""
+        process = self.processes[index]
+        process.send_signal(signal.SIGTERM)
+        process.wait(timeout=timeout)
+
+    def restart(self, index: int, timeout: float = 120.0) -> None:
+        """Start a stopped replica again on its own port (a fresh process: no streams) and wait until it is ready."""
+        if self.processes[index].poll() is None:
+            raise RuntimeError(f"replica {index} is still running")
+        port = self.replica_ports[index]
+        log = (self.work / f"replica-{index}.log").open("ab")
+        env = {**os.environ, **self.env}
+        self.processes[index] = subprocess.Popen(serve_command(port), env=env, stdout=log, stderr=subprocess.STDOUT)
+        wait_ready(f"http://127.0.0.1:{port}", self.processes[index], timeout=timeout)
+
     def __exit__(self, *exc_info: object) -> None:
         for process in [self.nginx, *self.processes]:
             if process is not None and process.poll() is None:

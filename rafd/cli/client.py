@@ -12,17 +12,27 @@ Every run starts its stream fresh, so a run repeats: by default each run posts t
 sequence plus a short run id (`tiny_foggy-3fa9c2`); `--stream-id ID` names the stream yourself, and `--reset`
 deletes that stream on the service first (a second run with the same --stream-id and no --reset is refused with
 409: the service already holds later timestamps of that stream).
+
+Failover: every frame names the previous frame the client got an answer for (`previous_timestamp`), so a replica
+whose chain of the stream is another one restarts it instead of stacking the frame on stale frames. A frame whose
+answer is lost (502 / 503 / 504, a connection error or a timeout: a replica died or restarted) is posted again, up to
+--retries times with exponential backoff (0.25 s doubling, at most 4 s, or the Retry-After header's seconds when
+longer, up to 4 s); the replica that answered it answers the same again, and another one takes it as a new frame.
+Each retry is logged on stderr and counted in the closing summary.
 """
 
 from __future__ import annotations
 
 import argparse
 import base64
+import functools
+import http.client
 import json
 import os
 import re
 import secrets
 import sys
+import time
 import urllib.error
 import urllib.parse
 import urllib.request
@@ -166,16 +176,58 @@ def reset_stream(url: str, stream_id: str, timeout: float, api_key: str | None =
         raise ServiceError(f"cannot reach {url}: {exc.reason}") from exc
 
 
+# Answers of a router or of a replica going away, where the frame may not have been used: safe to post again (the
+# service answers a repeated frame with its first answer, or takes it as new where it never arrived).
+RETRY_STATUSES = frozenset({502, 503, 504})
+RETRY_FIRST_S = 0.25
+RETRY_MAX_S = 4.0
+
+
+class RetryableError(ServiceError):
+    """A failure after which the same frame may be posted again."""
+
+    def __init__(self, message: str, code: str | None = None, retry_after_s: float | None = None) -> None:
+        super().__init__(message, code)
+        self.retry_after_s = retry_after_s
+
+
+def _retry_after(exc: urllib.error.HTTPError) -> float | None:
+    try:
+        return float(exc.headers.get("Retry-After", ""))
+    except (TypeError, ValueError):
+        return None
+
+
+def retry_delay(attempt: int, retry_after_s: float | None = None) -> float:
+    """Seconds before retry `attempt` (1, 2, ...): 0.25 s doubling, at most RETRY_MAX_S; a longer Retry-After wins,
+    still bounded."""
+    delay = min(RETRY_MAX_S, RETRY_FIRST_S * 2 ** (attempt - 1))
+    if retry_after_s is not None and retry_after_s > delay:
+        delay = min(RETRY_MAX_S, retry_after_s)
+    return delay
+
+
 def post_frame(
-    url: str, stream_id: str, frame: ClientFrame, png: bytes, use_pose: bool, timeout: float, api_key: str | None = None
+    url: str,
+    stream_id: str,
+    frame: ClientFrame,
+    png: bytes,
+    use_pose: bool,
+    timeout: float,
+    api_key: str | None = None,
+    previous_timestamp: float | None = None,
 ) -> dict[str, Any]:
     """One POST /detect (JSON body, base64 PNG); `api_key` goes in the X-API-Key header the service checks, the
-    stream id in the X-Stream-Id header as well as in the body."""
+    stream id in the X-Stream-Id header as well as in the body; `previous_timestamp`: the stream's previous frame
+    that was answered (the service restarts a chain that does not end there). RetryableError when the frame may be
+    posted again (502 / 503 / 504, a connection error, a timeout)."""
     body: dict[str, Any] = {
         "stream_id": stream_id,
         "timestamp": frame.timestamp,
         "image": base64.b64encode(png).decode("ascii"),
     }
+    if previous_timestamp is not None:
+        body["previous_timestamp"] = previous_timestamp
     if use_pose and frame.pose is not None:
         body["pose"] = {"x": float(frame.pose[0]), "y": float(frame.pose[1]), "yaw": float(frame.pose[2])}
     headers = {"content-type": "application/json", **_headers(api_key), **_stream_header(stream_id)}
@@ -187,9 +239,36 @@ def post_frame(
             return json.loads(response.read())
     except urllib.error.HTTPError as exc:
         code, reason = _error_of(exc)
-        raise ServiceError(f"frame {frame.number}: HTTP {exc.code}: {reason}", code) from exc
+        message = f"frame {frame.number}: HTTP {exc.code}: {reason}"
+        if exc.code in RETRY_STATUSES:
+            raise RetryableError(message, code, _retry_after(exc)) from exc
+        raise ServiceError(message, code) from exc
     except urllib.error.URLError as exc:
-        raise ServiceError(f"cannot reach {url}: {exc.reason}") from exc
+        raise RetryableError(f"cannot reach {url}: {exc.reason}") from exc
+    except (ConnectionError, TimeoutError, http.client.HTTPException) as exc:  # the connection broke mid-answer
+        raise RetryableError(f"frame {frame.number}: connection lost: {type(exc).__name__}: {exc}") from exc
+
+
+def post_with_retries(
+    retries: int,
+    post: Any,
+    describe: str,
+    log: Any = None,
+    sleep: Any = time.sleep,
+) -> tuple[dict[str, Any], int]:
+    """`post()` until it answers, at most `retries` more times after a RetryableError (backoff between); -> (answer,
+    retries used). The last error is raised when every attempt failed. `log(line)` gets one line per retry."""
+    log = log or (lambda line: print(line, file=sys.stderr))
+    for attempt in range(retries + 1):
+        try:
+            return post(), attempt
+        except RetryableError as exc:
+            if attempt == retries:
+                raise ServiceError(f"{exc} (after {retries} retries)", exc.code) from exc
+            delay = retry_delay(attempt + 1, exc.retry_after_s)
+            log(f"rafd-client: {describe}: {exc}; retry {attempt + 1} of {retries} in {delay:.2f} s")
+            sleep(delay)
+    raise AssertionError("unreachable")  # the loop returns or raises
 
 
 def truth_polygons(frame: ClientFrame, annotated: bool) -> np.ndarray | None:
@@ -269,6 +348,14 @@ def build_parser() -> argparse.ArgumentParser:
     )
     parser.add_argument("--timeout", type=float, default=30.0, help="seconds per request (default 30)")
     parser.add_argument(
+        "--retries",
+        type=int,
+        default=4,
+        metavar="N",
+        help="post a frame again up to N times after 502/503/504, a lost connection or a timeout, with backoff "
+        "(0.25 s doubling, at most 4 s; default 4; 0: never)",
+    )
+    parser.add_argument(
         "--api-key",
         default=os.environ.get("RAFD_API_KEY"),
         help="key for a service run with RAFD_API_KEYS (default: $RAFD_API_KEY; sent as X-API-Key)",
@@ -308,7 +395,7 @@ def main(argv: list[str] | None = None) -> int:
     stream_id = args.stream_id or new_stream_id(sequence.name)
     out = args.out
     writer = answers = log = last_answer = bar = None
-    boxes = 0
+    boxes = retries = restarts = 0
     if out is not None:
         (out / "frames").mkdir(parents=True, exist_ok=True)
         answers = (out / "answers.jsonl").open("w")
@@ -325,12 +412,30 @@ def main(argv: list[str] | None = None) -> int:
         print(f"posting {len(frames)} frames of {sequence.name} to stream {stream_id} at {args.url}")
         bar = progress.bar(desc=f"post {stream_id}", total=len(frames), unit="frame")
         boxes = 0
+        previous: float | None = None  # the last frame answered: the chain the service must continue
         for frame in frames:
             scan, png = frame.scan_and_png()
+            posted = frame.posted_png(png)
             try:
-                answer = last_answer = post_frame(
-                    args.url, stream_id, frame, frame.posted_png(png), not args.no_pose, args.timeout, args.api_key
+                answer, used = post_with_retries(
+                    max(0, args.retries),
+                    functools.partial(
+                        post_frame,
+                        args.url,
+                        stream_id,
+                        frame,
+                        posted,
+                        not args.no_pose,
+                        args.timeout,
+                        args.api_key,
+                        previous,
+                    ),
+                    f"frame {frame.number}",
                 )
+                retries += used
+                last_answer, previous = answer, frame.timestamp
+                if answer.get("stream_restarted") in ("gap", "previous_timestamp_mismatch"):
+                    restarts += 1
             except ServiceError as exc:
                 if exc.code == "timestamp_not_increasing":
                     raise ServiceError(
@@ -390,6 +495,8 @@ def main(argv: list[str] | None = None) -> int:
                 )
             log.close()
     print(f"stream {stream_id}: {len(frames)} frames answered, {boxes} boxes in all")
+    if retries or restarts:
+        print(f"stream {stream_id}: {retries} retries, {restarts} chains restarted by the service (failover)")
     if out is not None:
         print(f"wrote {len(frames)} frames, answers.jsonl and sequence.mp4 to {out}")
     if log is not None:

@@ -82,6 +82,9 @@ def test_concurrent_posts_to_one_stream_are_processed_in_timestamp_order(setting
         )  # frame i is uniform 8 * i: the fake's flow reveals its predecessor
         return i, client.post("/detect", json=detect_json("one", float(i), frame, (float(i), 0.0, 0.0)))
 
+    # Refused frames leave gaps of whole seconds between accepted ones: not a radar's timing, so the staleness rule
+    # (RAFD_STREAM_GAP_RESTART_S, tests/service/test_chain_restart.py) is off here.
+    settings = settings.model_copy(update={"stream_gap_restart_s": 0.0})
     with TestClient(create_app(settings, runner=runner)) as client:
         wait_ready(client)
         with ThreadPoolExecutor(max_workers=8) as pool:

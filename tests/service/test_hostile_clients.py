@@ -223,7 +223,8 @@ def test_2_slow_bodies_do_not_block_detect_for_everyone():
 
 @pytest.mark.network
 def test_2_a_body_slower_than_the_minimum_rate_is_cut_with_408_and_its_stream_place_released():
-    with served(min_body_bytes_per_s=64 * 1024, body_rate_grace_s=0.3) as (url, app, http):
+    # timestamps 1, 3: 2 s apart, the staleness rule (RAFD_STREAM_GAP_RESTART_S) off so that frames_used tells
+    with served(min_body_bytes_per_s=64 * 1024, body_rate_grace_s=0.3, stream_gap_restart_s=0) as (url, app, http):
         assert http.post("/detect", json=detect_json("slow", 1.0, FRAME, (1.0, 0, 0))).status_code == 200
         head, body = http_request(
             "POST",

@@ -14,7 +14,9 @@ pytestmark = pytest.mark.network
 
 
 def test_real_server_streams_frames_and_enforces_the_limit_on_chunked_bodies():
-    app = create_app(Settings(threads=1, max_request_bytes=100_000), runner=FakeRunner())
+    # frames 1 s apart, then 6 s: the staleness rule (RAFD_STREAM_GAP_RESTART_S) off, the buffer is what is tested
+    settings = Settings(threads=1, max_request_bytes=100_000, stream_gap_restart_s=0)
+    app = create_app(settings, runner=FakeRunner())
     with serve_in_thread(app) as url, httpx.Client(base_url=url, timeout=10.0) as http:
         wait_ready(http)
         assert http.get("/health/live").json() == {"status": "alive"}

@@ -181,3 +181,68 @@ def test_the_stream_id_travels_in_the_x_stream_id_header_that_routers_hash_on(mo
     assert [r.get_method() for r in sent] == ["POST", "DELETE"]
     assert [r.get_header("X-stream-id") for r in sent] == ["lane-7", "lane-7"]
     assert json.loads(sent[0].data)["stream_id"] == "lane-7" and sent[0].get_header("X-api-key") == "k"
+
+
+def test_a_lost_answer_is_posted_again_with_backoff_and_the_previous_frame_named(monkeypatch):
+    """Issue 39: 502 / 503 / 504 and a broken connection are retried with bounded exponential backoff, logged; other
+    errors are not; every retry carries the same frame and the previous answered frame's timestamp."""
+    import email.message
+    import io
+    import urllib.error
+    from types import SimpleNamespace
+
+    from rafd.cli import client
+
+    def http_error(status: int, retry_after: str | None = None) -> urllib.error.HTTPError:
+        headers = email.message.Message()
+        if retry_after is not None:
+            headers["Retry-After"] = retry_after
+        body = io.BytesIO(json.dumps({"error": {"code": "upstream_failed", "message": "x"}}).encode())
+        return urllib.error.HTTPError("http://router/detect", status, "Bad Gateway", headers, body)
+
+    failures = [http_error(502), ConnectionResetError("reset by peer"), http_error(503, retry_after="3")]
+    sent = []
+
+    def urlopen(request, timeout):
+        sent.append(json.loads(request.data))
+        if failures:
+            raise failures.pop(0)
+        return io.BytesIO(b'{"frames_used": 1}')
+
+    monkeypatch.setattr(client.urllib.request, "urlopen", urlopen)
+    frame = SimpleNamespace(timestamp=2.0, pose=None, number=7)
+    lines, sleeps = [], []
+    answer, used = client.post_with_retries(
+        4,
+        lambda: client.post_frame("http://router", "s", frame, b"png", False, 1.0, None, previous_timestamp=1.75),
+        "frame 7",
+        log=lines.append,
+        sleep=sleeps.append,
+    )
+    assert answer == {"frames_used": 1} and used == 3
+    assert sleeps == [0.25, 0.5, 3.0]  # doubling; Retry-After (3 s) when longer
+    assert len(lines) == 3 and "HTTP 502" in lines[0] and "retry 1 of 4" in lines[0] and "retry 3 of 4" in lines[2]
+    assert all(body == sent[0] for body in sent) and sent[0]["previous_timestamp"] == 1.75
+
+    # bounded: the last error once the retries are spent; a 4xx is never retried
+    failures[:] = [http_error(504)] * 3
+    with pytest.raises(client.ServiceError, match="after 2 retries"):
+        client.post_with_retries(
+            2,
+            lambda: client.post_frame("http://r", "s", frame, b"", False, 1.0),
+            "f",
+            log=lines.append,
+            sleep=sleeps.append,
+        )
+    failures[:] = [http_error(409)]
+    calls = len(sent)
+    with pytest.raises(client.ServiceError) as refused:
+        client.post_with_retries(
+            4,
+            lambda: client.post_frame("http://r", "s", frame, b"", False, 1.0),
+            "f",
+            log=lines.append,
+            sleep=sleeps.append,
+        )
+    assert not isinstance(refused.value, client.RetryableError) and len(sent) == calls + 1
+    assert client.retry_delay(10) == client.RETRY_MAX_S and client.retry_delay(1, 60.0) == client.RETRY_MAX_S
