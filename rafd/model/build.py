@@ -66,38 +66,22 @@ def build_model(cfg: RaFDConfig) -> RaFD:
             local_radius=cfg.flow.local_radius,
         )
         prop_cfg = cfg.propagation
-        if prop_cfg.mode == "joint":
-            past = cfg.num_frames - 1
-            propagation = JointPropagation(
-                [
-                    DeformableLayer(
-                        JointDeformableAttention(channels, past, prop_cfg.num_points, (size, size), channels // 2),
-                        channels,
-                        prop_cfg.ffn_ratio,
-                        norm=prop_cfg.norm,
-                    )
-                    for _ in range(prop_cfg.num_blocks)
-                ],
-                centres.clone(),
-                half_extent,
-                prop_cfg.flow_guided,
-                cfg.num_frames,
-            )
+        joint = prop_cfg.mode == "joint"
+
+        def sampling() -> DeformableAttention:
+            if joint:  # every past frame in one sampling, values read in C/2 channels
+                past = cfg.num_frames - 1
+                return JointDeformableAttention(channels, past, prop_cfg.num_points, (size, size), channels // 2)
+            return DeformableAttention(channels, prop_cfg.num_points, (size, size))
+
+        layers = [
+            DeformableLayer(sampling(), channels, prop_cfg.ffn_ratio, norm=prop_cfg.norm)
+            for _ in range(prop_cfg.num_blocks)
+        ]
+        if joint:
+            propagation = JointPropagation(layers, centres.clone(), half_extent, prop_cfg.flow_guided, cfg.num_frames)
         else:
-            propagation = FlowGuidedPropagation(
-                [
-                    DeformableLayer(
-                        DeformableAttention(channels, prop_cfg.num_points, (size, size)),
-                        channels,
-                        prop_cfg.ffn_ratio,
-                        norm=prop_cfg.norm,
-                    )
-                    for _ in range(prop_cfg.num_blocks)
-                ],
-                centres.clone(),
-                half_extent,
-                prop_cfg.flow_guided,
-            )
+            propagation = FlowGuidedPropagation(layers, centres.clone(), half_extent, prop_cfg.flow_guided)
 
     head_cfg = cfg.head
     if head_cfg.num_queries > size * size:
