@@ -40,7 +40,7 @@ def flow_from_correlation(correlation: Tensor, grid: Tensor) -> Tensor:
         return grid[None] - matched  # [B, N, 2]
 
 
-LOCAL_MASKED = -1.0e4  # additive logit of an offset outside the map: exp(-1e4) == 0 in float32
+LOCAL_MASKED = -1.0e4  # additive logit of a masked offset: exp(-1e4) == 0 in float32
 
 
 def shift_kernels(channels: int, radius: int) -> Tensor:
@@ -62,14 +62,21 @@ def local_offsets(radius: int, cell: float) -> Tensor:
     return torch.stack([dj.flatten() * cell, -di.flatten() * cell], dim=-1)  # [D, 2]
 
 
-def outside_mask(size: int, radius: int) -> Tensor:
-    """-> [1, D, H, W] additive logits: LOCAL_MASKED where offset d leaves the H x W map (a zero-padded match)."""
+def symmetric_window_mask(size: int, radius: int) -> Tensor:
+    """-> [1, D, H, W] additive logits: LOCAL_MASKED where offset d = (di, dj) reaches further than the cell's
+    distance to the map's edge along that axis (|di| > min(i, H-1-i) or |dj| > min(j, W-1-j)).
+
+    Why symmetric and not just "inside the map": a cell whose match is ambiguous (speckle, empty road) spreads its
+    softmax over its window, and a window cut on one side only has a mean offset pointing inwards: a flow of up to
+    r/2 cells around the border that no motion caused. Cut to the same reach on both sides, a flat match averages
+    to zero; the edge cells can only report motion up to their distance from the edge (0 on the outermost ring)."""
     steps = torch.arange(-radius, radius + 1)
     di, dj = torch.meshgrid(steps, steps, indexing="ij")
-    rows = torch.arange(size)[None, :, None] + di.flatten()[:, None, None]  # [D, H, 1]
-    cols = torch.arange(size)[None, None, :] + dj.flatten()[:, None, None]  # [D, 1, W]
-    inside = (rows >= 0) & (rows < size) & (cols >= 0) & (cols < size)  # [D, H, W]
-    return torch.where(inside, 0.0, LOCAL_MASKED)[None]
+    index = torch.arange(size)
+    reach = torch.minimum(index, size - 1 - index)  # [H] cells to the nearer edge
+    rows_ok = di.flatten()[:, None, None].abs() <= reach[None, :, None]  # [D, H, 1]
+    cols_ok = dj.flatten()[:, None, None].abs() <= reach[None, None, :]  # [D, 1, W]
+    return torch.where(rows_ok & cols_ok, 0.0, LOCAL_MASKED)[None]
 
 
 def local_correlation(current: Tensor, previous: Tensor, kernels: Tensor) -> Tensor:
@@ -144,7 +151,7 @@ class FlowEstimator(nn.Module):
             cell = 2.0 * half_extent / size
             self.register_buffer("kernels", shift_kernels(channels, local_radius), persistent=False)
             self.register_buffer("offsets", local_offsets(local_radius, cell), persistent=False)  # [D, 2] m
-            self.register_buffer("mask", outside_mask(size, local_radius), persistent=False)  # [1, D, Hm, Wm]
+            self.register_buffer("mask", symmetric_window_mask(size, local_radius), persistent=False)  # [1, D, Hm, Wm]
 
     def encode(self, features: Tensor) -> Tensor:
         """phi on the matching grid: [B, C, Hf, Wf] -> [B, C/2, Hm, Wm]."""

@@ -1,5 +1,6 @@
 """The local cost volume (flow.local_radius): a shifted copy of a map is found at its true displacement, offsets
-leaving the map never match, and a static scene gives zero flow."""
+leaving the map never match, a window is cut symmetrically at the edge (a flat match gives zero flow there), and a
+static scene gives zero flow."""
 
 from __future__ import annotations
 
@@ -11,15 +12,15 @@ from rafd.model.flow import (  # noqa: E402 - after the torch skip
     flow_from_local_correlation,
     local_correlation,
     local_offsets,
-    outside_mask,
     shift_kernels,
+    symmetric_window_mask,
 )
 
 
 def flow_of(previous, current, radius: int, cell: float = 1.0):  # noqa: ANN001, ANN201 - tensors
     channels, size = previous.shape[1], previous.shape[-1]
     correlation = local_correlation(current, previous, shift_kernels(channels, radius)) * 50.0  # sharpen
-    return flow_from_local_correlation(correlation, local_offsets(radius, cell), outside_mask(size, radius))
+    return flow_from_local_correlation(correlation, local_offsets(radius, cell), symmetric_window_mask(size, radius))
 
 
 def test_a_shifted_map_is_found_at_its_displacement() -> None:
@@ -40,8 +41,16 @@ def test_a_static_scene_has_zero_flow_to_the_edge() -> None:
     assert flow.abs().max() < 1e-3  # edge cells included: outside offsets are masked, not matched to padding
 
 
-def test_the_mask_forbids_exactly_the_offsets_leaving_the_map() -> None:
-    mask = outside_mask(5, 1)  # [1, 9, 5, 5], offsets row-major from (-1, -1)
+def test_the_mask_cuts_the_window_to_the_same_reach_on_both_sides() -> None:
+    mask = symmetric_window_mask(5, 1)  # [1, 9, 5, 5], offsets row-major from (-1, -1)
     assert mask.shape == (1, 9, 5, 5)
-    assert mask[0, 4].abs().max() == 0  # zero offset: always inside
-    assert (mask[0, 0, 0, :] < 0).all() and (mask[0, 0, 1:, 1:] == 0).all()  # (-1, -1): row 0 and column 0 out
+    assert mask[0, 4].abs().max() == 0  # zero offset: always allowed
+    assert (mask[0, 0, 0, :] < 0).all() and (mask[0, 0, 1:4, 1:4] == 0).all()  # (-1, -1): off on the outer ring
+    assert (mask[0, 8, -1, :] < 0).all() and (mask[0, 8, :, 0] < 0).all()  # (+1, +1): off on the opposite side too
+
+
+def test_a_featureless_scene_has_zero_flow_at_the_edge() -> None:
+    # every offset equally good (an empty road): the expectation over a one-sided window would point inwards
+    flat = torch.zeros(1, 1, 25, 12, 12)
+    flow = flow_from_local_correlation(flat[:, 0], local_offsets(2, 1.0), symmetric_window_mask(12, 2))
+    assert flow.abs().max() < 1e-5
