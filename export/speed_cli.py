@@ -1,5 +1,6 @@
 """rafd bench speed: speed, accuracy drift and memory of every runtime and precision, side by side in one run
-(export.speed; docs "Performance")."""
+(export.speed; docs "Performance"); with --profile, the streaming step's time module by module instead
+(export.speed_profile)."""
 
 from __future__ import annotations
 
@@ -24,6 +25,7 @@ from export.speed import (
     format_report,
     http_stages,
 )
+from export.speed_profile import PROFILE_THREADS
 from rafd.bench.flops import matmul_peaks_gflops
 from rafd.bench.machine import machine_description
 from rafd.cli import flags
@@ -89,6 +91,29 @@ def build_parser() -> argparse.ArgumentParser:
         "3 servers each (needs the live extra)",
     )
     parser.add_argument("--json", type=Path, metavar="FILE", help="also write the figures as JSON")
+    profile = parser.add_argument_group(
+        'by-module profile (instead of the benchmark; export.speed_profile, docs "Profiling the step by module")'
+    )
+    profile.add_argument(
+        "--profile",
+        action="store_true",
+        help="profile the streaming step of CHECKPOINT (a .pt, or a step .onnx) with onnxruntime's profiler "
+        f"(fp32, {PROFILE_THREADS} thread) over --repeats steps and print ms per step by module",
+    )
+    profile.add_argument(
+        "--profile-config",
+        metavar="RECIPES",
+        help="comma list of training recipes to profile with random weights, side by side in one run "
+        "(e.g. default,cpu; implies --profile; with CHECKPOINT, that too)",
+    )
+    profile.add_argument(
+        "--profile-depth",
+        type=flags.positive_int,
+        default=2,
+        metavar="N",
+        help="module levels of the rows: 1 encoder, flow, propagation, head; 2 encoder/backbone, ... "
+        "(default %(default)s)",
+    )
     flags.add_quiet(parser)
     flags.deprecated(
         parser, "--checkpoint", "the positional CHECKPOINT", "checkpoint_option", type=Path, metavar="CKPT"
@@ -107,6 +132,8 @@ def main(argv: Sequence[str] | None = None) -> int:
     flags.apply_quiet(args)
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(levelname)s %(name)s: %(message)s")
     logging.getLogger("httpx").setLevel(logging.WARNING)  # one line per request would bury the table
+    if args.profile or args.profile_config:
+        return run_profile(args)
     configs = [c.strip() for c in args.configs.split(",") if c.strip()]
     unknown = set(configs) - set(CONFIGS)
     if unknown:
@@ -203,6 +230,49 @@ def main(argv: Sequence[str] | None = None) -> int:
     print(text)
     if args.json:
         args.json.write_text(json.dumps({"rows": [r.__dict__ for r in report.rows], "facts": report.facts}, indent=2))
+    return 0
+
+
+def run_profile(args: argparse.Namespace) -> int:
+    """--profile: the by-module table of each step (CHECKPOINT, or the shipped model when no recipe is named, then
+    every --profile-config recipe with random weights), all in one run so that their ratios share a machine state."""
+    from export.speed_profile import (
+        format_profiles,
+        profile_steps,
+        profiler_cost_us,
+        profiles_json,
+        recipe_checkpoint,
+        step_onnx,
+    )
+    from rafd.train.recipes import RECIPES
+
+    recipes = [c.strip() for c in (args.profile_config or "").split(",") if c.strip()]
+    unknown = sorted(set(recipes) - set(RECIPES))
+    if unknown:
+        print(f"rafd-bench-speed: error: unknown recipes {unknown} (known: {', '.join(RECIPES)})", file=sys.stderr)
+        return 2
+    with tempfile.TemporaryDirectory(prefix="rafd-profile-") as tmp:
+        work = Path(tmp)
+        checkpoints: dict[str, Path] = {}
+        if args.checkpoint is not None or not recipes:
+            if args.checkpoint is not None:
+                checkpoint = Path(args.checkpoint)
+            else:
+                from rafd.assets import default_checkpoint
+
+                checkpoint = Path(default_checkpoint())
+            if not checkpoint.is_file():
+                print(f"rafd-bench-speed: error: checkpoint {checkpoint} not found", file=sys.stderr)
+                return 2
+            checkpoints[checkpoint.name] = checkpoint
+        for name in recipes:
+            checkpoints[name] = recipe_checkpoint(work, name)
+        paths = {name: step_onnx(checkpoint, work) for name, checkpoint in checkpoints.items()}
+        profiles = profile_steps(paths, args.repeats, args.profile_depth)
+    cost = profiler_cost_us(args.repeats)
+    print(format_profiles(profiles, args.profile_depth, machine_description(PROFILE_THREADS), cost))
+    if args.json:
+        args.json.write_text(json.dumps(profiles_json(profiles, args.profile_depth, cost), indent=2))
     return 0
 
 

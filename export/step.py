@@ -7,12 +7,45 @@ Input and output names and shapes are the contract of rafd.runtime (see its docs
 
 from __future__ import annotations
 
+from collections.abc import Callable
+
 import torch
 from torch import Tensor, nn
 
 from rafd.config import RaFDConfig
 from rafd.model import RaFD, relative_pose_torch
 from rafd.runtime import FORMS
+
+
+class Method(nn.Module):
+    """A bound method of the model called as a module, so that the ONNX exporter names its nodes after this module.
+
+    The TorchScript exporter scopes a node by the modules whose __call__ is on the stack: a model method called
+    directly (model.flow_features, model.pair_flow_encoded) gets its caller's scope, and its operations would land
+    outside any module in a by-module profile (rafd bench speed --profile). The method is kept as a plain attribute,
+    not a submodule: the graph's parameters and state dict are the model's, unchanged."""
+
+    def __init__(self, method: Callable[..., Tensor]) -> None:
+        super().__init__()
+        self.method = method
+
+    def forward(self, *args: Tensor) -> Tensor:
+        return self.method(*args)
+
+
+class FlowStep(nn.Module):
+    """The step's flow branch as one module (nodes /flow/encode/..., /flow/match/...): the new frame's features
+    [1,C,Hf,Wf], the previous frame's phi [1,C/2,Hm,Wm], poses [1,T,3] -> the new phi, the newest pair's flow."""
+
+    def __init__(self, model: RaFD) -> None:
+        super().__init__()
+        self.encode = Method(model.flow_features)  # phi once per frame; the previous one is cached
+        self.match = Method(model.pair_flow_encoded)
+
+    def forward(self, features: Tensor, past_flow_features: Tensor, poses: Tensor) -> tuple[Tensor, Tensor]:
+        flow_features = self.encode(features)
+        relative = relative_pose_torch(poses[:, -2], poses[:, -1])
+        return flow_features, self.match(past_flow_features, flow_features, relative)
 
 
 class StepGraph(nn.Module):
@@ -28,6 +61,7 @@ class StepGraph(nn.Module):
         super().__init__()
         self.model = model
         self.num_frames = num_frames
+        self.flow = FlowStep(model) if num_frames > 1 else None
 
     def forward(self, frame: Tensor, poses: Tensor, *caches: Tensor) -> tuple[Tensor, ...]:
         if self.num_frames == 1:
@@ -37,10 +71,9 @@ class StepGraph(nn.Module):
         past_features, past_flow_features = caches[0], caches[-1]
         past_flows = caches[1] if self.num_frames > 2 else None
         features = self.model.encode_frame(frame)
-        flow_features = self.model.flow_features(features)  # phi once per frame; the previous one is cached
-        relative = relative_pose_torch(poses[:, -2], poses[:, -1])
-        flow = self.model.pair_flow_encoded(past_flow_features, flow_features, relative)[:, None]
-        flows = flow if past_flows is None else torch.cat([past_flows, flow], 1)
+        assert self.flow is not None  # built for num_frames > 1
+        flow_features, flow = self.flow(features, past_flow_features, poses)
+        flows = flow[:, None] if past_flows is None else torch.cat([past_flows, flow[:, None]], 1)
         out = self.model.detect_newest(past_features, features, flows, poses)
         return out["heatmap"], out["scores"], out["boxes"], flows, features, flow_features
 

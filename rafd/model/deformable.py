@@ -91,6 +91,8 @@ class DeformableAttention(nn.Module):
         nn.init.zeros_(self.output_proj.bias)
 
     def forward(self, query: Tensor, reference: Tensor, value: Tensor) -> Tensor:
+        if query.dim() == 4:  # a query map: forward_map, through the call so the exported nodes get this scope
+            return self.forward_map(query, reference, value)
         batch, num_queries, _ = query.shape
         offsets = self.sampling_offsets(query).reshape(batch, num_queries, self.num_points, 2)  # [B, Q, P, 2] cells
         locations = reference[:, :, None, :] + offsets * self.cell  # [B, Q, P, 2]
@@ -133,6 +135,10 @@ class DeformableLayer(nn.Module):
                 nn.init.zeros_(last.bias)
 
     def forward(self, query: Tensor, reference: Tensor, value: Tensor) -> Tensor:
+        """Token-major queries [B, Q, C]; a query map [B, C, H, W] goes to forward_map (called through the module,
+        a propagation's layer gets its own scope, /propagation/layers.0/..., in the exported graph)."""
+        if query.dim() == 4:
+            return self.forward_map(query, reference, value)
         if self.pre_norm:
             x = query + self.attention(self.norm1(query), reference, value)
             return x + self.ffn(self.norm2(x))
@@ -147,7 +153,7 @@ class DeformableLayer(nn.Module):
             return linear_on_map(out, activation(linear_on_map(hidden, x)))
 
         if self.pre_norm:
-            x = query + self.attention.forward_map(layer_norm_on_map(self.norm1, query), reference, value)
+            x = query + self.attention(layer_norm_on_map(self.norm1, query), reference, value)  # forward_map
             return x + ffn(layer_norm_on_map(self.norm2, x))
-        x = layer_norm_on_map(self.norm1, query + self.attention.forward_map(query, reference, value))
+        x = layer_norm_on_map(self.norm1, query + self.attention(query, reference, value))  # forward_map
         return layer_norm_on_map(self.norm2, x + ffn(x))

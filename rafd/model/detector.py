@@ -102,7 +102,7 @@ class RaFD(nn.Module):
         """detect for a stream's step: past_features [B, T-1, C, Hf, Wf] (cached), the newest features [B, C, Hf, Wf].
         The joint propagation reads the two apart, so the window is never copied into one tensor."""
         if isinstance(self.propagation, JointPropagation):
-            return self.head(self.propagation.propagate_split(past_features, features, flows, poses))
+            return self.head(self.propagation(past_features, features, flows, poses))
         return self.detect(torch.cat([past_features, features[:, None]], 1), flows, poses)
 
     def forward(

@@ -103,15 +103,16 @@ class JointPropagation(nn.Module):
         return metres_to_grid(to_past_frames(here, relative), self.half_extent)  # [B, F, Q, 2]
 
     def propagate(self, features: Tensor, flows: Tensor, poses: Tensor) -> Tensor:
-        return self.propagate_split(features[:, :-1], features[:, -1], flows, poses)
+        return self(features[:, :-1], features[:, -1], flows, poses)
 
-    def propagate_split(self, past: Tensor, current: Tensor, flows: Tensor, poses: Tensor) -> Tensor:
+    def forward(self, past: Tensor, current: Tensor, flows: Tensor, poses: Tensor) -> Tensor:
         """past [B, F, C, Hf, Wf] (F = T-1, oldest first), current [B, C, Hf, Wf], flows [B, F, 2, Hf, Wf],
-        poses [B, T, 3] -> [B, C, Hf, Wf]."""
+        poses [B, T, 3] -> [B, C, Hf, Wf]. The module's call (not a plain method), so that the ONNX exporter names
+        its nodes /propagation/... (a method's nodes get its caller's scope)."""
         newest = poses[:, -1:].expand(-1, past.shape[1], -1)  # [B, F, 3]
         relative = relative_pose_torch(poses[:, :-1], newest).to(current.dtype)  # [B, F, 3] past -> current
         reference = self.reference_points(flows[:, -1], relative)  # [B, F, Q, 2]
         x = current  # queries: the newest frame's cells
         for layer in cast("Iterable[DeformableLayer]", self.layers):
-            x = layer.forward_map(x, reference, past)  # [B, C, Hf, Wf]
+            x = layer(x, reference, past)  # forward_map: [B, C, Hf, Wf]
         return x

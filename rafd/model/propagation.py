@@ -54,5 +54,5 @@ class FlowGuidedPropagation(nn.Module):
         # every cell is a query: the layers work on the channel-major map itself (no [B, Hf*Wf, C] transposes)
         x = current
         for layer in cast("Iterable[DeformableLayer]", self.layers):  # the ModuleList of __init__'s layers
-            x = layer.forward_map(x, reference, aligned)  # [B, C, Hf, Wf]
+            x = layer(x, reference, aligned)  # forward_map: [B, C, Hf, Wf]
         return x
