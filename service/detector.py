@@ -25,7 +25,8 @@ from fastapi import Request
 from starlette.requests import ClientDisconnect
 
 from rafd.detections import decode_detections
-from rafd.geometry import box_polygons_pixels
+from rafd.flow_validity import FLOW_VALID_MIN, flow_validity, search_reach_m
+from rafd.geometry import box_polygons_pixels, relative_pose
 from rafd.native import NativeShape
 from rafd.protocol import operating_threshold, warming_up
 from service import poses
@@ -52,6 +53,17 @@ CELL_RULE = (
 )
 FLOW_AXES = (
     "component 0 = x (right), component 1 = y (forward), metres in the newest frame's ego axes; ego motion removed"
+)
+# The answer's flow validity is rounded DOWN to 0.01 (a cell reaches validity_min in the answer only if it did), and
+# written from these tables of k / 100: the list form's float32 (orjson writes each as its shortest text: 0.57, 1.0)
+# and the base64 form's float16 (a lookup, 5 us for 64 x 64 where converting float32 to float16 takes 30), the
+# float16 at or just above k / 100 (less than 0.0005 above): compared with any threshold of 2 decimals, as k / 100.
+VALIDITY_STEPS = 100
+_VALIDITY_EXACT = np.arange(VALIDITY_STEPS + 1) / VALIDITY_STEPS
+_VALIDITY_FLOAT32 = _VALIDITY_EXACT.astype(np.float32)
+_VALIDITY_FLOAT16 = _VALIDITY_EXACT.astype("<f2")
+_VALIDITY_FLOAT16[_VALIDITY_FLOAT16 < _VALIDITY_EXACT] = np.nextafter(
+    _VALIDITY_FLOAT16[_VALIDITY_FLOAT16 < _VALIDITY_EXACT], np.float16(np.inf)
 )
 
 
@@ -123,6 +135,10 @@ class DetectService:
         self.native_shape = NativeShape(
             max_azimuths=settings.native_max_azimuths, max_range_bins=settings.native_max_range_bins
         )
+        # metres the flow's matching reaches from a cell (the model's flow.stride and flow.local_radius, from the
+        # config in its ONNX metadata): what a flow validity of 1 means (rafd.flow_validity)
+        flow = self.config.flow
+        self.flow_reach_m = search_reach_m(flow.stride, self.config.resolution, flow.local_radius)
         # Given every answer once it is complete, with the caller's key name (the live view's queue, service/live.py,
         # which publishes one key's streams only); must not block.
         self.on_answer: Callable[[dict[str, Any], DecodedFrame, str | None], None] | None = None
@@ -215,7 +231,7 @@ class DetectService:
             # float64: world poses may be large (UTM metres); the runner takes differences before casting.
             result, new_state = await self.batcher.step(state, frame, pose)
             model_done = time.perf_counter()
-            previous_timestamp = last_timestamp
+            previous_timestamp, previous_pose = last_timestamp, last_pose
             self.store.commit(ticket, new_state, fields.timestamp, memory, pose, source, digest, chain_break)
         finally:
             if unresolved is not None:
@@ -229,7 +245,7 @@ class DetectService:
 
         self.metrics.frames.inc()
         self.metrics.model_latency.observe(model_done - odometry_done)
-        answer = self._answer(fields, decoded, result, pose, source, previous_timestamp, options)
+        answer = self._answer(fields, decoded, result, pose, source, previous_timestamp, options, previous_pose)
         if ticket.restarted is not None:  # the first answer of a chain the service restarted says why
             answer["stream_restarted"] = ticket.restarted
         done = time.perf_counter()
@@ -291,6 +307,7 @@ class DetectService:
         source: str,
         previous_timestamp: float | None,
         options: DetectOptions,
+        previous_pose: np.ndarray | None = None,
     ) -> dict[str, Any]:
         cfg = self.config
         frames_used = int(result.frames_used)
@@ -304,7 +321,7 @@ class DetectService:
             "pose_source": source,
             "pose": {"x": float(pose[0]), "y": float(pose[1]), "yaw": float(pose[2])},
             "boxes": self._boxes(result, decoded.posted_size),
-            "flow": self._flow(result, decoded, previous_timestamp, fields.timestamp, options),
+            "flow": self._flow(result, decoded, previous_timestamp, fields.timestamp, options, previous_pose, pose),
             "input": {
                 "posted_size": decoded.posted_size,
                 "model_size": cfg.input_size,
@@ -348,21 +365,27 @@ class DetectService:
         previous_timestamp: float | None,
         timestamp: float,
         options: DetectOptions,
+        previous_pose: np.ndarray | None = None,
+        pose: np.ndarray | None = None,
     ) -> dict[str, Any] | None:
-        """The newest pair's flow [2, Hf, Wf]; None when not asked for or no real pair exists yet."""
+        """The newest pair's flow [2, Hf, Wf] and its validity [Hf, Wf]; None when not asked for or no real pair
+        exists yet."""
         if not options.flow or result.flow is None or result.frames_used < 2:
             return None
         flow = np.asarray(result.flow)[-1]  # [T-1, 2, Hf, Wf] -> [2, Hf, Wf] newest pair
         _, height, width = flow.shape
         stride = self.config.input_size // height
         cell = self.config.cell_size
+        steps = self.validity_steps(previous_pose, pose, result.frames_used, height)  # [Hf, Wf] of k / 100
         if options.flow_format == "base64":
             values: Any = base64.b64encode(flow.astype("<f2").tobytes()).decode("ascii")
+            validity: Any = base64.b64encode(_VALIDITY_FLOAT16.take(steps).tobytes()).decode("ascii")
             encoding = "base64-float16"
         else:
             # millimetres: well below a cell. Left an array: the route's orjson writes it as nested lists
             # (OPT_SERIALIZE_NUMPY), the same text as .tolist() first, in 0.16 ms instead of 0.27 for 2 x 64 x 64.
             values = np.round(flow.astype(np.float64), 3)
+            validity = _VALIDITY_FLOAT32.take(steps)
             encoding = "list"
         return {
             "pair": [previous_timestamp, timestamp],
@@ -379,7 +402,33 @@ class DetectService:
             },
             "encoding": encoding,
             "values": values,
+            "validity": validity,
+            "validity_min": FLOW_VALID_MIN,
+            "search_reach_m": round(self.flow_reach_m, 4),
         }
+
+    def validity_steps(
+        self, previous_pose: np.ndarray | None, pose: np.ndarray | None, frames_used: int, feature_size: int
+    ) -> np.ndarray:
+        """[Hf, Wf] integers k in [0, VALIDITY_STEPS]: the newest pair's flow validity (rafd.flow_validity, from the
+        pair's relative pose as the model aligned it: the request's poses or odometry's) is k / VALIDITY_STEPS,
+        rounded down. All 0 when the window holds no real pair (a stream's first frame: its window is copies of it,
+        nothing was measured)."""
+        if frames_used < 2 or previous_pose is None or pose is None:
+            return np.zeros((feature_size, feature_size), np.intp)
+        cfg = self.config
+        validity = flow_validity(
+            relative_pose(previous_pose, pose),
+            feature_size,
+            cfg.input_size,
+            cfg.resolution,
+            cfg.flow.stride,
+            self.flow_reach_m,
+        )
+        # Down (the cast truncates: the floor of these non-negative numbers), in float64 where a float32 times 100
+        # is exact: a cell below validity_min stays below it.
+        steps: np.ndarray = np.multiply(validity, float(VALIDITY_STEPS), dtype=np.float64)
+        return steps.astype(np.intp)
 
 
 def frame_digest(pose: Pose | None, image: bytes | str) -> bytes:

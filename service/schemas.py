@@ -128,6 +128,13 @@ class FlowOut(Answer):
     grid: FlowGrid
     encoding: Literal["list", "base64-float16"]
     values: list[list[list[float]]] | str
+    validity: list[list[float]] | str = Field(
+        description="[Hf, Wf] in [0, 1], in `encoding` like `values`: where the flow was measured (1 = over the "
+        "network's whole search range, 0 = not at all: outside the previous frame's crop or at the crop's edge), "
+        "rounded down to 0.01"
+    )
+    validity_min: float = Field(description="cells with validity at or above this are valid (rafd.flow_validity)")
+    search_reach_m: float = Field(description="metres the flow's search reaches from a cell (validity 1)")
 
 
 class InputOut(Answer):

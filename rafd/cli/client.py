@@ -271,6 +271,28 @@ def post_with_retries(
     raise AssertionError("unreachable")  # the loop returns or raises
 
 
+def served_flow_geometry(url: str, timeout: float, api_key: str | None = None) -> tuple[int, int] | None:
+    """(flow stride px, local radius) of the served model (GET /model's config); None, said on stderr, when the
+    service does not tell them."""
+    request = urllib.request.Request(f"{url.rstrip('/')}/model", headers=_headers(api_key), method="GET")
+    try:
+        with urllib.request.urlopen(request, timeout=timeout) as response:
+            flow = json.loads(response.read())["config"]["flow"]
+        return int(flow["stride"]), int(flow.get("local_radius", 0))
+    except (OSError, ValueError, KeyError, TypeError) as exc:
+        print(f"rafd-client: GET /model gave no flow geometry ({exc}): flow drawn in every cell", file=sys.stderr)
+        return None
+
+
+def picture_validity(url: str, timeout: float, api_key: str | None = None) -> Any:
+    """The flow validity of each answer for the pictures and the MCAP log (rafd.viz.answer.AnswerValidity): the
+    answer's own flow.validity; from a service that does not answer it, computed from the served model's flow
+    geometry (asked of GET /model once, when first needed) and the answers' poses."""
+    from rafd.viz.answer import AnswerValidity
+
+    return AnswerValidity(geometry=functools.partial(served_flow_geometry, url, timeout, api_key))
+
+
 def truth_polygons(frame: ClientFrame, annotated: bool) -> np.ndarray | None:
     """[M, 4, 2] ground-truth corners in the scan's pixels; None for an unlabelled folder."""
     if not annotated:
@@ -279,9 +301,16 @@ def truth_polygons(frame: ClientFrame, annotated: bool) -> np.ndarray | None:
 
 
 def logged_frame(
-    frame: ClientFrame, scan: np.ndarray, png: bytes, answer: dict[str, Any], resolution: float, annotated: bool
+    frame: ClientFrame,
+    scan: np.ndarray,
+    png: bytes,
+    answer: dict[str, Any],
+    resolution: float,
+    annotated: bool,
+    validity: np.ndarray | None = None,
 ):
-    """One answer -> rafd.viz.mcap.LoggedFrame (boxes, polygons and flow as the service answered them)."""
+    """One answer -> rafd.viz.mcap.LoggedFrame (boxes, polygons and flow as the service answered them; flow only in
+    the cells `validity` marks valid, when given)."""
     from rafd.viz.mcap import frame_from_answer
 
     offset, model_size = answer["input"]["crop_offset_px"], answer["input"]["model_size"]
@@ -297,6 +326,7 @@ def logged_frame(
         frame.source.timestamp_ns,
         truth_boxes=truth,
         truth_polygons=truth_polygons(frame, annotated),
+        validity=validity,
     )
 
 
@@ -409,6 +439,9 @@ def main(argv: list[str] | None = None) -> int:
         if args.reset:
             existed = reset_stream(args.url, stream_id, args.timeout, args.api_key)
             print(f"stream {stream_id}: {'deleted on the service' if existed else 'not on the service'} (--reset)")
+        validity_of = None
+        if out is not None or log is not None:  # pictures: flow arrows only where valid
+            validity_of = picture_validity(args.url, args.timeout, args.api_key)
         print(f"posting {len(frames)} frames of {sequence.name} to stream {stream_id} at {args.url}")
         bar = progress.bar(desc=f"post {stream_id}", total=len(frames), unit="frame")
         boxes = 0
@@ -449,8 +482,9 @@ def main(argv: list[str] | None = None) -> int:
                 f"{answer['timing']['total_ms']:.0f} ms",
                 refresh=False,
             )
+            validity = None if validity_of is None else validity_of(answer)
             if log is not None:
-                log.write(logged_frame(frame, scan, png, answer, sequence.resolution, sequence.annotated))
+                log.write(logged_frame(frame, scan, png, answer, sequence.resolution, sequence.annotated, validity))
             if out is None or answers is None:  # (both or neither)
                 continue
             answers.write(json.dumps(answer) + "\n")
@@ -461,6 +495,7 @@ def main(argv: list[str] | None = None) -> int:
                 sequence.resolution,
                 view,
                 title=f"{sequence.name} frame {frame.number}",
+                validity=validity,
             )
             if not cv2.imwrite(str(out / "frames" / f"{frame.number:06d}.png"), canvas):
                 raise OSError(f"could not write {out / 'frames' / f'{frame.number:06d}.png'}")

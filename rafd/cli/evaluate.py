@@ -115,7 +115,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     flags.apply_quiet(args)
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(levelname)s %(name)s: %(message)s")
     from rafd.eval.run import CalibrationError, EvalError, evaluate
-    from rafd.eval.table import format_table
+    from rafd.eval.table import format_flow_table, format_table
 
     try:
         report = evaluate(eval_run(args))
@@ -128,6 +128,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     if "calibration" in report:
         print(report["calibration"])
     print(format_table(report["overall"], report["per_sequence"], report["per_condition"]))
+    print(format_flow_table(report["flow"]))
     for key, what in (("plots", "plots"), ("mcap", "MCAP logs")):
         if key in report:
             print(f"{what}: {getattr(args, key)} ({len(report[key])} files)")

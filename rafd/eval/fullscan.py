@@ -5,6 +5,10 @@ protocol's 256 px crop). Each sequence is walked frame by frame like a stream: a
 each tile's newest pair flow is computed once (model.encode_frame / pair_flow, the decomposition the exported step
 graph uses), the last T of them are kept per tile, and every window of the dataset is detected from those caches
 (model.detect) -- the same result as running each tile's window, T times cheaper.
+
+No flow targets are built for whole scans; each frame's FrameResult carries the label-free flow check of its newest
+pair over every tile (rafd.eval.flow_split), its rings counted from each tile's own edge: the model sees each tile
+as a crop, so that is the edge its matching is cut at (inner tile edges included, where the scan goes on).
 """
 
 from __future__ import annotations
@@ -18,6 +22,7 @@ import torch
 
 from rafd.config import RaFDConfig
 from rafd.data.dataset import _protocol
+from rafd.eval.flow_split import FlowTally, config_validity, pooled, tally_pair
 from rafd.eval.predict import FrameResult, outside_ignored
 from rafd.eval.tiled import TileGrid, merge_tiles, tile_poses
 from rafd.model import RaFD, relative_pose_torch
@@ -59,7 +64,13 @@ def predict_full_scan(
     device = torch.device(device)
     model.eval()
     frames_per_window = cfg.num_frames
-    wanted = {(s, start + frames_per_window - 1) for s, start in dataset.windows}  # (sequence, newest position)
+    # a WindowSubset (--max-windows) names some windows of the dataset it wraps
+    base = getattr(dataset, "dataset", dataset)
+    windows = [base.windows[i] for i in dataset.indices] if base is not dataset else dataset.windows
+    wanted = {(s, start + frames_per_window - 1) for s, start in windows}  # (sequence, newest position)
+    # the frames those windows hold: the others are skipped (a skip restarts the stream like a gap; every wanted
+    # window still streams all its frames, so its figures are those of the whole stream)
+    needed = {(s, k - back) for s, k in wanted for back in range(frames_per_window)}
     results = []
 
     def batched(function, *tensors: torch.Tensor) -> torch.Tensor:
@@ -74,14 +85,23 @@ def predict_full_scan(
         features: deque = deque(maxlen=frames_per_window)  # per frame: [n, C, Hf, Wf]
         flows: deque = deque(maxlen=max(frames_per_window - 1, 1))  # per pair: [n, 2, Hf, Wf]
         poses: deque = deque(maxlen=frames_per_window)  # per frame: [n, 3] tile world poses
+        newest_relative = None  # [n, 3] ego motion of flows[-1], the newest real pair
         previous_number = None
         for k, number in enumerate(meta.numbers):
+            if (s, k) not in needed:
+                previous_number = None  # the stream starts again at the next frame needed
+                features.clear()
+                flows.clear()
+                poses.clear()
+                newest_relative = None
+                continue
             if previous_number is not None and number != previous_number + 1:  # a gap: the stream starts again
                 features.clear()
                 flows.clear()
                 poses.clear()
+                newest_relative = None
             previous_number = number
-            scan = dataset._scan(s, k)
+            scan = base._scan(s, k)
             tiles = grid or TileGrid.for_model(cfg.input_size, scan_size=scan.shape[0], resolution=cfg.resolution)
             crops = torch.from_numpy(to_model_input(tiles.crops(scan)))[:, None].to(device)  # [n, 1, S, S]
             pose = torch.from_numpy(tile_poses(meta.poses[k], tiles.offsets_m).astype(np.float64))  # [n, 3]
@@ -89,11 +109,13 @@ def predict_full_scan(
             if features and frames_per_window > 1:
                 relative = relative_pose_torch(poses[-1], pose).float().to(device)  # [n, 3]
                 flows.append(batched(model.pair_flow, features[-1], encoded, relative).float())
+                newest_relative = relative.double().cpu().numpy()
             features.append(encoded)
             poses.append(pose)
             if (s, k) not in wanted:
                 continue
             window_features, window_pose_list, window_flows = list(features), list(poses), list(flows)
+            real_pair = bool(flows)  # else the newest pair is a warm-up window's padding: a frame with itself
             missing = frames_per_window - len(window_features)
             if missing > 0:
                 # a warm-up window (the dataset's warm_up): the old end padded by repeating the oldest frame at its
@@ -118,6 +140,11 @@ def predict_full_scan(
                 boxes.append(out["boxes"].float().cpu().numpy())
                 scores.append(out["scores"].float().cpu().numpy())
             found = merge_tiles(tiles, np.concatenate(boxes), np.concatenate(scores))
+            tally = None
+            if pair_flows is not None:
+                tally = _tile_tally(
+                    pair_flows[:, -1].cpu().numpy(), newest_relative if real_pair else None, cfg, not real_pair
+                )
             truth, _, _, ignore = _protocol(meta.boxes[k], meta.ids[k], meta.classes[k], scan.shape[0], cfg.resolution)
             results.append(
                 FrameResult(
@@ -129,8 +156,21 @@ def predict_full_scan(
                     epe_foreground=math.nan,
                     cells_all=0,
                     cells_foreground=0,
+                    flow_tally=tally,
                 )
             )
             bar.update(1)
     bar.close()
     return results
+
+
+def _tile_tally(flows: np.ndarray, relative: np.ndarray | None, cfg: RaFDConfig, repeated: bool) -> FlowTally:
+    """The newest pair's flow of every tile [n, 2, Hf, Wf] and their ego motions [n, 3] (None: identity) -> the
+    label-free FlowTally of the whole scan (rings from each tile's edge; one pair per scan)."""
+    tiles = [
+        tally_pair(flow, config_validity(cfg, None if relative is None else relative[t]), repeated=repeated)
+        for t, flow in enumerate(flows)
+    ]
+    total = pooled(tiles)
+    total.pairs, total.repeated_pairs = 1, int(repeated)
+    return total

@@ -1,7 +1,8 @@
 """rafd-eval --mcap: the evaluated windows as Foxglove/MCAP logs, one file per sequence (rafd.viz.mcap topics).
 
 Each window's newest frame is logged once, in time order: the model's input crop as the scan, its ego pose,
-the predictions above the score threshold, the newest pair's flow, and the benchmark protocol's ground truth.
+the predictions above the score threshold, the newest pair's flow (its valid cells only: rafd.flow_validity), and
+the benchmark protocol's ground truth.
 """
 
 from __future__ import annotations
@@ -13,7 +14,9 @@ from typing import Any
 import cv2
 import numpy as np
 
-from rafd.geometry import box_polygons_pixels, feature_cell_centres
+from rafd.eval.flow_split import config_validity
+from rafd.flow_validity import FLOW_VALID_MIN
+from rafd.geometry import box_polygons_pixels, feature_cell_centres, relative_pose
 from rafd.protocol import DEFAULT_SCORE_THRESHOLD
 from rafd.viz.mcap import LoggedFrame, RadarMcapLog
 
@@ -34,6 +37,9 @@ def evaluation_frame(window: dict[str, Any], result: Any, cfg: Any, score_thresh
         heads = feature_cell_centres(flow.shape[1], size, resolution).reshape(-1, 2)  # [Hf*Wf, 2] metres
         motions = np.moveaxis(flow, 0, -1).reshape(-1, 2)  # [Hf*Wf, 2]
         moving = np.hypot(motions[:, 0], motions[:, 1]) > 0.05  # cells moving less than 5 cm are not drawn
+        poses = np.asarray(window["poses"], np.float64)  # [T, 3]
+        if flow.shape[1] == cfg.feature_size and len(poses) > 1:  # the model's crop: its flow validity applies
+            moving &= config_validity(cfg, relative_pose(poses[-2], poses[-1])).reshape(-1) >= FLOW_VALID_MIN
         heads, motions = heads[moving], motions[moving]
     truth = np.asarray(result.ground_truth, dtype=np.float64).reshape(-1, 5)
     return LoggedFrame(

@@ -14,8 +14,9 @@ from torch.utils.data import DataLoader, Dataset
 
 from rafd.config import RaFDConfig
 from rafd.detections import decode_detections
+from rafd.eval.flow_split import FlowTally, config_validity, tally_pair
 from rafd.eval.metrics import end_point_error, match_centres, mean_average_precision
-from rafd.geometry import points_in_boxes
+from rafd.geometry import points_in_boxes, relative_pose
 from rafd.progress import bar
 from rafd.protocol import CENTRE_DISTANCE_M, IOU_THRESHOLDS
 from rafd.train.collate import Collator
@@ -34,6 +35,8 @@ class FrameResult:
     cells_foreground: int
     flow: np.ndarray | None = None  # [2, Hf, Wf] predicted newest-pair flow (kept on request)
     gt_flow: np.ndarray | None = None  # [2, Hf, Wf]
+    # the newest pair's flow by ring from the crop's edge, vehicles / background / label-free (rafd.eval.flow_split)
+    flow_tally: FlowTally | None = None
 
 
 def outside_ignored(predictions: np.ndarray, ignore: np.ndarray) -> np.ndarray:
@@ -99,15 +102,32 @@ def predict(
             gt_flow = batch.targets["flow"].cpu().numpy()
             valid = batch.targets["flow_valid"].cpu().numpy()
             foreground = batch.targets["flow_foreground"].cpu().numpy()
+            relative = repeated = None
+            if flow_np is not None:
+                # the newest pair's ego motion and whether it pairs a frame with itself, as the model got them
+                pose_pair = poses[:, -2:].double().cpu().numpy()  # [B, 2, 3]
+                relative = relative_pose(pose_pair[:, 0], pose_pair[:, 1])  # [B, 3]
+                repeated = [
+                    bool(torch.equal(frames[b, -1], frames[b, -2]) and torch.equal(poses[b, -1], poses[b, -2]))
+                    for b in range(len(batch))
+                ]
             for b in range(len(batch)):
                 detections = decode_detections(boxes[b], scores[b], score_threshold)
                 epe_all = epe_fg = math.nan
                 cells_all = cells_fg = 0
-                pred_pair = gt_pair = None
-                if flow_np is not None:
+                pred_pair = gt_pair = tally = None
+                if flow_np is not None and relative is not None and repeated is not None:
                     pred_pair, gt_pair = flow_np[b, -1], gt_flow[b, -1]  # [2, Hf, Wf]
                     epe_all, cells_all = _epe(pred_pair, gt_pair, valid[b, -1, 0] > 0)
                     epe_fg, cells_fg = _epe(pred_pair, gt_pair, (foreground[b, -1, 0] > 0) & (valid[b, -1, 0] > 0))
+                    tally = tally_pair(
+                        pred_pair,
+                        config_validity(cfg, relative[b]),
+                        gt_pair,
+                        valid[b, -1, 0],
+                        foreground[b, -1, 0],
+                        repeated=repeated[b],
+                    )
                 results.append(
                     FrameResult(
                         sequence=batch.sequences[b],
@@ -120,6 +140,7 @@ def predict(
                         cells_foreground=cells_fg,
                         flow=pred_pair if keep_flow else None,
                         gt_flow=gt_pair if keep_flow else None,
+                        flow_tally=tally,
                     )
                 )
     finally:

@@ -110,6 +110,18 @@ def calibrate(run: EvalRun, results: list[Any], cfg: Any, model: Any, meta: dict
     )
 
 
+def flow_figures(results: Sequence[Any], overall: dict[str, Any], full_scan: bool) -> dict[str, Any]:
+    """report["flow"]: the newest pairs' flow split into vehicle / background cells and by ring from the crop's
+    edge, plus the label-free check (rafd.eval.flow_split); its vehicle_epe is overall's epe_foreground itself."""
+    from rafd.eval.flow_split import flow_report, pooled
+
+    return flow_report(
+        pooled(getattr(r, "flow_tally", None) for r in results),
+        vehicle_epe=overall.get("epe_foreground"),
+        mode="full_scan_tiles" if full_scan else "crop",
+    )
+
+
 def write_plots(
     folder: Path,
     model: Any,
@@ -122,13 +134,16 @@ def write_plots(
 ) -> list[Path]:
     """Precision-recall plot of all frames and a few example frames (GT green, predictions red, flow). The examples
     draw what the service would answer: the boxes at or above `score_threshold` (the operating threshold, or
-    --score-threshold), stated in each picture's legend."""
+    --score-threshold), stated in each picture's legend, and flow arrows only in cells whose validity reaches
+    FLOW_VALID_MIN (rafd.flow_validity, from the window's newest pair of poses)."""
     import cv2
     import numpy as np
     from torch.utils.data import Subset
 
+    from rafd.eval.flow_split import config_validity
     from rafd.eval.metrics import precision_recall
     from rafd.eval.predict import predict
+    from rafd.geometry import relative_pose
     from rafd.viz.plots import draw_detections, plot_precision_recall
 
     folder.mkdir(parents=True, exist_ok=True)
@@ -150,6 +165,8 @@ def write_plots(
         for index, result in zip(picks, example_results):
             window = dataset[index]
             image = np.asarray(window["frames"])[-1].squeeze()  # [H, W] newest frame
+            poses = np.asarray(window["poses"], np.float64)  # [T, 3]
+            validity = config_validity(cfg, relative_pose(poses[-2], poses[-1]) if len(poses) > 1 else None)
             shown = result.predictions[result.predictions[:, 5] >= score_threshold]  # AP keeps all K; the service not
             canvas = draw_detections(
                 image,
@@ -160,6 +177,7 @@ def write_plots(
                 flow=result.flow,
                 upscale=4,  # 128 px crops are too small to read the boxes at 1:1
                 score_threshold=score_threshold,
+                validity=validity,
             )
             path = folder / f"example_{result.sequence}_{result.frame:06d}.png"
             if not cv2.imwrite(str(path), canvas):
@@ -250,6 +268,7 @@ def evaluate(run: EvalRun) -> dict[str, Any]:
             "checkpoint_meta": {k: meta.get(k) for k in ("epoch", "step") if isinstance(meta, dict)},
         }
     )
+    report["flow"] = flow_figures(results, report["overall"], run.full_scan)
     if run.plots is not None:
         written = write_plots(run.plots, model, cfg, dataset, results, run.examples, device, threshold)
         report["plots"] = [str(p) for p in written]

@@ -1,4 +1,5 @@
-"""rafd eval's console table: one row per sequence and overall, per recording condition, and the figures by range.
+"""rafd eval's console table: one row per sequence and overall, per recording condition, the figures by range, and
+the flow by ring from the crop's edge (format_flow_table, rafd.eval.flow_split).
 
 Headers are printed whole (each column as wide as its header); a figure that is not defined says why instead of
 printing nan: "no objects" (no labelled vehicle in those frames: AP and recall have nothing to find), "no flow"
@@ -74,4 +75,90 @@ def format_table(
                 f"{band['from_m']:>5.0f} - {band['to_m']:<20.0f}{band['vehicles']:>15}{recall:>15}"
                 f"{band['fp_per_frame']:>15.3f}"
             )
+    return "\n".join(lines)
+
+
+RING_WIDTH = 9
+
+
+def _figure(value: Any, digits: int = 4) -> str:
+    if value is None or (isinstance(value, float) and math.isnan(value)):
+        return "-"
+    if math.isinf(value):
+        return "inf"
+    return f"{value:.{digits}f}"
+
+
+def _rings_text(rings: list[int]) -> str:
+    return f"rings {rings[0]}-{rings[-1]}" if rings else "no ring"
+
+
+def format_flow_table(flow: dict[str, Any]) -> str:
+    """report["flow"] as text: EPE on vehicle and background cells, background EPE by ring from the crop's edge and
+    the edge ratio, all cells and valid cells only; then the label-free mean |flow| by ring. "-": no cell."""
+    if not flow.get("pairs"):
+        return "flow by ring: no flow (a one-frame model, or no pair of frames)"
+    names = flow["rings"]
+    head = ["vehicle", "all rings", *(f"ring {n}" for n in names[:-1]), names[-1], "edge ratio"]
+    widths = [10, 11, *([RING_WIDTH] * len(names)), 12]
+    label = 34
+    if flow["mode"] == "crop":
+        where = "detection-grid cells from the crop's edge"
+    else:
+        where = "detection-grid cells from each tile's own edge (the model sees every tile as a crop)"
+    pairs = f"{flow['pairs']} pair{'s' if flow['pairs'] != 1 else ''}"
+    lines = [
+        f"\nflow of the newest pair (m per frame, ego motion removed), {pairs}; ring k: {where}; "
+        f"valid: flow validity >= {flow['flow_valid_min']:g}",
+        f"{'':<{label}}" + "".join(f"{h:>{w}}" for h, w in zip(head, widths)),
+    ]
+
+    def row(name: str, vehicle: Any, overall: Any, by_ring: list[Any], ratio: Any) -> str:
+        cells = [_figure(vehicle), _figure(overall), *(_figure(v) for v in by_ring), _figure(ratio, 2)]
+        return f"{name:<{label}}" + "".join(f"{c:>{w}}" for c, w in zip(cells, widths))
+
+    if flow.get("labelled_pairs"):
+        lines.append(
+            row(
+                "EPE (background by ring)",
+                flow["vehicle_epe"],
+                flow["background_epe"],
+                flow["background_epe_by_ring"],
+                flow["edge_ratio"],
+            )
+        )
+        lines.append(
+            row(
+                "EPE, valid cells",
+                flow["vehicle_epe_valid"],
+                flow["background_epe_valid"],
+                flow["background_epe_by_ring_valid"],
+                flow["edge_ratio_valid"],
+            )
+        )
+    free = flow["label_free"]
+    lines.append(
+        row("|flow|, all cells (no labels)", None, free["magnitude"], free["magnitude_by_ring"], free["edge_ratio"])
+    )
+    lines.append(
+        row(
+            "|flow|, valid cells (no labels)",
+            None,
+            free["magnitude_valid"],
+            free["magnitude_by_ring_valid"],
+            free["edge_ratio_valid"],
+        )
+    )
+    lines.append(
+        f"edge ratio: {_rings_text(flow['edge_rings'])} / {names[-1]}; valid rows: "
+        f"{_rings_text(flow['edge_rings_valid'])} / {names[-1]} (the outermost rings holding valid cells); "
+        "-: no cell, inf: 0 in the interior"
+    )
+    if not flow.get("labelled_pairs"):
+        lines.append("no flow targets (whole scans, or no pair with targets): the label-free rows only")
+    if flow.get("repeated_pairs"):
+        lines.append(
+            f"{flow['repeated_pairs']} of the pairs pair a frame with itself (warm-up padding or --past-as-newest): "
+            "their true flow is 0 in every cell"
+        )
     return "\n".join(lines)

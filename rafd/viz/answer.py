@@ -10,19 +10,24 @@
     |                                      | status of the answer|
     +--------------------------------------+---------------------+
 
-When the model covers the whole posted scan (a model-size frame was posted) the view is the whole scan.
+When the model covers the whole posted scan (a model-size frame was posted) the view is the whole scan. Given a
+validity map of the flow grid (AnswerValidity: the answer's own flow.validity, or rafd.flow_validity from the
+answers' poses for a service that does not answer it) the arrows are drawn only where the flow was measured over
+the network's whole search range.
 """
 
 from __future__ import annotations
 
 import base64
+from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any
 
 import cv2
 import numpy as np
 
-from rafd.geometry import RADIATE_RESOLUTION
+from rafd.flow_validity import flow_validity, search_reach_m
+from rafd.geometry import RADIATE_RESOLUTION, relative_pose
 from rafd.viz.plots import (
     FLOW_COLOUR,
     FONT,
@@ -36,6 +41,7 @@ from rafd.viz.plots import (
     draw_polygons,
     draw_scale_bar,
     draw_scores,
+    valid_cells,
 )
 
 FLOW_SCALES = (1.0, 2.0, 5.0, 10.0)  # arrow exaggerations tried, smallest first
@@ -68,6 +74,17 @@ def decode_flow(flow: dict[str, Any]) -> np.ndarray:
     return values.astype(np.float64)
 
 
+def decode_validity(flow: dict[str, Any]) -> np.ndarray | None:
+    """The answer's flow validity (in the values' encoding) -> float64 [Hf, Wf]; None when the answer carries none
+    (a service before it)."""
+    if flow.get("validity") is None:
+        return None
+    shape = (int(flow["grid"]["height"]), int(flow["grid"]["width"]))
+    if flow["encoding"] == "base64-float16":
+        return np.frombuffer(base64.b64decode(flow["validity"]), dtype="<f2").reshape(shape).astype(np.float64)
+    return np.asarray(flow["validity"], dtype=np.float64).reshape(shape)
+
+
 def flow_arrows(
     flow: dict[str, Any], step: int = 1, min_m: float = 0.0, keep: np.ndarray | None = None
 ) -> tuple[np.ndarray, np.ndarray]:
@@ -84,6 +101,67 @@ def flow_arrows(
     if keep is not None:
         moving &= np.asarray(keep, dtype=bool)[::step, ::step].reshape(-1)
     return heads[moving], motions[moving]
+
+
+def answer_validity(
+    answer: dict[str, Any], flow_stride_px: int, local_radius: int, pair_pose: np.ndarray | None = None
+) -> np.ndarray | None:
+    """The validity [Hf, Wf] (rafd.flow_validity) of an answer's flow grid: the model's flow stride (model-input
+    pixels per flow cell, config flow.stride) and local_radius (flow.local_radius) from GET /model, `pair_pose` the
+    relative pose of the flow's pair (geometry.relative_pose(pose of the previous answer, pose of this one)),
+    None: identity. None when the answer has no flow."""
+    flow = answer.get("flow")
+    if not flow:
+        return None
+    grid = flow["grid"]
+    resolution = float(grid["cell_size_m"]) / float(grid["stride_px"])
+    reach = search_reach_m(int(flow_stride_px), resolution, int(local_radius))
+    pose = np.zeros(3) if pair_pose is None else np.asarray(pair_pose, np.float64)
+    return flow_validity(
+        pose, int(grid["height"]), int(answer["input"]["model_size"]), resolution, int(flow_stride_px), reach
+    )
+
+
+class AnswerValidity:
+    """The validity of each answer's flow, for a stream's pictures: the answer's own flow.validity when it carries
+    one; else (a service before it) computed here from the model's flow geometry, (flow stride px, local radius)
+    given or asked of `geometry()` once when first needed (None: not known, then no validity), and the pair's
+    relative pose from the poses of the answers at its two timestamps (flow["pair"]), identity where the previous
+    one was not seen (a stream's first pair, a restarted chain). Call it with every answer, in order."""
+
+    def __init__(
+        self,
+        flow_stride_px: int | None = None,
+        local_radius: int = 0,
+        geometry: Callable[[], tuple[int, int] | None] | None = None,
+        remember: int = 8,
+    ) -> None:
+        self._geometry: tuple[int, int] | None = (
+            None if flow_stride_px is None else (int(flow_stride_px), int(local_radius))
+        )
+        self._ask = geometry if flow_stride_px is None else None
+        self.remember = remember
+        self._poses: dict[float, np.ndarray] = {}
+
+    def __call__(self, answer: dict[str, Any]) -> np.ndarray | None:
+        pose = np.array([answer["pose"][k] for k in ("x", "y", "yaw")], dtype=np.float64)
+        self._poses[float(answer["timestamp"])] = pose
+        while len(self._poses) > self.remember:
+            self._poses.pop(next(iter(self._poses)))
+        flow = answer.get("flow")
+        if not flow:
+            return None
+        answered = decode_validity(flow)
+        if answered is not None:
+            return answered
+        if self._ask is not None:
+            self._geometry, self._ask = self._ask(), None
+        if self._geometry is None:
+            return None
+        before = flow["pair"][0]
+        previous = None if before is None else self._poses.get(float(before))
+        pair_pose = None if previous is None else relative_pose(previous, pose)
+        return answer_validity(answer, *self._geometry, pair_pose)
 
 
 def _flow_scale(px_per_m: float, chosen: float | None) -> float:
@@ -109,9 +187,11 @@ def draw_answer(
     resolution: float = RADIATE_RESOLUTION,
     view: AnswerView = AnswerView(),
     title: str | None = None,
+    validity: np.ndarray | None = None,
 ) -> np.ndarray:
     """The posted scan uint8 [N, N], its /detect answer and (optional) ground-truth polygons [M, 4, 2] in posted
-    pixels -> BGR uint8 picture [H, W, 3] (layout in the module docstring)."""
+    pixels -> BGR uint8 picture [H, W, 3] (layout in the module docstring). With `validity` [Hf, Wf] of the flow
+    grid (answer_validity) flow arrows only where it reaches FLOW_VALID_MIN."""
     scan = np.asarray(scan)
     posted, size, offset = (int(answer["input"][k]) for k in ("posted_size", "model_size", "crop_offset_px"))
     if scan.dtype != np.uint8 or scan.ndim != 2 or scan.shape != (posted, posted):
@@ -129,7 +209,9 @@ def draw_answer(
     px_per_m = zoom / resolution
     flow_scale = _flow_scale(px_per_m, view.flow_scale)
     if answer.get("flow"):
-        heads, motions = flow_arrows(answer["flow"], view.flow_step, view.min_flow_m)
+        grid = answer["flow"]["grid"]
+        keep = valid_cells(validity, (int(grid["height"]), int(grid["width"])))
+        heads, motions = flow_arrows(answer["flow"], view.flow_step, view.min_flow_m, keep)
         for head, motion in zip(to_view(heads), motions):
             tail = head - flow_scale * px_per_m * np.array([motion[0], -motion[1]])  # image v points backwards
             draw_arrow(canvas, tuple(tail), tuple(head), FLOW_COLOUR)

@@ -8,7 +8,7 @@ Topics (every message stamped with the scan's own time, so the file replays at t
     /tf                         foxglove.FrameTransform    ego pose: `world` -> `radar` (x right, y forward, z up)
     /radar/detections           foxglove.SceneUpdate       one cube per box (centre, size, yaw), score as text
     /radar/detections/image     foxglove.ImageAnnotations  box outlines and scores on /radar/scan
-    /radar/flow                 foxglove.SceneUpdate       one arrow per moving flow cell (true length, metres)
+    /radar/flow                 foxglove.SceneUpdate       one arrow per moving valid flow cell (true length, metres)
     /radar/ground_truth         foxglove.SceneUpdate       ground-truth cubes (only when labels exist)
     /radar/ground_truth/image   foxglove.ImageAnnotations  ground-truth outlines on /radar/scan
 
@@ -22,6 +22,7 @@ import this module only when a log or the live view is asked for.
 
 from __future__ import annotations
 
+import base64
 import math
 from dataclasses import dataclass
 from pathlib import Path
@@ -217,15 +218,18 @@ def frame_from_answer(
     truth_polygons: np.ndarray | None = None,
     min_flow_m: float = 0.05,
     meaningful_flow_of: np.ndarray | None = None,
+    validity: np.ndarray | None = None,
 ) -> LoggedFrame:
     """One /detect answer -> LoggedFrame (boxes, polygons and flow as the service answered them).
 
     `scan_png` is a square scan centred on the radar, `scan_size` px a side, whose top-left corner is the posted
     scan's pixel (`scan_offset`, `scan_offset`): the posted scan itself (offset 0) or its centre (the live view).
     Flow cells moving less than `min_flow_m` get no arrow; with `meaningful_flow_of` (the scan as uint8 pixels),
-    neither do cells without returns that are not near a box (rafd.viz.plots.meaningful_cells)."""
+    neither do cells without returns that are not near a box (rafd.viz.plots.meaningful_cells); with `validity`
+    [Hf, Wf] of the flow grid (rafd.viz.answer.answer_validity) only cells reaching FLOW_VALID_MIN get one, and
+    without it only the cells the answer's own flow `validity` marks valid (answer_valid_cells)."""
     from rafd.viz.answer import flow_arrows  # opencv: loaded with the picture code
-    from rafd.viz.plots import NEAR_BOX_M, meaningful_cells
+    from rafd.viz.plots import NEAR_BOX_M, meaningful_cells, valid_cells
 
     offset, model_size = answer["input"]["crop_offset_px"], answer["input"]["model_size"]
     boxes = np.array(
@@ -245,6 +249,12 @@ def frame_from_answer(
                 polygons.mean(axis=1) if len(polygons) else None,
                 NEAR_BOX_M / resolution,
             )
+        grid = answer["flow"]["grid"]
+        valid = valid_cells(validity, (int(grid["height"]), int(grid["width"])))
+        if valid is None:
+            valid = answer_valid_cells(answer["flow"])
+        if valid is not None:
+            keep = valid if keep is None else keep & valid
         heads_px, motions = flow_arrows(answer["flow"], min_m=min_flow_m, keep=keep)
         posted_half = answer["input"]["posted_size"] / 2.0
         heads = np.stack([(heads_px[:, 0] - posted_half) * resolution, (posted_half - heads_px[:, 1]) * resolution], -1)
@@ -265,6 +275,21 @@ def frame_from_answer(
         truth_boxes=truth_boxes,
         truth_polygons=truth_polygons,
     )
+
+
+def answer_valid_cells(flow: dict[str, Any]) -> np.ndarray | None:
+    """[Hf, Wf] bool: the cells of an answer's flow whose `validity` (in the flow's `encoding`: nested lists or
+    base64 float16, like its `values`) reaches its `validity_min`; None for an answer without validity (from a
+    service before it)."""
+    validity = flow.get("validity")
+    if validity is None:
+        return None
+    shape = (int(flow["grid"]["height"]), int(flow["grid"]["width"]))
+    if flow["encoding"] == "base64-float16":
+        values = np.frombuffer(base64.b64decode(validity), dtype="<f2").reshape(shape)
+    else:
+        values = np.asarray(validity, dtype=np.float64).reshape(shape)
+    return values >= float(flow["validity_min"])
 
 
 def _transform(pose: np.ndarray, stamp: Timestamp) -> FrameTransform:

@@ -15,6 +15,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 
+from rafd.flow_validity import FLOW_VALID_MIN
 from rafd.geometry import box_polygons_pixels, feature_cell_centres, metres_to_pixels
 
 GT_COLOUR = (0, 255, 0)
@@ -286,6 +287,17 @@ def meaningful_cells(
     return keep
 
 
+def valid_cells(validity: np.ndarray | None, shape: tuple[int, int]) -> np.ndarray | None:
+    """[Hf, Wf] bool: the cells whose flow validity (rafd.flow_validity) reaches FLOW_VALID_MIN, the only ones
+    given an arrow; None when no validity is given (every cell may be drawn)."""
+    if validity is None:
+        return None
+    valid = np.asarray(validity, dtype=np.float64)
+    if valid.shape != tuple(shape):
+        raise ValueError(f"validity of shape {valid.shape} for a flow grid of {tuple(shape)}")
+    return valid >= FLOW_VALID_MIN
+
+
 # ---------------------------------------------------------------- a model-frame picture (evaluation examples)
 def _draw_flow(
     canvas: np.ndarray,
@@ -326,6 +338,7 @@ def draw_detections(
     upscale: int = 1,
     score_threshold: float | None = None,
     all_flow: bool = False,
+    validity: np.ndarray | None = None,
 ) -> np.ndarray:
     """Radar scan uint8 [S, S] (centred on the radar) -> BGR uint8 [S*upscale + legend, S*upscale, 3] with boxes,
     flow, non-overlapping score labels, a distance bar and a legend strip below the scan.
@@ -334,7 +347,8 @@ def draw_detections(
     (the caller passes only boxes at or above it). Flow is [2, Hf, Wf] metres in this frame's grid, drawn
     `flow_scale` times longer than the true motion for every `flow_step`-th cell moving more than `min_flow`
     metres, and (unless `all_flow`) only where it means something: cells with returns or near a box
-    (meaningful_cells).
+    (meaningful_cells). With `validity` [Hf, Wf] (rafd.flow_validity) only the cells measured over the full search
+    range (validity >= FLOW_VALID_MIN) get an arrow, `all_flow` or not.
     """
     image = np.asarray(image)
     if image.dtype != np.uint8 or image.ndim not in (2, 3) or image.shape[0] != image.shape[1]:
@@ -363,6 +377,9 @@ def draw_detections(
                 centres=metres_to_pixels(boxes, size, resolution) if len(boxes) else None,
                 near_px=NEAR_BOX_M / resolution,
             )
+        valid = valid_cells(validity, (flow.shape[1], flow.shape[2]))
+        if valid is not None:
+            keep = valid if keep is None else keep & valid
         _draw_flow(view, flow, size, resolution, flow_step, flow_scale, min_flow, upscale, keep)
     gt_polygons = box_polygons_pixels(gt_boxes, size, resolution)
     draw_polygons(view, gt_polygons, GT_COLOUR, upscale)
@@ -377,12 +394,19 @@ def draw_detections(
         flow_scale=flow_scale,
         font_scale=font_scale,
         score_threshold=score_threshold,
-        flow_where=None if all_flow else "returns or boxes",
+        flow_where=_flow_where(all_flow, validity is not None),
     )
     width = view.shape[1]
     strip = np.full((legend_height(legend, width - 8) + 8, width, 3), PANEL_COLOUR, np.uint8)
     draw_legend(strip, (4, 4), width - 8, legend)
     return np.concatenate([view, strip], axis=0)
+
+
+def _flow_where(all_flow: bool, valid_only: bool) -> str | None:
+    """The legend's "at ..." of the flow arrows."""
+    if valid_only:
+        return "valid cells" if all_flow else "valid cells with returns or boxes"
+    return None if all_flow else "returns or boxes"
 
 
 def plot_precision_recall(curves: dict[float, tuple[np.ndarray, np.ndarray, float]], path: str | Path) -> Path:

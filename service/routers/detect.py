@@ -94,8 +94,8 @@ async def detect_call(
     flow: bool = Query(True, description="false leaves the flow field out"),
     flow_format: Literal["list", "base64"] = Query(
         "list",
-        description="list: nested [2][Hf][Wf] metres rounded to 1 mm; "
-        "base64: little-endian float16 bytes, row-major [2, Hf, Wf]",
+        description="list: nested [2][Hf][Wf] metres rounded to 1 mm (validity: [Hf][Wf], rounded down to 0.01); "
+        "base64: little-endian float16 bytes, row-major [2, Hf, Wf] (validity: [Hf, Wf])",
     ),
     x_stream_id: str | None = Header(
         default=None,

@@ -63,8 +63,10 @@ def test_client_streams_a_sequence_and_writes_drawings_and_video(sequence, servi
     assert red_pixels_along(drawn, polygon) > 0.8  # the best box is outlined in the prediction colour
     video = cv2.VideoCapture(str(out / "sequence.mp4"))
     assert video.isOpened() and int(video.get(cv2.CAP_PROP_FRAME_COUNT)) == 3
-    out_text = capsys.readouterr().out
+    captured = capsys.readouterr()
+    out_text = captured.out
     assert f"stream {stream}: 3 frames answered" in out_text and "answers.jsonl" in out_text
+    assert "no flow geometry" not in captured.err  # the answers carry their validity, or GET /model told its geometry
     assert "frame 000003" not in out_text  # no line per frame: a progress bar on stderr instead
 
 
@@ -246,3 +248,16 @@ def test_a_lost_answer_is_posted_again_with_backoff_and_the_previous_frame_named
         )
     assert not isinstance(refused.value, client.RetryableError) and len(sent) == calls + 1
     assert client.retry_delay(10) == client.RETRY_MAX_S and client.retry_delay(1, 60.0) == client.RETRY_MAX_S
+
+
+def test_pictures_draw_every_flow_cell_when_the_service_tells_no_flow_geometry(monkeypatch, capsys):
+    import urllib.error
+
+    from rafd.cli import client
+
+    def unreachable(request, timeout):
+        raise urllib.error.URLError("refused")
+
+    monkeypatch.setattr(client.urllib.request, "urlopen", unreachable)
+    assert client.served_flow_geometry("http://127.0.0.1:9", 1.0) is None
+    assert "GET /model gave no flow geometry" in capsys.readouterr().err

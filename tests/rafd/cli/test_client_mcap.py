@@ -125,17 +125,19 @@ def test_mcap_log_holds_the_services_answers(simulated: Path, service_url: str, 
     answers = [json.loads(line) for line in (out / "answers.jsonl").read_text().splitlines()]
     assert len(answers) == 4 and all(a["boxes"] for a in answers) and answers[1]["flow"] is not None
     messages = check_log_against_answers(log, answers, simulated, labelled=True)
-    # Flow arrows: one per cell moving more than 5 cm, tail + length = where the cell's content is now.
+    # Flow arrows: one per valid cell (the answer's validity) moving more than 5 cm, tail + length = where the
+    # cell's content is now.
     flow = answers[-1]["flow"]
     values = np.asarray(flow["values"])  # [2, Hf, Wf]
-    moving = int((np.hypot(values[0], values[1]) > 0.05).sum())
+    speed = np.hypot(values[0], values[1])
+    valid = np.asarray(flow["validity"]) >= flow["validity_min"]
+    drawn = (speed > 0.05) & valid
+    assert 0 < drawn.sum() < (speed > 0.05).sum()  # the outer ring at least is not drawn
     _, update = messages["/radar/flow"][-1]
     arrows = update.entities[0].arrows
-    assert len(arrows) == moving > 0
+    assert len(arrows) == drawn.sum()
     lengths = sorted(a.shaft_length + a.head_length for a in arrows)
-    np.testing.assert_allclose(
-        lengths, sorted(np.hypot(values[0], values[1])[np.hypot(values[0], values[1]) > 0.05]), atol=1e-9
-    )
+    np.testing.assert_allclose(lengths, sorted(speed[drawn]), atol=1e-9)
 
 
 def test_polar_only_folder_is_posted_polar_and_logged_converted(simulated: Path, service_url: str, tmp_path: Path):

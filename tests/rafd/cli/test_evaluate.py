@@ -39,6 +39,13 @@ def test_writes_metrics_json_and_plots(trained_checkpoint: Path, sim_root: Path,
     for key in ("mAP@0.3", "mAP@0.5", "mAP@0.7"):
         assert 0.0 <= overall[key] <= 100.0
     assert overall["epe_all"] is not None and overall["epe_all"] >= 0.0
+    # the flow split (rafd.eval.flow_split): vehicle EPE is the epe_foreground it always was
+    flow = report["flow"]
+    assert flow["mode"] == "crop" and flow["pairs"] == flow["labelled_pairs"] == overall["frames"]
+    assert flow["vehicle_epe"] == overall["epe_foreground"]
+    assert len(flow["background_epe_by_ring"]) == len(flow["label_free"]["magnitude_by_ring"]) == 9
+    assert flow["background_cells_by_ring_valid"][0] == 0  # the outermost ring is never measured
+    assert "edge_ratio" in flow and "edge_ratio_valid" in flow["label_free"]
     assert set(report["per_sequence"]) == {"sim_12_0", "sim_12_1"}
     assert sum(s["frames"] for s in report["per_sequence"].values()) == overall["frames"] > 0
     # the simulated drives' meta.json name their weather: the figures are pooled per condition too
@@ -175,6 +182,7 @@ def test_plots_draw_the_boxes_the_service_would_answer(
         assert main([*argv, "--plots", str(plots), "--examples", "1", "--score-threshold", threshold]) == 0
         (example,) = plots.glob("example_*.png")
         picture = cv2.imread(str(example))
+        assert picture is not None
         scan = picture[: picture.shape[1]]  # the square scan above the legend strip
         red[threshold] = int((np.abs(scan.astype(int) - np.array(PRED_COLOUR)) < 60).all(-1).sum())
     assert red["0.0"] > 50  # every decoded box is drawn at threshold 0

@@ -58,6 +58,22 @@ def test_streamed_tiles_equal_each_tiles_window(scans: Path, monkeypatch: pytest
     monkeypatch.setattr(rafd.eval.fullscan, "merge_tiles", recording("streamed"))
     results = predict_full_scan(model, dataset, cfg, grid=grid, progress=False)
     assert len(results) == len(dataset) == (6 if warm_up else 3) and tiles > 4
+    # the label-free flow check of each scan's newest pair, over every tile (no flow targets for whole scans)
+    for result in results:
+        tally = result.flow_tally
+        assert tally is not None and tally.pairs == 1 and tally.labelled_pairs == 0
+        assert tally.cells.sum() == tiles * cfg.feature_size**2 and np.isfinite(tally.magnitude).all()
+    # a warm-up window of the first frame pairs that frame with itself
+    tallies = [r.flow_tally for r in results if r.flow_tally is not None]
+    assert [t.repeated_pairs for t in tallies] == ([1, 0, 0, 0, 0, 0] if warm_up else [0, 0, 0])
+    if not warm_up:  # --max-windows hands a WindowSubset: its windows only, the same figures
+        from rafd.train.datasets import WindowSubset
+
+        (one,) = predict_full_scan(model, WindowSubset(dataset, [1]), cfg, grid=grid, progress=False)
+        assert one.frame == results[1].frame and one.flow_tally is not None
+        assert one.flow_tally.cells.sum() == tallies[1].cells.sum()
+        np.testing.assert_allclose(one.flow_tally.magnitude, tallies[1].magnitude, rtol=1e-6)
+        raw["streamed"].pop()  # (recorded by the merge above; compared below are the full run's)
 
     def run(crops: np.ndarray, poses: np.ndarray):
         with torch.no_grad():

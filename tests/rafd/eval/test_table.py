@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import math
 
-from rafd.eval.table import TABLE_COLUMNS, format_table
+from rafd.eval.table import TABLE_COLUMNS, format_flow_table, format_table
 
 NAN = math.nan
 
@@ -33,3 +33,24 @@ def test_undefined_figures_say_why_instead_of_nan():
     sim = next(line for line in lines if line.startswith("sim_1"))
     assert "50.0000" in sim and "no " not in sim
     assert "no frames" in format_table({"frames": 0}, {})
+
+
+def test_the_flow_table_prints_vehicle_background_and_rings_with_a_dash_where_no_cell_is():
+    import numpy as np
+
+    from rafd.eval.flow_split import flow_report, ring_map, tally_pair
+
+    flow = np.zeros((2, 32, 32))
+    flow[0][ring_map(32, 32) == 0] = 1.0
+    validity = np.ones((32, 32))
+    validity[ring_map(32, 32) == 0] = 0.0
+    report = flow_report(tally_pair(flow, validity, np.zeros_like(flow), np.ones((32, 32)), np.zeros((32, 32))))
+    lines = format_flow_table(report).splitlines()
+    header = next(line for line in lines if "ring 0" in line)
+    for column in ("vehicle", "all rings", "ring 7", "8+", "edge ratio"):
+        assert column in header
+    background = next(line for line in lines if line.startswith("EPE (background by ring)"))
+    assert background.split()[-10:] == ["1.0000"] + ["0.0000"] * 8 + ["inf"]  # ring 0 .. 8+, edge ratio
+    valid = next(line for line in lines if line.startswith("EPE, valid cells"))
+    assert valid.split()[5] == "-"  # ring 0 holds no valid cell
+    assert "rings 1-2 / 8+" in lines[-1] and "nan" not in "\n".join(lines)

@@ -77,3 +77,29 @@ def test_boxes_poses_grid_and_arrows_follow_foxgloves_conventions(tmp_path: Path
 def test_a_log_in_a_missing_folder_is_refused(tmp_path: Path):
     with pytest.raises(FileNotFoundError, match="does not exist"):
         RadarMcapLog(tmp_path / "missing" / "log.mcap")
+
+
+def test_logged_answers_carry_flow_arrows_only_for_valid_cells():
+    from rafd.viz.mcap import frame_from_answer
+
+    values = np.zeros((2, 4, 4))
+    values[0] = 1.0  # every cell moves 1 m right
+    answer = {
+        "pose": {"x": 0.0, "y": 0.0, "yaw": 0.0},
+        "boxes": [],
+        "input": {"posted_size": 16, "model_size": 16, "crop_offset_px": 0},
+        "flow": {
+            "shape": [2, 4, 4],
+            "encoding": "list",
+            "values": values.tolist(),
+            "grid": {"height": 4, "width": 4, "cell_size_m": 2.0, "stride_px": 4, "origin_px": [0, 0]},
+        },
+    }
+    scan = np.zeros((16, 16), np.uint8)
+    args = (answer, cv2.imencode(".png", scan)[1].tobytes(), 16, 0.5, scan, 0)
+    every = frame_from_answer(*args)
+    validity = np.zeros((4, 4))
+    validity[1:3, 1:3] = 1.0
+    valid = frame_from_answer(*args, validity=validity)
+    assert len(every.flow_heads) == 16 and len(valid.flow_heads) == 4
+    np.testing.assert_allclose(np.abs(valid.flow_heads), 1.0)  # the four centre cells, 1 m from the radar

@@ -194,3 +194,81 @@ def test_the_picture_states_the_threshold_its_boxes_were_drawn_at():
     assert _legend_items(Legend())[0][0] == "prediction (score)"
     flow_text = _legend_items(Legend(flow_px_per_m=10.0, flow_scale=2.0, flow_where="returns or boxes"))[-1][0]
     assert flow_text == "flow, arrow = 1 m (drawn x2), at returns or boxes"
+
+
+def test_evaluation_pictures_draw_flow_only_in_valid_cells():
+    image = np.full((64, 64), 220, np.uint8)  # returns everywhere: every cell is worth an arrow
+    flow = np.zeros((2, 16, 16))
+    flow[0] = 1.0
+    validity = np.zeros((16, 16))
+    validity[:, :8] = 1.0  # only the left half was measured over the full range
+    validity[:, 8] = 0.99  # just below FLOW_VALID_MIN: not drawn
+    kwargs = dict(flow=flow, upscale=4, flow_step=1)
+    every = draw_detections(image, np.zeros((0, 5)), np.zeros((0, 5)), np.zeros(0), RES, **kwargs)
+    valid = draw_detections(image, np.zeros((0, 5)), np.zeros((0, 5)), np.zeros(0), RES, validity=validity, **kwargs)
+    unchanged = draw_detections(
+        image, np.zeros((0, 5)), np.zeros((0, 5)), np.zeros(0), RES, validity=np.ones((16, 16)), **kwargs
+    )
+    arrows, all_arrows = dominant(valid[:256], FLOW_COLOUR), dominant(every[:256], FLOW_COLOUR)
+    assert np.flatnonzero(all_arrows.any(0)).max() > 200  # without validity: arrows across the whole crop
+    assert arrows.sum() > 0 and np.flatnonzero(arrows.any(0)).max() < 8 * 16  # with it: the left half only
+    np.testing.assert_array_equal(unchanged[:256], every[:256])  # everywhere valid: the same picture
+    with pytest.raises(ValueError, match="validity"):
+        draw_detections(image, np.zeros((0, 5)), np.zeros((0, 5)), np.zeros(0), RES, flow=flow, validity=np.ones(3))
+
+
+def test_the_answer_picture_skips_invalid_flow_cells():
+    answer = answer_for(1152, 128)  # one cell, (16, 16), moves 1 m
+    scan = np.zeros((1152, 1152), np.uint8)
+    view = AnswerView(flow_step=1)
+    valid = np.ones((32, 32))
+    drawn = draw_answer(scan, answer, None, RES, view, validity=valid)[:768, :768]
+    valid[16, 16] = 0.5
+    skipped = draw_answer(scan, answer, None, RES, view, validity=valid)[:768, :768]
+    assert dominant(drawn, FLOW_COLOUR).sum() > 20 and dominant(skipped, FLOW_COLOUR).sum() == 0
+    default = draw_answer(scan, answer, None, RES, view)[:768, :768]  # no validity: drawn as before
+    np.testing.assert_array_equal(default, drawn)
+
+
+def test_answer_validity_from_the_answers_poses_identity_when_the_previous_is_unknown():
+    from rafd.viz.answer import AnswerValidity, answer_validity
+
+    first, second = answer_for(1152, 128), answer_for(1152, 128)
+    first["timestamp"], first["flow"], first["pose"] = 1.0, None, {"x": 0.0, "y": 0.0, "yaw": 0.0}
+    cell = 4 * RES  # one detection cell, 0.69 m
+    second["timestamp"], second["pose"] = 2.0, {"x": 0.0, "y": 2 * cell, "yaw": 0.0}  # two cells forward
+    second["flow"]["pair"] = [1.0, 2.0]
+    at_rest = answer_validity(second, 4, 0)  # identity: only the outermost ring
+    assert at_rest.shape == (32, 32) and np.all(at_rest[0] == 0) and np.all(at_rest[1:-1, 1:-1] == 1)
+    track = AnswerValidity(geometry=lambda: (4, 0))  # asked of GET /model when first needed
+    assert track(first) is None  # no flow: nothing to validate
+    moved = track(second)
+    assert np.all(moved[1:3, 3:-3] == 0) and np.all(moved[3, 3:-3] == 1)  # ahead: outside the previous crop
+    assert np.all(moved[-2, 3:-3] == 1)
+    lost = answer_for(1152, 128)
+    lost["timestamp"], lost["pose"], lost["flow"]["pair"] = 3.0, second["pose"], [2.5, 3.0]  # a pair not seen
+    np.testing.assert_array_equal(AnswerValidity(4)(lost), at_rest)
+
+
+@pytest.mark.parametrize("flow_format", ["list", "base64"])
+def test_the_answers_own_validity_is_used_when_it_carries_one(flow_format):
+    from rafd.viz.answer import AnswerValidity, decode_validity
+
+    answer = answer_for(1152, 128, flow_format)
+    answer["pose"], answer["flow"]["pair"] = {"x": 0.0, "y": 0.0, "yaw": 0.0}, [12.4, 12.5]
+    validity = np.ones((32, 32))
+    validity[16, 16] = 0.99
+    answer["flow"]["validity"] = (
+        validity.tolist()
+        if flow_format == "list"
+        else base64.b64encode(validity.astype("<f2").tobytes()).decode("ascii")
+    )
+    decoded = decode_validity(answer["flow"])
+    assert decoded is not None and decoded.shape == (32, 32) and decoded[16, 16] < 1.0 and decoded[0, 0] == 1.0
+
+    def never():
+        raise AssertionError("GET /model is not needed when the answer carries its validity")
+
+    np.testing.assert_array_equal(AnswerValidity(geometry=never)(answer), decoded)
+    assert decode_validity(answer_for(1152, 128)["flow"]) is None  # a service before validity
+    assert AnswerValidity(geometry=lambda: None)(answer_for(1152, 128) | {"pose": answer["pose"]}) is None
