@@ -34,3 +34,18 @@ def gated_onnx(shipped_onnx, tmp_path_factory) -> Path:
     path = tmp_path_factory.mktemp("gated") / "gated.onnx"
     onnx.save(proto, str(path))
     return path
+
+
+@pytest.fixture(scope="session")
+def ungated_onnx(shipped_onnx, tmp_path_factory) -> Path:
+    """The shipped model without any gate record (a model a user exported without --gate): reduced precisions
+    are never chosen automatically for it."""
+    onnx = pytest.importorskip("onnx")
+    proto = onnx.load(str(shipped_onnx))
+    kept = [(p.key, p.value) for p in proto.metadata_props if not p.key.startswith("gate_")]
+    del proto.metadata_props[:]
+    for key, value in kept:
+        proto.metadata_props.add(key=key, value=value)
+    path = tmp_path_factory.mktemp("ungated") / "ungated.onnx"
+    onnx.save(proto, str(path))
+    return path

@@ -4,7 +4,6 @@ one sentence `rafd serve` logs and GET /model reports (the fallback to fp32 name
 from __future__ import annotations
 
 import json
-from pathlib import Path
 
 import pytest
 
@@ -83,20 +82,6 @@ def test_an_explicit_precision_is_the_operators_and_says_when_ungated():
     )
     fp32 = precision_choice("m.onnx", {}, ("onnxruntime", "fp32"), ("onnxruntime", "fp32"), {}, ALL)
     assert fp32["reason"] == "precision fp32 set by the operator: serving onnxruntime/fp32"
-
-
-@pytest.fixture(scope="module")
-def ungated_onnx(shipped_onnx, tmp_path_factory) -> Path:
-    """The shipped model without any gate record (the shipped file may carry one once `rafd gate` has run on it)."""
-    onnx = pytest.importorskip("onnx")
-    proto = onnx.load(str(shipped_onnx))
-    kept = [(p.key, p.value) for p in proto.metadata_props if not p.key.startswith("gate_")]
-    del proto.metadata_props[:]
-    for key, value in kept:
-        proto.metadata_props.add(key=key, value=value)
-    path = tmp_path_factory.mktemp("ungated") / "ungated.onnx"
-    onnx.save(proto, str(path))
-    return path
 
 
 def test_create_runner_reports_the_fallback_on_a_bf16_cpu(ungated_onnx, monkeypatch):
