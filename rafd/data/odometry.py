@@ -549,7 +549,8 @@ class OdometryStream:
         relative = None
         if self.previous is not None:
             relative = self.odometer.estimate(self.previous, current, dt, None if gap else self.prior)
-            self.prior = relative
+            # a motion across a gap (seconds, not one period) is no prior for the next pair of consecutive scans
+            self.prior = None if gap else relative
         self.previous, self.previous_time = current, timestamp
         return relative
 
