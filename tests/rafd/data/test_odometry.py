@@ -239,6 +239,8 @@ def test_a_stream_registers_each_scan_once_and_keeps_its_prior():
         assert np.hypot(*(relatives[k][:2] - expected[:2])) < RES
     with pytest.raises(ValueError, match="must increase"):
         stream.add(truth.images[0], 0.0)
+    # a scan seconds later (a gap): its motion is measured, but it is no prior for the next consecutive pair
+    assert stream.add(truth.images[0], 1.25 + 2.0) is not None and stream.prior is None
 
 
 def test_compensated_odometry_on_the_real_oxford_ground_truth(oxford_sample: Path):
