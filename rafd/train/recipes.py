@@ -27,7 +27,8 @@ def shipped_model_config() -> RaFDConfig:
     """The `default` recipe's network: the tiny config at the protocol's 256 px crop, with the speed options
     (flow branch at stride 8, 16-cell attention windows: neither is the paper's), the gain-robust input, and pre-norm
     propagation blocks that start as the identity (so a single-frame model's weights start a multi-frame run).
-    The shipped default model is this network (README: "The shipped default model")."""
+    The shipped default model was this network until 2026-12-02 (76e6099a); it is now cpu_model_config()'s, built on
+    this one (README: "The shipped default model")."""
     tiny = RaFDConfig.tiny(input_size=256)
     return tiny.replace(
         input=InputConfig(normalisation="local_contrast", window=47),
