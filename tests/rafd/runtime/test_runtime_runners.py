@@ -58,10 +58,10 @@ def test_auto_takes_bf16_only_with_a_passed_gate(gated_onnx):
     assert create_runner(gated_onnx, "auto", "auto", threads=1, timer=timer).runtime == "onnxruntime"
 
 
-def test_explicit_bf16_is_the_operators_choice(shipped_onnx, caplog):
+def test_explicit_bf16_is_the_operators_choice(ungated_onnx, caplog):
     if ("openvino", "bf16") not in supported_choices():
         pytest.skip("this CPU has no bf16 or openvino is not installed")
-    runner = create_runner(shipped_onnx, "openvino", "bf16", threads=1)
+    runner = create_runner(ungated_onnx, "openvino", "bf16", threads=1)
     assert runner.precision == "bf16"
     assert "without a passed accuracy gate" in caplog.text
 
