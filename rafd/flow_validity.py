@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import functools
 import math
+from typing import Any
 
 import numpy as np
 
@@ -26,6 +27,14 @@ FLOW_VALID_MIN = 1.0  # pictures draw, and the answer's boolean form keeps, the 
 def search_reach_m(flow_stride: int, resolution: float, local_radius: int) -> float:
     """-> metres the flow's search reaches from a cell: local_radius matching cells (0 = global matching: one)."""
     return max(local_radius, 1) * flow_stride * resolution
+
+
+def config_validity(cfg: Any, relative_pose: np.ndarray | None = None) -> np.ndarray:
+    """A RaFDConfig's flow validity [Hf, Wf] for the pair's relative pose (previous -> current ego,
+    geometry.relative_pose(pose_prev, pose_cur)); None: identity (no motion known)."""
+    pose = np.zeros(3) if relative_pose is None else np.asarray(relative_pose, np.float64)
+    reach = search_reach_m(cfg.flow.stride, cfg.resolution, cfg.flow.local_radius)
+    return flow_validity(pose, cfg.feature_size, cfg.input_size, cfg.resolution, cfg.flow.stride, reach)
 
 
 def flow_validity(

@@ -25,7 +25,7 @@ from fastapi import Request
 from starlette.requests import ClientDisconnect
 
 from rafd.detections import decode_detections
-from rafd.flow_validity import FLOW_VALID_MIN, flow_validity, search_reach_m
+from rafd.flow_validity import FLOW_VALID_MIN, config_validity, search_reach_m
 from rafd.geometry import box_polygons_pixels, relative_pose
 from rafd.native import NativeShape
 from rafd.protocol import operating_threshold, warming_up
@@ -416,15 +416,7 @@ class DetectService:
         nothing was measured)."""
         if frames_used < 2 or previous_pose is None or pose is None:
             return np.zeros((feature_size, feature_size), np.intp)
-        cfg = self.config
-        validity = flow_validity(
-            relative_pose(previous_pose, pose),
-            feature_size,
-            cfg.input_size,
-            cfg.resolution,
-            cfg.flow.stride,
-            self.flow_reach_m,
-        )
+        validity = config_validity(self.config, relative_pose(previous_pose, pose))  # [Hf, Wf]
         # Down (the cast truncates: the floor of these non-negative numbers), in float64 where a float32 times 100
         # is exact: a cell below validity_min stays below it.
         steps: np.ndarray = np.multiply(validity, float(VALIDITY_STEPS), dtype=np.float64)

@@ -25,7 +25,7 @@ from typing import Any
 
 import numpy as np
 
-from rafd.flow_validity import FLOW_VALID_MIN, flow_validity, search_reach_m
+from rafd.flow_validity import FLOW_VALID_MIN
 
 RING_COUNT = 9  # rings 0..7 from the crop's edge, then the interior 8+
 RING_NAMES = tuple(str(k) for k in range(RING_COUNT - 1)) + (f"{RING_COUNT - 1}+",)
@@ -38,14 +38,6 @@ def ring_map(height: int, width: int) -> np.ndarray:
     rows = np.minimum(np.arange(height), height - 1 - np.arange(height))
     cols = np.minimum(np.arange(width), width - 1 - np.arange(width))
     return np.minimum(np.minimum(rows[:, None], cols[None, :]), RING_COUNT - 1).astype(np.int64)
-
-
-def config_validity(cfg: Any, relative_pose: np.ndarray | None = None) -> np.ndarray:
-    """A RaFDConfig's flow validity [Hf, Wf] for the pair's relative pose (previous -> current ego,
-    geometry.relative_pose(pose_prev, pose_cur)); None: identity (no motion known)."""
-    pose = np.zeros(3) if relative_pose is None else np.asarray(relative_pose, np.float64)
-    reach = search_reach_m(cfg.flow.stride, cfg.resolution, cfg.flow.local_radius)
-    return flow_validity(pose, cfg.feature_size, cfg.input_size, cfg.resolution, cfg.flow.stride, reach)
 
 
 def _zeros() -> np.ndarray:

@@ -22,9 +22,10 @@ import torch
 
 from rafd.config import RaFDConfig
 from rafd.data.dataset import _protocol
-from rafd.eval.flow_split import FlowTally, config_validity, pooled, tally_pair
+from rafd.eval.flow_split import FlowTally, pooled, tally_pair
 from rafd.eval.predict import FrameResult, outside_ignored
 from rafd.eval.tiled import TileGrid, merge_tiles, tile_poses
+from rafd.flow_validity import config_validity
 from rafd.model import RaFD, relative_pose_torch
 from rafd.preprocess import to_model_input
 from rafd.progress import bar as progress_bar

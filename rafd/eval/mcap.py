@@ -14,8 +14,7 @@ from typing import Any
 import cv2
 import numpy as np
 
-from rafd.eval.flow_split import config_validity
-from rafd.flow_validity import FLOW_VALID_MIN
+from rafd.flow_validity import FLOW_VALID_MIN, config_validity
 from rafd.geometry import box_polygons_pixels, feature_cell_centres, relative_pose
 from rafd.protocol import DEFAULT_SCORE_THRESHOLD
 from rafd.viz.mcap import LoggedFrame, RadarMcapLog

@@ -14,8 +14,9 @@ from torch.utils.data import DataLoader, Dataset
 
 from rafd.config import RaFDConfig
 from rafd.detections import decode_detections
-from rafd.eval.flow_split import FlowTally, config_validity, tally_pair
+from rafd.eval.flow_split import FlowTally, tally_pair
 from rafd.eval.metrics import end_point_error, match_centres, mean_average_precision
+from rafd.flow_validity import config_validity
 from rafd.geometry import points_in_boxes, relative_pose
 from rafd.progress import bar
 from rafd.protocol import CENTRE_DISTANCE_M, IOU_THRESHOLDS

@@ -140,9 +140,9 @@ def write_plots(
     import numpy as np
     from torch.utils.data import Subset
 
-    from rafd.eval.flow_split import config_validity
     from rafd.eval.metrics import precision_recall
     from rafd.eval.predict import predict
+    from rafd.flow_validity import config_validity
     from rafd.geometry import relative_pose
     from rafd.viz.plots import draw_detections, plot_precision_recall
 

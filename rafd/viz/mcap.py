@@ -22,7 +22,6 @@ import this module only when a log or the live view is asked for.
 
 from __future__ import annotations
 
-import base64
 import math
 from dataclasses import dataclass
 from pathlib import Path
@@ -281,14 +280,11 @@ def answer_valid_cells(flow: dict[str, Any]) -> np.ndarray | None:
     """[Hf, Wf] bool: the cells of an answer's flow whose `validity` (in the flow's `encoding`: nested lists or
     base64 float16, like its `values`) reaches its `validity_min`; None for an answer without validity (from a
     service before it)."""
-    validity = flow.get("validity")
-    if validity is None:
+    from rafd.viz.answer import decode_validity
+
+    values = decode_validity(flow)
+    if values is None:
         return None
-    shape = (int(flow["grid"]["height"]), int(flow["grid"]["width"]))
-    if flow["encoding"] == "base64-float16":
-        values = np.frombuffer(base64.b64decode(validity), dtype="<f2").reshape(shape)
-    else:
-        values = np.asarray(validity, dtype=np.float64).reshape(shape)
     return values >= float(flow["validity_min"])
 
 

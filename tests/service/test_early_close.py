@@ -103,33 +103,24 @@ def test_413_from_content_length_says_connection_close():
 
 
 @pytest.mark.network
-def test_429_stream_queue_full_says_connection_close():
-    with served(stream_queue_limit=1, body_timeout_s=5.0, min_body_bytes_per_s=0) as (url, app):
+@pytest.mark.parametrize(
+    ("limit", "first_headers", "second_headers", "status", "code"),
+    [
+        # the first request, unfinished, holds the one place the limit allows; the second is refused early
+        ({"stream_queue_limit": 1}, "X-Stream-Id: s\r\n", "X-Stream-Id: s\r\n", 429, "stream_queue_full"),
+        ({"max_requests_per_client": 1}, "", "", 429, "too_many_client_requests"),
+        ({"max_receiving_requests": 1}, "X-Stream-Id: a\r\n", "X-Stream-Id: b\r\n", 503, "overloaded"),
+    ],
+)
+def test_a_refusal_while_another_request_holds_the_place_says_connection_close(
+    limit: dict[str, int], first_headers: str, second_headers: str, status: int, code: str
+):
+    with served(**limit, body_timeout_s=5.0, min_body_bytes_per_s=0) as (url, app):
         with connect(url) as first, connect(url) as second:
-            send_partial(first, headers="X-Stream-Id: s\r\n")  # holds the stream's one queue place
+            send_partial(first, headers=first_headers)
             wait_receiving(app)
-            send_partial(second, headers="X-Stream-Id: s\r\n")
-            assert_closes(second, 429, "stream_queue_full")
-
-
-@pytest.mark.network
-def test_429_too_many_client_requests_says_connection_close():
-    with served(max_requests_per_client=1, body_timeout_s=5.0, min_body_bytes_per_s=0) as (url, app):
-        with connect(url) as first, connect(url) as second:
-            send_partial(first)
-            wait_receiving(app)  # the first is unfinished: the client's one place is taken
-            send_partial(second)
-            assert_closes(second, 429, "too_many_client_requests")
-
-
-@pytest.mark.network
-def test_503_overloaded_receiving_says_connection_close():
-    with served(max_receiving_requests=1, body_timeout_s=5.0, min_body_bytes_per_s=0) as (url, app):
-        with connect(url) as first, connect(url) as second:
-            send_partial(first, headers="X-Stream-Id: a\r\n")
-            wait_receiving(app)
-            send_partial(second, headers="X-Stream-Id: b\r\n")
-            assert_closes(second, 503, "overloaded")
+            send_partial(second, headers=second_headers)
+            assert_closes(second, status, code)
 
 
 @pytest.mark.network
