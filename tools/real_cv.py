@@ -22,7 +22,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import shutil
 import subprocess
 import sys
 from collections.abc import Sequence
@@ -198,7 +197,6 @@ def main(argv: list[str] | None = None) -> int:
         f"[{p['recall_low']:.1f}, {p['recall_high']:.1f}] ({p['found']} found) at "
         f"{p['fp_per_scan']:.2f} FP per scan [{p['fp_per_scan_low']:.2f}, {p['fp_per_scan_high']:.2f}]"
     )
-    shutil.copy(args.out / "cv.json", args.out / "cv.last.json")
     return 0
 
 
