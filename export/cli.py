@@ -99,7 +99,7 @@ def main(argv: list[str] | None = None) -> int:
     from export.gate import DEFAULT_SEED, GateOptions
     from export.onnx_export import ExportError, export_onnx
     from export.verify import VerificationError
-    from rafd.checkpoint import CheckpointError
+    from rafd.model.checkpoint import CheckpointError
 
     def log(message: str) -> None:
         print(message, flush=True)

@@ -21,8 +21,8 @@ from export import MIN_OPSET
 from export.gate import GateOptions, GateReport, gate_metadata, run_export_gates
 from export.step import build_graph, example_inputs, feature_channels
 from export.verify import Report, verify_export
-from rafd.checkpoint import load_checkpoint
 from rafd.config import RaFDConfig
+from rafd.model.checkpoint import load_checkpoint
 from rafd.protocol import OPERATING_THRESHOLD_KEY, check_score_threshold
 from rafd.runtime import FORMS, graph_inputs, graph_outputs
 
@@ -176,7 +176,7 @@ def export_onnx(
     batch: "static" (batch of one, the smallest graph) or "dynamic" (step form: a free first axis, so the service
     can run several streams' steps as one batch, rafd.runtime.StreamRunner.step_many; verified batched as well).
 
-    Raises rafd.checkpoint.CheckpointError (bad checkpoint), ExportError, export.verify.VerificationError.
+    Raises rafd.model.checkpoint.CheckpointError (bad checkpoint), ExportError, export.verify.VerificationError.
     """
     checkpoint, output = Path(checkpoint), Path(output)
     if opset < MIN_OPSET:

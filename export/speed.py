@@ -123,7 +123,7 @@ def bench_model(
     import onnxruntime as ort
     import torch
 
-    from rafd.checkpoint import load_checkpoint
+    from rafd.model.checkpoint import load_checkpoint
     from rafd.runtime import open_runner, supported_choices
 
     torch.set_num_threads(threads)

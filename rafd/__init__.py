@@ -10,13 +10,14 @@ from typing import Any
 
 from rafd.config import RaFDConfig
 
+# The package version, written only here: pyproject.toml reads it ([tool.setuptools.dynamic]).
 __version__ = "0.1.0"
 __all__ = ["RaFDConfig", "build_model", "save_checkpoint", "load_checkpoint", "__version__"]
 
 _LAZY = {
     "build_model": "rafd.model",
-    "save_checkpoint": "rafd.checkpoint",
-    "load_checkpoint": "rafd.checkpoint",
+    "save_checkpoint": "rafd.model.checkpoint",
+    "load_checkpoint": "rafd.model.checkpoint",
 }
 
 

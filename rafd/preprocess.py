@@ -1,6 +1,6 @@
 """The one torch-free path from a radar scan to the model's input frame.
 
-Training (rafd.data.dataset, rafd.train.collate), export verification, the benchmarks and the service all
+Training (rafd.data.dataset, rafd.data.collate), export verification, the benchmarks and the service all
 call these functions, so what the network sees cannot drift between them:
 
     polar uint8 [576, 400] (the sensor's native scan, RADIATE's Navtech_Polar layout; optional first step)

@@ -12,14 +12,13 @@ from __future__ import annotations
 
 import hashlib
 import hmac
-import json
 import re
 from dataclasses import dataclass
 from pathlib import Path
 
 from starlette.types import ASGIApp, Receive, Scope, Send
 
-from service.errors import error_body
+from service.errors import send_refusal
 from service.settings import Settings
 
 KEY_PATTERN = re.compile(r"[A-Za-z0-9._~+/=-]{16,256}")
@@ -121,19 +120,8 @@ class ApiKeyMiddleware:
                     "missing_api_key",
                     "this service requires an API key: send it as 'X-API-Key: KEY' or 'Authorization: Bearer KEY'",
                 )
-            body = json.dumps(error_body(code, message)).encode()
-            await send(
-                {
-                    "type": "http.response.start",
-                    "status": 401,
-                    "headers": [
-                        (b"content-type", b"application/json"),
-                        (b"content-length", str(len(body)).encode()),
-                        (b"www-authenticate", b'Bearer realm="rafd"'),
-                    ],
-                }
-            )
-            await send({"type": "http.response.body", "body": body})
+            # A body still arriving gets its `Connection: close` from the server's protocol (service/protocol.py).
+            await send_refusal(send, code, message, headers={"WWW-Authenticate": 'Bearer realm="rafd"'})
             return
         scope.setdefault("state", {})[CALLER] = name
         await self.app(scope, receive, send)

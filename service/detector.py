@@ -7,6 +7,10 @@
     hold for the same client's earlier frames still being parsed (service/ordering.py) -> wait for the stream's turn
     -> pose (odometry executor) -> runner step (model executor) -> commit -> boxes and flow.
 
+`DetectService.detect` runs these stages in this order, one method each. What a request holds on the way (its
+receiving and in-flight slots, its place among its client's requests and in its stream's queue) is a context manager
+on one exit stack, left however the request ends; a `StageClock` records the answer's timing.
+
 A refused or failed frame changes no stream; a frame whose client left before its turn is dropped (499).
 """
 
@@ -16,12 +20,15 @@ import asyncio
 import base64
 import hashlib
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
+from contextlib import AsyncExitStack, contextmanager
 from dataclasses import dataclass
+from functools import partial
 from typing import TYPE_CHECKING, Any, Literal
 
 import numpy as np
 from fastapi import Request
+from pydantic import TypeAdapter
 from starlette.requests import ClientDisconnect
 
 from rafd.detections import decode_detections
@@ -31,16 +38,35 @@ from rafd.native import NativeShape
 from rafd.protocol import operating_threshold, warming_up
 from service import poses
 from service.batcher import StepBatcher
-from service.errors import ApiError, timestamp_error
+from service.errors import ApiError, client_of, timestamp_error
 from service.executors import AdmissionLimit, BoundedExecutor
-from service.images import DecodedFrame, accepted_sizes, check_posted_image, decode_frame, upload_check
-from service.intake import arrival_of, client_of
+from service.images import (
+    DecodedFrame,
+    PostedImage,
+    accepted_sizes,
+    check_posted_image,
+    decode_frame,
+    upload_check,
+)
+from service.intake import arrival_of
 from service.metrics import ServiceMetrics
 from service.ordering import ArrivalOrder, Unresolved
 from service.requests import StructureCount, parse_detect_request, parse_json_body
-from service.schemas import DetectBody, DetectFields, Pose
+from service.schemas import (
+    BoxOut,
+    DetectBody,
+    DetectFields,
+    DetectResponse,
+    FlowGrid,
+    FlowOut,
+    InputOut,
+    ModelRef,
+    Pose,
+    RestartReason,
+    TimingOut,
+)
 from service.settings import Settings
-from service.streams import RestartReason, StreamEntry, StreamStore, Ticket
+from service.streams import ArrivalKey, StreamEntry, StreamStore, Ticket
 
 if TYPE_CHECKING:
     from rafd.runtime.streaming import Runner
@@ -65,6 +91,9 @@ _VALIDITY_FLOAT16 = _VALIDITY_EXACT.astype("<f2")
 _VALIDITY_FLOAT16[_VALIDITY_FLOAT16 < _VALIDITY_EXACT] = np.nextafter(
     _VALIDITY_FLOAT16[_VALIDITY_FLOAT16 < _VALIDITY_EXACT], np.float16(np.inf)
 )
+
+
+_BOXES = TypeAdapter(list[BoxOut])
 
 
 @dataclass(frozen=True)
@@ -101,6 +130,71 @@ class Executors:
     def shutdown(self) -> None:
         for executor in (self.parse, self.decode, self.odometry, self.model):
             executor.shutdown()
+
+
+@dataclass(frozen=True)
+class Arrival:
+    """Who sent a frame and when its request arrived: what orders it among its stream's frames and its client's."""
+
+    caller: str | None  # the API key's name: the stream's namespace
+    key: ArrivalKey
+    client: str  # the client's address
+
+    @classmethod
+    def of(cls, request: Request, caller: str | None) -> Arrival:
+        return cls(caller, arrival_of(request.scope), client_of(request.scope))
+
+
+@dataclass(frozen=True)
+class Chain:
+    """What a frame continues: the chain its stream holds, or a new one (`broken`: why the held one is not)."""
+
+    state: Any  # the runner's StreamState
+    odometry: poses.OdometryMemory | None
+    last_pose: np.ndarray | None
+    pose_source: str | None
+    last_timestamp: float | None
+    broken: RestartReason | None = None
+
+
+@dataclass(frozen=True)
+class FramePose:
+    """A frame's world pose, where it came from, and what its stream keeps of it for the next frame's odometry."""
+
+    pose: np.ndarray  # [3] float64: world poses may be large (UTM metres); the runner takes differences first
+    source: Literal["request", "odometry"]
+    memory: poses.OdometryMemory
+
+
+class StageClock:
+    """How long each stage of one request took, a stage ending at its `lap`: the answer's timing, kept out of the
+    stages themselves."""
+
+    def __init__(self) -> None:
+        self.start = self._last = time.perf_counter()
+        self.seconds: dict[str, float] = {}
+
+    def lap(self, stage: str) -> None:
+        now = time.perf_counter()
+        self.seconds[stage] = now - self._last
+        self._last = now
+
+    def timing(self) -> TimingOut:
+        """Every stage so far, `post` (since the last lap) and the total, in milliseconds; validated, so a stage not
+        in the answer's schema fails loudly."""
+        self.lap("post")
+        stages = {f"{stage}_ms": _ms(seconds) for stage, seconds in self.seconds.items()}
+        return TimingOut.model_validate({**stages, "total_ms": _ms(self._last - self.start)})
+
+
+@contextmanager
+def _holding(limit: AdmissionLimit) -> Iterator[None]:
+    """A slot of `limit` for the block (503 `overloaded` when none is free)."""
+    limit.enter()
+    try:
+        yield
+    finally:
+        limit.leave()
 
 
 class DetectService:
@@ -147,139 +241,90 @@ class DetectService:
     def accepted_sizes(self) -> tuple[int, ...]:
         return accepted_sizes(self.config.input_size, self.config.resolution)
 
+    @property
+    def image_rule(self) -> tuple[int, float, NativeShape]:
+        """What a posted image is checked and decoded against: the model's input size and resolution, and the native
+        scan shapes accepted."""
+        return self.config.input_size, self.config.resolution, self.native_shape
+
     async def detect(
         self, request: Request, stream_hint: str | None, caller: str | None, options: DetectOptions
-    ) -> dict[str, Any]:
-        """One frame of one stream -> the JSON answer; the stream changes only when everything succeeded.
+    ) -> DetectResponse:
+        """One frame of one stream -> its answer; the stream changes only when everything succeeded.
 
         `stream_hint`: the stream id from the X-Stream-Id header or the path (None: from the body); with it the
         frame's place in the stream's queue is taken before the body is read. `caller`: the API key's name (the
         stream's namespace).
         """
-        start = time.perf_counter()
-        arrival, client = arrival_of(request.scope), client_of(request.scope)
-        ticket: Ticket | None = None
-        unresolved: Unresolved | None = None
-        receiving = admitted = False
-        self.receiving.enter()
-        receiving = True
-        try:
-            if stream_hint is not None:
-                ticket = self.store.take_ticket(stream_hint, caller, arrival)
-            else:  # the same client's later frames hold their turn while this body arrives and is parsed
-                unresolved = self.order.arrive(client, arrival)
-            size, resolution = self.config.input_size, self.config.resolution
-            native = self.native_shape
-            fields, image = await self._read(request, stream_hint, lambda: upload_check(size, resolution, native))
-            self.receiving.leave()
-            receiving = False
-            self.admission.enter()  # the in-flight limit: only once the body has arrived
-            admitted = True
-            if ticket is None:
-                ticket = self.store.take_ticket(fields.stream_id, caller, arrival)
-            if unresolved is not None:  # placed: frames that arrived after it now queue behind it
-                self.order.resolve(unresolved)
-                unresolved = None
-            self.store.place(ticket, fields.timestamp)
-            read_at = time.perf_counter()
-            check_posted_image(image, size, resolution, native)  # chunk headers only: hostile files never take a slot
-            decoded, digest = await self.executors.decode.run(
-                _decode_and_digest, fields.pose, image, size, resolution, native
-            )
-            frame = decoded.model_input()  # [S, S] float32 in [0, 1]
-            decoded_at = time.perf_counter()
-
-            await self.order.wait_for_earlier(client, arrival)
-            await self.store.wait_turn(ticket)
-            if await request.is_disconnected():
-                raise ClientDisconnect()  # nobody to answer: the frame is dropped before it changes the stream
-            entry = self.store.check_turn(ticket)
+        clock, arrival = StageClock(), Arrival.of(request, caller)
+        async with AsyncExitStack() as held:  # the frame's slots and places, left however the request ends
+            fields, image, ticket = await self._received(held, request, stream_hint, arrival)
+            clock.lap("read")
+            decoded, frame, digest = await self._decoded(fields, image)
+            clock.lap("decode")
+            entry = await self._turn(request, ticket, arrival)
             replay = _replay_or_refuse(entry, fields.timestamp, digest)
             if replay is not None:  # a retry of the last accepted frame: its answer again, the stream unchanged
-                return {**replay, "replayed": True}
-            chain_break = self.chain_break(entry, fields)
-            poses.check_gap(entry.last_timestamp, fields.timestamp, self.settings.min_frame_gap_s)
-            # A broken chain is not continued: this frame starts a new buffer, odometry world frame and pose source.
-            state, last_odometry, last_pose, pose_source, last_timestamp = (
-                (self.runner.new_state(), None, None, None, None)
-                if chain_break
-                else (entry.state, entry.odometry, entry.last_pose, entry.pose_source, entry.last_timestamp)
+                return replay.model_copy(update={"replayed": True})
+            chain = self._chain(entry, fields)
+            clock.lap("wait")
+            located = await self._locate(fields, decoded, chain)
+            clock.lap("odometry")
+            result, state = await self.batcher.step(chain.state, frame, located.pose)
+            clock.lap("model")
+            self.store.commit(
+                ticket, state, fields.timestamp, located.memory, located.pose, located.source, digest, chain.broken
             )
-            locked_at = time.perf_counter()
-            if fields.pose is not None:
-                poses.check_request_pose(pose_source)
-                pose, source = np.array([fields.pose.x, fields.pose.y, fields.pose.yaw]), "request"
-                memory = poses.remember(decoded.odometry_view, fields.timestamp, decoded.sweep)
-            elif last_odometry is None:  # a chain's first frame anchors its odometry world frame
-                pose, source = np.zeros(3), "odometry"
-                memory = poses.remember(decoded.odometry_view, fields.timestamp, decoded.sweep)
-            else:
-                pose, memory = await self.executors.odometry.run(
-                    poses.odometry_pose,
-                    last_pose,
-                    last_odometry,
-                    decoded.odometry_view,
-                    fields.timestamp,
-                    decoded.sweep,
-                    resolution,
-                    self._odometry,
-                )
-                source = "odometry"
-            # a pose faster than a road vehicle (a forged pose, a degenerate scan) would bend the chain for good
-            poses.check_motion(last_pose, last_timestamp, pose, fields.timestamp, self.settings.max_speed_mps)
-            odometry_done = time.perf_counter()
-            # float64: world poses may be large (UTM metres); the runner takes differences before casting.
-            result, new_state = await self.batcher.step(state, frame, pose)
-            model_done = time.perf_counter()
-            previous_timestamp, previous_pose = last_timestamp, last_pose
-            self.store.commit(ticket, new_state, fields.timestamp, memory, pose, source, digest, chain_break)
-        finally:
-            if unresolved is not None:
-                self.order.resolve(unresolved)
-            if ticket is not None:
-                self.store.release(ticket)
-            if receiving:
-                self.receiving.leave()
-            if admitted:
-                self.admission.leave()
-
         self.metrics.frames.inc()
-        self.metrics.model_latency.observe(model_done - odometry_done)
-        answer = self._answer(fields, decoded, result, pose, source, previous_timestamp, options, previous_pose)
-        if ticket.restarted is not None:  # the first answer of a chain the service restarted says why
-            answer["stream_restarted"] = ticket.restarted
-        done = time.perf_counter()
-        answer["timing"] = {
-            "read_ms": _ms(read_at - start),
-            "decode_ms": _ms(decoded_at - read_at),
-            "wait_ms": _ms(locked_at - decoded_at),
-            "odometry_ms": _ms(odometry_done - locked_at),
-            "model_ms": _ms(model_done - odometry_done),
-            "post_ms": _ms(done - model_done),
-            "total_ms": _ms(done - start),
-        }
+        self.metrics.model_latency.observe(clock.seconds["model"])
+        answer = self._answer(fields, decoded, result, located, chain, options, ticket.restarted, clock)
         ticket.entry.remember_answer(fields.timestamp, digest, answer)  # for a retry whose answer was lost
         if self.on_answer is not None:
-            self.on_answer(answer, decoded, caller)
+            self.on_answer(answer.to_plain(), decoded, caller)
         return answer
 
-    def chain_break(self, entry: StreamEntry, fields: DetectFields) -> RestartReason | None:
-        """Why the chain held here must not be continued by this frame, from the stream's own evidence; None to
-        continue it. `gap`: more than RAFD_STREAM_GAP_RESTART_S seconds of timestamps since its last frame (frames
-        missing here, e.g. sent to another replica meanwhile). `previous_timestamp_mismatch`: the client names
-        another frame as its previous one than the chain's last (the frames in between went elsewhere)."""
-        if not entry.frames_seen or entry.last_timestamp is None:
-            return None  # a new chain: nothing to break
-        limit = self.settings.stream_gap_restart_s
-        if limit > 0 and fields.timestamp - entry.last_timestamp > limit:
-            return "gap"
-        if fields.previous_timestamp is not None and fields.previous_timestamp != entry.last_timestamp:
-            return "previous_timestamp_mismatch"
-        return None
+    # ------------------------------------------------------------------ stages
+    async def _received(
+        self, held: AsyncExitStack, request: Request, stream_hint: str | None, arrival: Arrival
+    ) -> tuple[DetectFields, PostedImage, Ticket]:
+        """The body received and parsed (in a receiving slot), then the frame in flight (an in-flight slot: only once
+        its body has arrived, so a slow body never holds a slot the model needs) and placed in its stream's queue;
+        409 at once if it can no longer be in order."""
+        with _holding(self.receiving):
+            early = self._queue_early(held, stream_hint, arrival)
+            fields, image = await self._read(request, stream_hint)
+        held.enter_context(_holding(self.admission))
+        ticket = early if isinstance(early, Ticket) else self._queue_parsed(held, early, fields.stream_id, arrival)
+        self.store.place(ticket, fields.timestamp)
+        return fields, image, ticket
 
-    async def _read(self, request: Request, stream_hint: str | None, check: Any) -> tuple[DetectFields, Any]:
+    def _queue_early(self, held: AsyncExitStack, stream_hint: str | None, arrival: Arrival) -> Ticket | Unresolved:
+        """Before the body: the frame's place in its stream's queue when the stream is named outside the body, else
+        among its client's requests whose stream is not known yet (the same client's later frames hold their turn
+        while this body arrives and is parsed)."""
+        if stream_hint is not None:
+            return held.enter_context(self.store.queued(stream_hint, arrival.caller, arrival.key))
+        return held.enter_context(self._unresolved(arrival))
+
+    def _queue_parsed(self, held: AsyncExitStack, unresolved: Unresolved, stream_id: str, arrival: Arrival) -> Ticket:
+        """The frame's place in the stream its body named, by its arrival; its client's frames that arrived after
+        it now queue behind it instead of waiting for it."""
+        ticket = held.enter_context(self.store.queued(stream_id, arrival.caller, arrival.key))
+        self.order.resolve(unresolved)
+        return ticket
+
+    @contextmanager
+    def _unresolved(self, arrival: Arrival) -> Iterator[Unresolved]:
+        """A request of the client whose stream is not known yet, until resolved or the request ends."""
+        unresolved = self.order.arrive(arrival.client, arrival.key)
+        try:
+            yield unresolved
+        finally:
+            self.order.resolve(unresolved)
+
+    async def _read(self, request: Request, stream_hint: str | None) -> tuple[DetectFields, PostedImage]:
         """The parsed body, within RAFD_BODY_TIMEOUT_S: a slow body must not hold its stream's place forever."""
-        parse = parse_detect_request(request, stream_hint, check, self._parse_json)
+        parse = parse_detect_request(request, stream_hint, partial(upload_check, *self.image_rule), self._parse_json)
         try:
             if not hasattr(asyncio, "timeout"):  # Python 3.10
                 return await asyncio.wait_for(parse, self.settings.body_timeout_s)
@@ -297,52 +342,131 @@ class DetectService:
         """A JSON body (its structure counted as it arrived) parsed and validated on the parse executor."""
         return await self.executors.parse.run(parse_json_body, raw, counted)
 
-    # ------------------------------------------------------------------ post-processing
+    async def _decoded(self, fields: DetectFields, image: PostedImage) -> tuple[DecodedFrame, np.ndarray, bytes]:
+        """The image decoded (decode executor) into the model's frame ([S, S] float32 in [0, 1]), and the frame's
+        digest (what makes a retry the same frame)."""
+        check_posted_image(image, *self.image_rule)  # chunk headers only: hostile files never take a decode worker
+        decoded, digest = await self.executors.decode.run(_decode_and_digest, fields.pose, image, *self.image_rule)
+        return decoded, decoded.model_input(), digest
+
+    async def _turn(self, request: Request, ticket: Ticket, arrival: Arrival) -> StreamEntry:
+        """Once the same client's earlier frames still being parsed are placed (RAFD_ORDER_HOLD_S at most) and the
+        stream's earlier frames are done: the stream's entry, still this chain's."""
+        await self.order.wait_for_earlier(arrival.client, arrival.key)
+        await self.store.wait_turn(ticket)
+        if await request.is_disconnected():
+            raise ClientDisconnect()  # nobody to answer: the frame is dropped before it changes the stream
+        return self.store.check_turn(ticket)  # the chain may have ended while the disconnect was checked
+
+    def _chain(self, entry: StreamEntry, fields: DetectFields) -> Chain:
+        """The chain the frame continues: the stream's, or a new one when the stream's is not to be continued
+        (`chain_break`); 422 when the frame follows the stream's last one too closely."""
+        broken = self.chain_break(entry, fields)
+        poses.check_gap(entry.last_timestamp, fields.timestamp, self.settings.min_frame_gap_s)
+        if broken is not None:  # a new buffer, odometry world frame and pose source, from this frame
+            return Chain(self.runner.new_state(), None, None, None, None, broken)
+        return Chain(entry.state, entry.odometry, entry.last_pose, entry.pose_source, entry.last_timestamp)
+
+    def chain_break(self, entry: StreamEntry, fields: DetectFields) -> RestartReason | None:
+        """Why the chain held here must not be continued by this frame, from the stream's own evidence; None to
+        continue it. `gap`: more than RAFD_STREAM_GAP_RESTART_S seconds of timestamps since its last frame (frames
+        missing here, e.g. sent to another replica meanwhile). `previous_timestamp_mismatch`: the client names
+        another frame as its previous one than the chain's last (the frames in between went elsewhere)."""
+        if not entry.frames_seen or entry.last_timestamp is None:
+            return None  # a new chain: nothing to break
+        limit = self.settings.stream_gap_restart_s
+        if limit > 0 and fields.timestamp - entry.last_timestamp > limit:
+            return "gap"
+        if fields.previous_timestamp is not None and fields.previous_timestamp != entry.last_timestamp:
+            return "previous_timestamp_mismatch"
+        return None
+
+    async def _locate(self, fields: DetectFields, decoded: DecodedFrame, chain: Chain) -> FramePose:
+        """The frame's world pose; 422 when it is further from the chain's last pose than a road vehicle goes (a
+        forged pose, a degenerate scan), which would bend the chain for good."""
+        located = await self._pose(fields, decoded, chain)
+        poses.check_motion(
+            chain.last_pose, chain.last_timestamp, located.pose, fields.timestamp, self.settings.max_speed_mps
+        )
+        return located
+
+    async def _pose(self, fields: DetectFields, decoded: DecodedFrame, chain: Chain) -> FramePose:
+        """The request's pose; without one, the origin on a chain's first frame (it anchors the chain's odometry world
+        frame), else odometry's from the chain's last frame (odometry executor)."""
+        if fields.pose is None and chain.odometry is not None and chain.last_pose is not None:
+            pose, memory = await self.executors.odometry.run(
+                poses.odometry_pose,
+                chain.last_pose,
+                chain.odometry,
+                decoded.odometry_view,
+                fields.timestamp,
+                decoded.sweep,
+                self.config.resolution,
+                self._odometry,
+            )
+            return FramePose(pose, "odometry", memory)
+        memory = poses.remember(decoded.odometry_view, fields.timestamp, decoded.sweep)
+        if fields.pose is None:
+            return FramePose(np.zeros(3), "odometry", memory)
+        poses.check_request_pose(chain.pose_source)
+        return FramePose(np.array([fields.pose.x, fields.pose.y, fields.pose.yaw]), "request", memory)
+
+    # ------------------------------------------------------------------ the answer
     def _answer(
         self,
         fields: DetectFields,
         decoded: DecodedFrame,
         result: Any,
-        pose: np.ndarray,
-        source: str,
-        previous_timestamp: float | None,
+        located: FramePose,
+        chain: Chain,
         options: DetectOptions,
-        previous_pose: np.ndarray | None = None,
-    ) -> dict[str, Any]:
-        cfg = self.config
-        frames_used = int(result.frames_used)
-        metadata = self.runner.metadata
-        return {
-            "stream_id": fields.stream_id,
-            "timestamp": fields.timestamp,
-            "frames_used": frames_used,
-            "num_frames": cfg.num_frames,
-            "warming_up": warming_up(frames_used, cfg.num_frames),
-            "pose_source": source,
-            "pose": {"x": float(pose[0]), "y": float(pose[1]), "yaw": float(pose[2])},
-            "boxes": self._boxes(result, decoded.posted_size),
-            "flow": self._flow(result, decoded, previous_timestamp, fields.timestamp, options, previous_pose, pose),
-            "input": {
-                "posted_size": decoded.posted_size,
-                "model_size": cfg.input_size,
-                "crop_offset_px": decoded.crop_offset,
-                "posted_format": decoded.posted_format,
-            },
-            "model": {
-                "version": metadata.get("version", "unknown"),
-                "checkpoint_sha256": metadata.get("checkpoint_sha256", "unknown"),
-                "runtime": self.runner.runtime,
-                "precision": self.runner.precision,
-            },
-        }
+        restarted: RestartReason | None,
+        clock: StageClock,
+    ) -> DetectResponse:
+        """The answer, built unvalidated (`model_construct`): its parts are the service's own, and the flow's list
+        form stays a numpy array that orjson writes (DetectResponse.to_json). Fields left unset are not sent."""
+        frames_used, num_frames = int(result.frames_used), self.config.num_frames
+        pose = located.pose
+        # stream_restarted: only on the first answer of a chain the service restarted, saying why
+        restart: dict[str, Any] = {} if restarted is None else {"stream_restarted": restarted}
+        return DetectResponse.model_construct(
+            stream_id=fields.stream_id,
+            timestamp=fields.timestamp,
+            frames_used=frames_used,
+            num_frames=num_frames,
+            warming_up=warming_up(frames_used, num_frames),
+            pose_source=located.source,
+            pose=Pose.model_construct(x=float(pose[0]), y=float(pose[1]), yaw=float(pose[2])),
+            boxes=self._boxes(result, decoded.posted_size),
+            flow=self._flow(result, decoded, chain, located, fields.timestamp, options),
+            input=InputOut.model_construct(
+                posted_size=decoded.posted_size,
+                model_size=self.config.input_size,
+                crop_offset_px=decoded.crop_offset,
+                posted_format=decoded.posted_format,
+            ),
+            model=self._model_ref(),
+            **restart,
+            timing=clock.timing(),  # last: the post stage ends once the rest is built
+        )
 
-    def _boxes(self, result: Any, posted_size: int) -> list[dict[str, Any]]:
+    def _model_ref(self) -> ModelRef:
+        metadata = self.runner.metadata
+        return ModelRef.model_construct(
+            version=metadata.get("version", "unknown"),
+            checkpoint_sha256=metadata.get("checkpoint_sha256", "unknown"),
+            runtime=self.runner.runtime,
+            precision=self.runner.precision,
+        )
+
+    def _boxes(self, result: Any, posted_size: int) -> list[BoxOut]:
         detections = decode_detections(result.boxes, result.scores, self.score_threshold)
         polygons = box_polygons_pixels(detections.boxes, posted_size, self.config.resolution)  # [N, 4, 2]
         names = self.config.class_names
-        out = []
-        for box, score, label, polygon in zip(detections.boxes, detections.scores, detections.labels, polygons):
-            out.append(
+        # Validated, unlike the rest of the answer: validating these few numbers at once is faster than
+        # model_construct on each box.
+        return _BOXES.validate_python(
+            [
                 {
                     # 0.1 mm and 1e-5 rad: far below the radar's 17 cm pixels, keeps the JSON short
                     "x": round(float(box[0]), 4),
@@ -353,30 +477,31 @@ class DetectService:
                     "score": round(float(score), 5),
                     "class_id": int(label),
                     "class": names[label] if label < len(names) else str(label),
-                    "polygon": np.round(polygon, 2).tolist(),
+                    "polygon": polygon,
                 }
-            )
-        return out
+                # the polygons rounded at once: the same numbers as box by box, in a sixth of the time
+                for box, score, label, polygon in zip(
+                    detections.boxes, detections.scores, detections.labels, np.round(polygons, 2).tolist()
+                )
+            ]
+        )
 
     def _flow(
         self,
         result: Any,
         decoded: DecodedFrame,
-        previous_timestamp: float | None,
+        chain: Chain,
+        located: FramePose,
         timestamp: float,
         options: DetectOptions,
-        previous_pose: np.ndarray | None = None,
-        pose: np.ndarray | None = None,
-    ) -> dict[str, Any] | None:
+    ) -> FlowOut | None:
         """The newest pair's flow [2, Hf, Wf] and its validity [Hf, Wf]; None when not asked for or no real pair
         exists yet."""
         if not options.flow or result.flow is None or result.frames_used < 2:
             return None
         flow = np.asarray(result.flow)[-1]  # [T-1, 2, Hf, Wf] -> [2, Hf, Wf] newest pair
         _, height, width = flow.shape
-        stride = self.config.input_size // height
-        cell = self.config.cell_size
-        steps = self.validity_steps(previous_pose, pose, result.frames_used, height)  # [Hf, Wf] of k / 100
+        steps = self.validity_steps(chain.last_pose, located.pose, result.frames_used, height)  # [Hf, Wf] of k / 100
         if options.flow_format == "base64":
             values: Any = base64.b64encode(flow.astype("<f2").tobytes()).decode("ascii")
             validity: Any = base64.b64encode(_VALIDITY_FLOAT16.take(steps).tobytes()).decode("ascii")
@@ -387,25 +512,26 @@ class DetectService:
             values = np.round(flow.astype(np.float64), 3)
             validity = _VALIDITY_FLOAT32.take(steps)
             encoding = "list"
-        return {
-            "pair": [previous_timestamp, timestamp],
-            "shape": [2, height, width],
-            "units": "m",
-            "axes": FLOW_AXES,
-            "grid": {
-                "height": height,
-                "width": width,
-                "cell_size_m": cell,
-                "stride_px": stride,
-                "origin_px": [decoded.crop_offset, decoded.crop_offset],
-                "cell_centre_rule": CELL_RULE,
-            },
-            "encoding": encoding,
-            "values": values,
-            "validity": validity,
-            "validity_min": FLOW_VALID_MIN,
-            "search_reach_m": round(self.flow_reach_m, 4),
-        }
+        grid = FlowGrid.model_construct(
+            height=height,
+            width=width,
+            cell_size_m=self.config.cell_size,
+            stride_px=self.config.input_size // height,
+            origin_px=[decoded.crop_offset, decoded.crop_offset],
+            cell_centre_rule=CELL_RULE,
+        )
+        return FlowOut.model_construct(
+            pair=[chain.last_timestamp, timestamp],
+            shape=[2, height, width],
+            units="m",
+            axes=FLOW_AXES,
+            grid=grid,
+            encoding=encoding,
+            values=values,
+            validity=validity,
+            validity_min=FLOW_VALID_MIN,
+            search_reach_m=round(self.flow_reach_m, 4),
+        )
 
     def validity_steps(
         self, previous_pose: np.ndarray | None, pose: np.ndarray | None, frames_used: int, feature_size: int
@@ -437,7 +563,7 @@ def _decode_and_digest(pose: Pose | None, image: bytes | str, *decode_args: Any)
     return decode_frame(image, *decode_args), frame_digest(pose, image)
 
 
-def _replay_or_refuse(entry: StreamEntry, timestamp: float, digest: bytes) -> dict[str, Any] | None:
+def _replay_or_refuse(entry: StreamEntry, timestamp: float, digest: bytes) -> DetectResponse | None:
     """At the frame's turn: the last accepted frame's answer when this is that frame again; 409 when it has the last
     frame's timestamp but another image or pose; None for a new frame."""
     if entry.last_timestamp is None or timestamp != entry.last_timestamp:

@@ -3,6 +3,8 @@
 Every code the service can answer is in `ERRORS` (status and meaning); `ApiError` only takes a registered code,
 the OpenAPI responses are built from the registry (`error_responses`) and docs/api.md documents each code
 (a test checks all three agree). Messages are capped (`MAX_MESSAGE_CHARS`) so an error never grows with the input.
+Middleware that refuses before any route runs answers the same shape with `send_refusal`. A client is known by its
+address (`client_of`), which the refusal penalty and the per-client limits count.
 """
 
 from __future__ import annotations
@@ -13,12 +15,14 @@ from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from typing import Any
 
+import orjson
 from fastapi import FastAPI, Request
 from fastapi.exceptions import RequestValidationError
 from fastapi.responses import JSONResponse
 from starlette.exceptions import HTTPException as StarletteHTTPException
 from starlette.requests import ClientDisconnect
 from starlette.responses import Response
+from starlette.types import Scope, Send
 
 log = logging.getLogger(__name__)
 
@@ -156,6 +160,21 @@ def error_response(status: int, code: str, message: str, headers: Mapping[str, s
     return JSONResponse(error_body(code, message), status_code=status, headers=dict(headers or {}))
 
 
+async def send_refusal(
+    send: Send, code: str, message: str, headers: Mapping[str, str] | None = None, close: bool = False
+) -> None:
+    """Answer a refusal straight on the ASGI `send`, for middleware that refuses before any route runs: the
+    registered code's status and the one error shape. `close`: say `Connection: close` (the request's body is not
+    read, so the connection cannot carry another request)."""
+    body = orjson.dumps(error_body(code, message))
+    fields = [(b"content-type", b"application/json"), (b"content-length", str(len(body)).encode())]
+    fields += [(name.lower().encode("latin-1"), value.encode("latin-1")) for name, value in (headers or {}).items()]
+    if close:
+        fields.append((b"connection", b"close"))
+    await send({"type": "http.response.start", "status": ERRORS[code].status, "headers": fields})
+    await send({"type": "http.response.body", "body": body})
+
+
 def format_validation_errors(errors: Sequence[Mapping[str, Any]]) -> str:
     """Pydantic errors -> one short line: `field.path: reason; ...` (at most MAX_LISTED_ERRORS, names capped)."""
     parts = []
@@ -227,13 +246,16 @@ async def penalise(app: Any, client: str) -> None:
             await asyncio.sleep(delay)
 
 
-def client_host(request: Request) -> str:
-    return request.client.host if request.client else "unknown"
+def client_of(scope: Scope) -> str:
+    """The client's address, what its request limit and refusal penalty are counted by: behind a trusted proxy, its
+    X-Forwarded-For as uvicorn resolves it into the scope."""
+    client = scope.get("client")
+    return str(client[0]) if client else "unknown"
 
 
 async def _api_error(request: Request, exc: ApiError) -> JSONResponse:
     if exc.code in PENALISED_CODES:
-        await penalise(request.app, client_host(request))
+        await penalise(request.app, client_of(request.scope))
     return error_response(exc.status, exc.code, exc.message, exc.headers)
 
 
@@ -246,7 +268,7 @@ async def _http_error(request: Request, exc: StarletteHTTPException) -> JSONResp
 
 
 async def _validation_error(request: Request, exc: RequestValidationError) -> JSONResponse:
-    await penalise(request.app, client_host(request))
+    await penalise(request.app, client_of(request.scope))
     return error_response(422, "validation_error", format_validation_errors(list(exc.errors())))
 
 

@@ -33,7 +33,7 @@ from rafd.native import (
 )
 from rafd.native import to_cartesian as native_to_cartesian
 from rafd.polar import RADIATE_AZIMUTHS, RADIATE_RANGE_BINS
-from rafd.preprocess import model_crop, polar_to_cartesian, to_model_input
+from rafd.preprocess import polar_to_cartesian, to_model_input
 from service import png
 from service.errors import ApiError
 
@@ -175,6 +175,18 @@ def decode_frame(
         raise ApiError("invalid_image", f"the image could not be decoded ({type(exc).__name__})") from exc
 
 
+def _centre_crop(scan_top: np.ndarray, size: int) -> np.ndarray:
+    """[R, N] top rows (R <= N) of an [N, N] scan centred on the radar -> its [size, size] centre crop, which must
+    lie within those rows (the Cartesian path decodes only down to the odometry view's last row)."""
+    side = scan_top.shape[1]
+    if (side - size) % 2:
+        raise ValueError(f"a {side} px scan cannot be centre-cropped to {size} px (odd difference)")
+    top = (side - size) // 2
+    if top + size > scan_top.shape[0]:
+        raise ValueError(f"the {size} px centre crop reaches below the {scan_top.shape[0]} rows decoded")
+    return np.ascontiguousarray(scan_top[top : top + size, top : top + size])
+
+
 def _decode_frame(image: PostedImage, input_size: int, resolution: float, native: NativeShape) -> DecodedFrame:
     layout = check_posted_image(image, input_size, resolution, native)
     if isinstance(image, str):
@@ -184,10 +196,14 @@ def _decode_frame(image: PostedImage, input_size: int, resolution: float, native
             raise ApiError("invalid_image", f"field 'image' is not valid base64: {exc}") from exc
     else:
         data = image
-    bounded = png.bounded_png(data, layout)  # inflated size checked; ancillary chunks dropped
-    decoded = cv2.imdecode(np.frombuffer(bounded, np.uint8), cv2.IMREAD_UNCHANGED)
+    header = layout.header
+    square = header.width == header.height
+    # A square scan is read only down to the odometry view's last row: the rows below are never unfiltered.
+    view_side = max(input_size, min(header.width, ODOMETRY_VIEW_SIZE))
+    rows = (header.height + view_side) // 2 if square else header.height
+    decoded = cv2.imdecode(np.frombuffer(png.decoder_png(data, layout, rows), np.uint8), cv2.IMREAD_UNCHANGED)
     if decoded is None:
-        raise ApiError("invalid_image", "the PNG could not be decoded (corrupt chunk CRC or image data)")
+        raise ApiError("invalid_image", "the PNG could not be decoded (corrupt image data)")
     if decoded.ndim != 2 or decoded.dtype != np.uint8:  # the header said 8-bit greyscale: a decoder mismatch
         raise ApiError("unsupported_image_format", f"decoded {decoded.dtype} {decoded.shape}; expected 8-bit grey")
     posted_format = "cartesian"
@@ -199,7 +215,7 @@ def _decode_frame(image: PostedImage, input_size: int, resolution: float, native
     if decoded.shape == POLAR_SHAPE:  # the size check let it through: polar scans are accepted here
         width, posted_format = RADIATE_SCAN_SIZE, "polar"
         decoded = polar_to_cartesian(decoded, min(converted, width))  # [576, 400] -> [V, V] uint8
-    elif decoded.shape[0] != decoded.shape[1]:  # a native scan (the size check let only these through)
+    elif not square:  # a native scan (the size check let only these through)
         try:
             scan = parse_native_scan(decoded, native_format_name(decoded.shape[1]))
         except ValueError as exc:
@@ -207,9 +223,9 @@ def _decode_frame(image: PostedImage, input_size: int, resolution: float, native
         width, posted_format = RADIATE_SCAN_SIZE, "native"
         decoded = native_to_cartesian(scan, min(converted, width))  # [A, 11 + R] -> [V, V] uint8
         sweep = (scan.timestamps_us, scan.azimuths)
-    view = model_crop(decoded, max(input_size, min(width, ODOMETRY_VIEW_SIZE)))
+    view = _centre_crop(decoded, max(input_size, min(width, ODOMETRY_VIEW_SIZE)))
     return DecodedFrame(
-        crop=model_crop(decoded, input_size),
+        crop=_centre_crop(decoded, input_size),
         posted_size=width,
         crop_offset=(width - input_size) // 2,
         odometry_view=view,

@@ -20,11 +20,10 @@ import time
 from collections import Counter
 from collections.abc import Awaitable, Callable
 
-import orjson
 from starlette.types import ASGIApp, Message, Receive, Scope, Send
 
 from service.auth import OPEN_PATHS
-from service.errors import ApiError, error_body, penalise
+from service.errors import ApiError, client_of, penalise, send_refusal
 
 # An ASGI extension of the request's scope: scope["extensions"]["rafd.arrival"] = {"at": time.monotonic() of the
 # request's first byte (stamped by the server's protocol, service/protocol.py; else on entry here), "number": its
@@ -38,11 +37,6 @@ def arrival_of(scope: Scope) -> tuple[float, int]:
     if "number" not in arrival:
         return (time.monotonic(), 0)
     return (float(arrival["at"]), int(arrival["number"]))
-
-
-def client_of(scope: Scope) -> str:
-    client = scope.get("client")
-    return str(client[0]) if client else "unknown"
 
 
 async def _receive_within(receive: Receive, timeout: float) -> Message:
@@ -116,22 +110,14 @@ class IntakeMiddleware:
         return receive_at_rate
 
     async def _refuse(self, send: Send, has_body: bool) -> None:
-        body = orjson.dumps(
-            error_body(
-                "too_many_client_requests",
-                f"this client already has {self.max_per_client} unfinished requests "
-                f"(RAFD_MAX_REQUESTS_PER_CLIENT); retry after {self.retry_after_s} s",
-            )
+        await send_refusal(
+            send,
+            "too_many_client_requests",
+            f"this client already has {self.max_per_client} unfinished requests "
+            f"(RAFD_MAX_REQUESTS_PER_CLIENT); retry after {self.retry_after_s} s",
+            headers={"Retry-After": str(self.retry_after_s)},
+            close=has_body,  # not read: the connection closes after the answer (service/protocol.py)
         )
-        headers: list[tuple[bytes, bytes]] = [
-            (b"content-type", b"application/json"),
-            (b"content-length", str(len(body)).encode()),
-            (b"retry-after", str(self.retry_after_s).encode()),
-        ]
-        if has_body:  # not read: the connection closes after the answer (service/protocol.py)
-            headers.append((b"connection", b"close"))
-        await send({"type": "http.response.start", "status": 429, "headers": headers})
-        await send({"type": "http.response.body", "body": body})
 
 
 def _has_body(scope: Scope) -> bool:

@@ -3,18 +3,13 @@
 
 from __future__ import annotations
 
-import json
-
 from starlette.types import ASGIApp, Message, Receive, Scope, Send
+
+from service.errors import send_refusal
 
 
 class BodyTooLarge(Exception):
     """Raised from `receive` once the streamed body passes the limit."""
-
-
-def _too_large_body(limit: int) -> bytes:
-    message = f"request body exceeds the limit of {limit} bytes (RAFD_MAX_REQUEST_BYTES)"
-    return json.dumps({"error": {"code": "request_too_large", "message": message}}).encode()
 
 
 class BodySizeLimitMiddleware:
@@ -62,16 +57,5 @@ class BodySizeLimitMiddleware:
             await self._reject(send)
 
     async def _reject(self, send: Send) -> None:
-        body = _too_large_body(self.max_bytes)
-        await send(
-            {
-                "type": "http.response.start",
-                "status": 413,
-                "headers": [
-                    (b"content-type", b"application/json"),
-                    (b"content-length", str(len(body)).encode()),
-                    (b"connection", b"close"),
-                ],
-            }
-        )
-        await send({"type": "http.response.body", "body": body})
+        message = f"request body exceeds the limit of {self.max_bytes} bytes (RAFD_MAX_REQUEST_BYTES)"
+        await send_refusal(send, "request_too_large", message, close=True)  # the rest of the body is not read

@@ -1,27 +1,28 @@
 """Request and response models of the HTTP API.
 
-Answers are written by hand on the hot path (service.detector builds /detect's dict, orjson writes it); these models
-are their contract: the OpenAPI document is generated from them, and the tests validate real answers against them
-with unknown fields forbidden (`Answer`), so an answer cannot grow a field the schema does not declare.
+Answers are built as these models: the OpenAPI document is generated from them, and the tests validate real answers
+against them with unknown fields forbidden (`Answer`), so an answer cannot grow a field the schema does not declare.
+On the hot path /detect's answer is built without validation (service.detector, `model_construct`: its flow arrays
+stay numpy arrays) and orjson writes it (`DetectResponse.to_json`).
 """
 
 from __future__ import annotations
 
 from typing import Annotated, Any, Literal
 
+import orjson
 from pydantic import BaseModel, ConfigDict, Field
 
-# URL-path-safe, printable, no whitespace: the id also appears in DELETE /streams/{stream_id}; and neither "." nor
-# "..", which a normalising proxy rewrites as path segments (`/streams/../detect` would become `/detect`).
-STREAM_ID_PATTERN = (
-    r"^(?:[A-Za-z0-9_~:@+\-][A-Za-z0-9._~:@+\-]{0,127}"
-    r"|\.[A-Za-z0-9_~:@+\-][A-Za-z0-9._~:@+\-]{0,126}"
-    r"|\.\.[A-Za-z0-9._~:@+\-]{1,126})$"
-)
-STREAM_ID_RULE = '1-128 characters from A-Z a-z 0-9 . _ ~ : @ + -, and not "." or ".."'
+# The stream-id rule is defined once, in rafd.detect_client, where the clients build their requests from it
+# (URL-path-safe, printable, no whitespace, neither "." nor ".."); re-exported (`as`) for the routers' path and
+# header parameters.
+from rafd.detect_client import STREAM_ID_MAX_LENGTH as STREAM_ID_MAX_LENGTH
+from rafd.detect_client import STREAM_ID_PATTERN as STREAM_ID_PATTERN
+from rafd.detect_client import STREAM_ID_RULE
+
 StreamId = Annotated[
     str,
-    Field(min_length=1, max_length=128, pattern=STREAM_ID_PATTERN, description=STREAM_ID_RULE),
+    Field(min_length=1, max_length=STREAM_ID_MAX_LENGTH, pattern=STREAM_ID_PATTERN, description=STREAM_ID_RULE),
 ]
 
 # Physical ranges (422 `validation_error` beyond, the bound named): timestamps are seconds since the UNIX epoch from
@@ -165,13 +166,18 @@ class ModelRef(Answer):
     precision: str = Field(description="what it computed in: fp32 or bf16")
 
 
+# evicted / expired: the store ended the previous chain; gap / previous_timestamp_mismatch: the frame itself showed
+# that the chain held here is not its own (service/detector.py, `chain_break`), and it starts a new one.
+RestartReason = Literal["evicted", "expired", "gap", "previous_timestamp_mismatch"]
+
+
 class DetectResponse(Answer):
     stream_id: str
     timestamp: float
     frames_used: int
     num_frames: int
     warming_up: bool = Field(description="true while fewer than num_frames frames are buffered")
-    stream_restarted: Literal["evicted", "expired", "gap", "previous_timestamp_mismatch"] | None = Field(
+    stream_restarted: RestartReason | None = Field(
         default=None,
         description="present only on the first answer of a chain that the service restarted: the stream id's "
         "previous chain was evicted (its key's quota or the store's cap), expired (idle past RAFD_STREAM_TTL_S), "
@@ -192,6 +198,17 @@ class DetectResponse(Answer):
     input: InputOut
     model: ModelRef
     timing: TimingOut
+
+    def to_plain(self) -> dict[str, Any]:
+        """The answer as sent, before JSON: fields by their names in the API ("class"), those never set left out
+        (stream_restarted, replayed), the flow's arrays as built (numpy arrays for the list form: no warning that
+        they are not lists)."""
+        return self.model_dump(by_alias=True, exclude_unset=True, warnings=False)
+
+    def to_json(self) -> bytes:
+        # orjson writes a numpy array as the nested lists' very text, faster than .tolist() first
+        # (tests/service/test_detect.py), and a float32 validity as its shortest text (0.57).
+        return orjson.dumps(self.to_plain(), option=orjson.OPT_SERIALIZE_NUMPY)
 
 
 class StreamOut(Answer):

@@ -7,11 +7,12 @@ most `max_streams_per_key` streams and all owners together `max_streams`; a key 
 recently used idle stream, never another key's. Only streams with an accepted frame count: an entry made for
 frames still in flight, or whose frames were all refused, counts toward no cap.
 
-Arrival order: a frame takes a `Ticket` in its stream's queue at its place by ARRIVAL (when its request's first
-bytes arrived, `service.intake`): at once with the X-Stream-Id header or the path form, or once its body is parsed
-when only the body names the stream (it is then inserted ahead of frames that arrived after it and have not
-started; `service.ordering` holds those for a bounded time while it is parsed). Frames of one stream change the
-stream strictly in that order. A frame that can no longer be in order (its timestamp is not after the stream's last
+Arrival order: a frame holds a `Ticket` in its stream's queue at its place by ARRIVAL (when its request's first
+bytes arrived, `service.intake`) for its request's life (`queued`: taken on entry, released however the request
+ends): from the start with the X-Stream-Id header or the path form, or once its body is parsed when only the body
+names the stream (it is then inserted ahead of frames that arrived after it and have not started;
+`service.ordering` holds those for a bounded time while it is parsed). Frames of one stream change the stream
+strictly in that order. A frame that can no longer be in order (its timestamp is not after the stream's last
 accepted frame, or after that of a frame queued ahead of it) is refused at once instead of waiting its turn, except
 the same frame posted again (a retry after a lost answer, same timestamp): it waits its turn and gets the last
 frame's answer again when it is that frame (`replay_of`: same image and pose), else it is refused (409).
@@ -34,22 +35,21 @@ import itertools
 import math
 import time
 from collections import Counter, OrderedDict, deque
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
+from contextlib import contextmanager
 from dataclasses import dataclass, field
-from typing import TYPE_CHECKING, Any, Literal
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
 from service.errors import ApiError, timestamp_error
+from service.schemas import DetectResponse, RestartReason
 
 if TYPE_CHECKING:
     from service.poses import OdometryMemory
 
 StreamKey = tuple[str | None, str]  # (owner: the API key's name or None, stream id)
 ArrivalKey = tuple[float, int]  # (monotonic time of the request's first bytes, arrival sequence number)
-# evicted / expired: the store ended the previous chain; gap / previous_timestamp_mismatch: the frame itself showed
-# that the chain held here is not its own (service/detector.py, `chain_break`), and it starts a new one.
-RestartReason = Literal["evicted", "expired", "gap", "previous_timestamp_mismatch"]
 MIN_TOMBSTONES = 64  # per owner; at least 4x its quota (chains ended by eviction or expiry, remembered for a notice)
 
 
@@ -86,7 +86,7 @@ class StreamEntry:
     # The last accepted frame's identity (digest of its image and pose) and its answer: the same frame posted again
     # (a retry after a lost answer) is answered with that answer, not refused and not stepped twice.
     last_digest: bytes | None = None
-    last_answer: dict[str, Any] | None = None
+    last_answer: DetectResponse | None = None
 
     @property
     def key(self) -> StreamKey:
@@ -118,12 +118,12 @@ class StreamEntry:
         self.last_digest = digest
         self.last_answer = None  # set once the answer is complete (`remember_answer`)
 
-    def remember_answer(self, timestamp: float, digest: bytes | None, answer: dict[str, Any]) -> None:
+    def remember_answer(self, timestamp: float, digest: bytes | None, answer: DetectResponse) -> None:
         """Keep the answer of the frame just accepted (when it is still the last one) for a retry of it."""
         if digest is not None and timestamp == self.last_timestamp and digest == self.last_digest:
             self.last_answer = answer
 
-    def replay_of(self, timestamp: float, digest: bytes | None) -> dict[str, Any] | None:
+    def replay_of(self, timestamp: float, digest: bytes | None) -> DetectResponse | None:
         """The last accepted frame's answer when this frame is that frame again (same timestamp and digest)."""
         if digest is None or self.last_answer is None or timestamp != self.last_timestamp:
             return None
@@ -221,6 +221,16 @@ class StreamStore:
         return entry if entry is not None and entry.frames_seen else None
 
     # ------------------------------------------------------------------ a frame's life
+    @contextmanager
+    def queued(self, stream_id: str, owner: str | None = None, arrival: ArrivalKey | None = None) -> Iterator[Ticket]:
+        """The frame's place in its stream's queue (`take_ticket`) for the request's life, left (`release`) however
+        the request ends."""
+        ticket = self.take_ticket(stream_id, owner, arrival)
+        try:
+            yield ticket
+        finally:
+            self.release(ticket)
+
     def take_ticket(self, stream_id: str, owner: str | None = None, arrival: ArrivalKey | None = None) -> Ticket:
         """A place in the stream's queue by arrival (creating the stream's entry when new); changes nothing else.
 

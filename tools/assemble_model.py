@@ -18,8 +18,8 @@ from pathlib import Path
 
 def assemble(single: Path, multi: Path, out: Path) -> dict[str, int]:
     """Write OUT -> how many tensors came from each model; ValueError when the two networks differ."""
-    from rafd.checkpoint import read_checkpoint, save_checkpoint
     from rafd.model import build_model
+    from rafd.model.checkpoint import read_checkpoint, save_checkpoint
     from rafd.protocol import OPERATING_THRESHOLD_KEY
 
     single_state, single_cfg, single_meta = read_checkpoint(single)

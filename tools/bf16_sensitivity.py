@@ -23,7 +23,7 @@ import torch
 from torch import nn
 
 from export.gate import SourceFigures, compare_frame
-from rafd.checkpoint import load_checkpoint
+from rafd.model.checkpoint import load_checkpoint
 from rafd.protocol import operating_threshold
 from rafd.runtime.streaming import StepResult
 

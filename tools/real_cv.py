@@ -101,7 +101,7 @@ def pooled(scans: Sequence[ScanCounts], resamples: int = 2000, seed: int = 0) ->
 
 def calibrated_threshold(checkpoint: Path) -> float:
     """The operating threshold rafd eval --calibrate wrote into the checkpoint's meta."""
-    from rafd.checkpoint import read_checkpoint
+    from rafd.model.checkpoint import read_checkpoint
     from rafd.protocol import OPERATING_THRESHOLD_KEY
 
     return float(read_checkpoint(checkpoint)[2][OPERATING_THRESHOLD_KEY])

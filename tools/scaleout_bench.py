@@ -12,30 +12,27 @@ that add up to no more than the machine). Standard library only (plus the servic
 from __future__ import annotations
 
 import argparse
-import base64
-import json
 import statistics
 import sys
 import tempfile
 import threading
 import time
-import urllib.request
 from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 
+from rafd.detect_client import FrameFields, base64_png, detect_request, json_body, post
 from tools.loopback import LoopbackCluster
 
 
 def run_load(url: str, scans: list[Path], streams: int, frames: int) -> tuple[float, list[float], dict[str, int]]:
     """(wall seconds, per-request latencies in seconds, {replica: frames answered})."""
-    bodies = [
+    # The stream named only in X-Stream-Id (the header nginx hashes on), as a client that routes on it may.
+    requests = [
         [
-            json.dumps(
-                {
-                    "timestamp": 1000.0 + t,
-                    "image": base64.b64encode(scans[(k * frames + t) % len(scans)].read_bytes()).decode("ascii"),
-                }
-            ).encode()
+            detect_request(
+                json_body(FrameFields(1000.0 + t), base64_png(scans[(k * frames + t) % len(scans)].read_bytes())),
+                header_stream_id=f"bench-{k}",
+            )
             for t in range(frames)
         ]
         for k in range(streams)
@@ -46,16 +43,10 @@ def run_load(url: str, scans: list[Path], streams: int, frames: int) -> tuple[fl
     lock = threading.Lock()
 
     def client(k: int) -> None:
-        for body in bodies[k]:
-            request = urllib.request.Request(
-                f"{url}/detect",
-                data=body,
-                method="POST",
-                headers={"content-type": "application/json", "x-stream-id": f"bench-{k}"},
-            )
+        for request in requests[k]:
             start = time.perf_counter()
             try:
-                with urllib.request.urlopen(request, timeout=120) as response:
+                with post(url, request, timeout=120) as response:
                     response.read()
                     replica = response.headers["X-RaFD-Replica"].split(", ")[-1]  # the one that answered
             except OSError as exc:

@@ -16,9 +16,7 @@ Imports no torch.
 from __future__ import annotations
 
 import argparse
-import base64
 import http.client
-import json
 import os
 import statistics
 import subprocess
@@ -27,9 +25,9 @@ import time
 from dataclasses import dataclass, field
 from typing import Any
 
-import cv2
 import numpy as np
 
+from rafd import detect_client
 from rafd.bench.server import cpu_seconds, free_port, wait_ready
 from rafd.config import RaFDConfig
 
@@ -120,32 +118,29 @@ class Server:
     cpu_ms: dict[str, list[float]] = field(default_factory=lambda: {kind: [] for kind in KINDS})
 
 
-def frame_body(server: Server) -> bytes:
+def frame_request(server: Server) -> detect_client.DetectRequest:
+    """The server's next frame: a 128 px scan with a moving spot and a pose, as JSON, without the flow."""
     server.frames += 1
     image = np.zeros((128, 128), np.uint8)
     image[32:40, 32 + server.frames % 64 : 40 + server.frames % 64] = 200
-    ok, encoded = cv2.imencode(".png", image)
-    assert ok
-    body = {
-        "stream_id": f"overhead-{server.variant}",
-        "timestamp": float(server.frames),
-        "pose": {"x": 0.1 * server.frames, "y": 0.0, "yaw": 0.0},
-        "image": base64.b64encode(encoded.tobytes()).decode("ascii"),
-    }
-    return json.dumps(body).encode()
+    fields = detect_client.FrameFields(
+        float(server.frames), f"overhead-{server.variant}", (0.1 * server.frames, 0.0, 0.0)
+    )
+    return detect_client.detect_request(
+        detect_client.json_body(fields, detect_client.base64_png(detect_client.png_bytes(image))), flow=False
+    )
 
 
 def request(server: Server, kind: str) -> None:
     if kind == "GET /health/live":
         server.connection.request("GET", "/health/live")
+        response = server.connection.getresponse()
+        response.read()
+        status = response.status
     else:
-        server.connection.request(
-            "POST", "/detect?flow=false", body=frame_body(server), headers={"Content-Type": "application/json"}
-        )
-    response = server.connection.getresponse()
-    response.read()
-    if response.status != 200:
-        raise RuntimeError(f"{server.variant}: {kind} answered {response.status}")
+        status, _ = detect_client.exchange(server.connection, frame_request(server))
+    if status != 200:
+        raise RuntimeError(f"{server.variant}: {kind} answered {status}")
 
 
 def block(server: Server, kind: str, requests: int) -> None:
@@ -186,7 +181,7 @@ def main(argv: list[str] | None = None) -> int:
                 [sys.executable, "-m", "tools.server_overhead", "--serve", variant, "--port", str(port)],
                 env={k: v for k, v in os.environ.items() if not k.startswith("RAFD_")},
             )
-            servers.append(Server(variant, process, port, http.client.HTTPConnection(HOST, port, timeout=30)))
+            servers.append(Server(variant, process, port, detect_client.connect(f"http://{HOST}:{port}", timeout=30)))
             wait_ready(f"http://{HOST}:{port}", process, timeout=120.0)
         for round_ in range(args.rounds):
             for server in servers[round_ % len(servers) :] + servers[: round_ % len(servers)]:

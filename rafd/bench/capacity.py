@@ -11,8 +11,6 @@ Standard library and numpy only (the service runs in its own process).
 
 from __future__ import annotations
 
-import base64
-import http.client
 import json
 import threading
 import time
@@ -20,11 +18,11 @@ from collections.abc import Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
-from urllib.parse import urlsplit
 
 import cv2
 import numpy as np
 
+from rafd import detect_client
 from rafd.bench.timing import percentile
 from rafd.preprocess import model_crop
 
@@ -56,13 +54,7 @@ class Frames:
 
 def encode_frames(scans: Sequence[np.ndarray], crop: int | None = None) -> Frames:
     """PNG bytes of every scan, whole or centre-cropped to `crop` pixels (the model's input size)."""
-    bodies = []
-    for scan in scans:
-        image = scan if crop is None else model_crop(scan, crop)
-        ok, data = cv2.imencode(".png", image)
-        if not ok:
-            raise RuntimeError("PNG encoding failed")
-        bodies.append(data.tobytes())
+    bodies = [detect_client.png_bytes(scan if crop is None else model_crop(scan, crop)) for scan in scans]
     size = scans[0].shape[0] if crop is None else crop
     return Frames(bodies, size, f"{size} px {'scans' if crop is None else 'crops'}")
 
@@ -103,33 +95,16 @@ class Level:
 
 
 def _request(
-    body: bytes, stream: str, timestamp: float, pose: tuple[float, float, float] | None, multipart: bool
-) -> tuple[str, bytes, dict[str, str]]:
-    """(path, body, headers) of one POST /detect."""
-    if multipart:
-        boundary = "capacitybenchboundary"
-        fields = {"stream_id": stream, "timestamp": repr(timestamp)}
-        if pose is not None:
-            fields |= {"pose_x": repr(pose[0]), "pose_y": repr(pose[1]), "pose_yaw": repr(pose[2])}
-        parts = [
-            f'--{boundary}\r\nContent-Disposition: form-data; name="{k}"\r\n\r\n{v}\r\n'.encode()
-            for k, v in fields.items()
-        ]
-        parts.append(
-            f'--{boundary}\r\nContent-Disposition: form-data; name="image"; filename="scan.png"\r\n'
-            "Content-Type: image/png\r\n\r\n".encode()
-            + body
-            + f"\r\n--{boundary}--\r\n".encode()
-        )
-        return "/detect?flow=false", b"".join(parts), {"Content-Type": f"multipart/form-data; boundary={boundary}"}
-    payload: dict[str, Any] = {
-        "stream_id": stream,
-        "timestamp": timestamp,
-        "image": base64.b64encode(body).decode("ascii"),
-    }
-    if pose is not None:
-        payload["pose"] = {"x": pose[0], "y": pose[1], "yaw": pose[2]}
-    return "/detect?flow=false", json.dumps(payload).encode(), {"Content-Type": "application/json"}
+    png: bytes, stream: str, timestamp: float, pose: tuple[float, float, float] | None, multipart: bool
+) -> detect_client.DetectRequest:
+    """One POST /detect of the load, without the flow (the answer's flow is not what is measured)."""
+    fields = detect_client.FrameFields(timestamp, stream, pose)
+    body = (
+        detect_client.multipart_body(fields, png)
+        if multipart
+        else detect_client.json_body(fields, detect_client.base64_png(png))
+    )
+    return detect_client.detect_request(body, flow=False)
 
 
 def run_level(
@@ -143,31 +118,30 @@ def run_level(
     tag: str = "cap",
 ) -> Level:
     """`streams` streams at 1 / period_s frames per second for `seconds`, open loop -> the level's outcome."""
-    address = urlsplit(url)
     level = Level(streams)
     lock = threading.Lock()
     count = max(1, int(round(seconds / period_s)))
-    requests = []  # (due offset s, path, body, headers)
+    requests: list[tuple[float, detect_client.DetectRequest]] = []  # (due offset s, request)
     run_id = f"{tag}-{int(time.time() * 1000) % 10**9}-{streams}"
     for s in range(streams):
         for k in range(count):
             j = k % len(frames.bodies)
-            pose = None if poses is None else (float(poses[j, 0]), float(poses[j, 1]), float(poses[j, 2]))
+            pose = None if poses is None else detect_client.pose_of(poses[j])
             due = (s / streams + k) * period_s
-            requests.append((due, *_request(frames.bodies[j], f"{run_id}-{s}", 1000.0 + k * period_s, pose, multipart)))
+            requests.append((due, _request(frames.bodies[j], f"{run_id}-{s}", 1000.0 + k * period_s, pose, multipart)))
     requests.sort(key=lambda r: r[0])
 
-    def post(due: float, path: str, body: bytes, headers: dict[str, str], start: float) -> None:
-        connection = http.client.HTTPConnection(address.hostname or "127.0.0.1", address.port, timeout=120.0)
+    def post(due: float, request: detect_client.DetectRequest, start: float) -> None:
+        connection = detect_client.connect(
+            url, timeout=120.0
+        )  # one per request: a sensor's frames do not wait for each other
         try:
-            connection.request("POST", path, body, headers)
-            response = connection.getresponse()
-            text = response.read()
+            status, text = detect_client.exchange(connection, request)
             elapsed = time.perf_counter() - (start + due)
             with lock:
-                level.statuses[response.status] = level.statuses.get(response.status, 0) + 1
+                level.statuses[status] = level.statuses.get(status, 0) + 1
                 level.latencies_s.append(elapsed)
-                if response.status == 200:
+                if status == 200:
                     level.timings.append(json.loads(text)["timing"])
                 elif len(level.errors) < 5:
                     level.errors.append(text[:200].decode(errors="replace"))
@@ -181,11 +155,11 @@ def run_level(
 
     threads = []
     start = time.perf_counter()
-    for due, path, body, headers in requests:
+    for due, request in requests:
         delay = start + due - time.perf_counter()
         if delay > 0:
             time.sleep(delay)
-        thread = threading.Thread(target=post, args=(due, path, body, headers, start), daemon=True)
+        thread = threading.Thread(target=post, args=(due, request, start), daemon=True)
         thread.start()
         threads.append(thread)
     for thread in threads:

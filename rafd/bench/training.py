@@ -81,11 +81,11 @@ def run_loader(
 
     from rafd.config import RaFDConfig
     from rafd.data import RadarWindowDataset
+    from rafd.data.collate import Collator
     from rafd.data.dataset import select_sequences
     from rafd.data.ego_motion import write_poses
     from rafd.data.prepare import prepare_root
     from rafd.sim import simulate_dataset
-    from rafd.train.collate import Collator
 
     work = Path(work or tempfile.mkdtemp(prefix="rafd-loader-"))
     root, cache = work / "root", work / "cache"
@@ -152,8 +152,8 @@ def run_loader(
 def _training_batch(cfg, batch_size: int):
     """A batch of real simulated windows (objects, flow targets) at cfg's size."""
     from rafd.data import RadarWindowDataset
+    from rafd.data.collate import Collator
     from rafd.sim import simulate_dataset
-    from rafd.train.collate import Collator
 
     with tempfile.TemporaryDirectory() as folder:
         simulate_dataset(folder, 1, cfg.num_frames + batch_size, seed=3, split="train", size=cfg.input_size + 64)
@@ -191,8 +191,8 @@ def step_times(cfg, batch_size: int, steps: int) -> dict[str, float]:
 def loss_curves(steps: int, log_every: int) -> dict[str, list[dict]]:
     """The tiny recipe on a small simulated root for `steps` steps in fp32 and bf16 from one seed -> curves."""
     from rafd.config import RaFDConfig
+    from rafd.data.windows import open_windows
     from rafd.sim import simulate_dataset
-    from rafd.train.datasets import open_windows
     from rafd.train.distributed import DistContext
     from rafd.train.trainer import TrainConfig, Trainer
 
@@ -226,7 +226,7 @@ def run_precision(steps: int, curve_steps: int, threads: int, json_path: Path | 
     import torch
 
     from rafd.config import RaFDConfig
-    from rafd.train.precision import cpu_has_bf16
+    from rafd.model.precision import cpu_has_bf16
 
     torch.set_num_threads(threads)
     print(f"\nprecision benchmark: {threads} threads, CPU bf16 units: {cpu_has_bf16()}")

@@ -24,12 +24,10 @@ Each retry is logged on stderr and counted in the closing summary.
 from __future__ import annotations
 
 import argparse
-import base64
 import functools
 import http.client
 import json
 import os
-import re
 import secrets
 import sys
 import time
@@ -47,6 +45,19 @@ from rafd import progress
 from rafd.cli import flags
 from rafd.data.native_folder import NativeSource
 from rafd.data.reader import RadarFrame
+from rafd.detect_client import (
+    STREAM_ID_MAX_LENGTH,
+    FrameFields,
+    api_key_header,
+    base64_png,
+    detect_request,
+    json_body,
+    png_bytes,
+    pose_of,
+    post,
+    stream_header,
+    stream_id_from,
+)
 from rafd.geometry import RADIATE_RESOLUTION, RADIATE_SCAN_SIZE
 from rafd.polar import RADIATE_AZIMUTHS, RADIATE_RANGE_BINS
 
@@ -72,10 +83,7 @@ class ClientFrame:
         scan = self.source.load()
         if self.source.polar is None:
             return scan, self.source.image_path.read_bytes()
-        ok, encoded = cv2.imencode(".png", scan)
-        if not ok:
-            raise OSError(f"could not encode the converted scan of {self.source.image_path}")
-        return scan, encoded.tobytes()
+        return scan, png_bytes(scan)
 
     def posted_png(self, scan_png: bytes) -> bytes:
         """The PNG to post: a RADIATE polar scan or a native scan (Oxford, Boreas) as it is on disk when it was
@@ -126,7 +134,6 @@ class ServiceError(RuntimeError):
         self.code = code  # the service's error code, when it answered one
 
 
-STREAM_ID_UNSAFE = re.compile(r"[^A-Za-z0-9._~:@+-]")
 RUN_ID_HEX = 6  # characters of the run id appended to the sequence name
 
 
@@ -134,18 +141,7 @@ def new_stream_id(sequence_name: str) -> str:
     """The stream of one run: the sequence's name (characters a stream id may not hold replaced) plus a fresh run
     id, so running the same sequence again starts a new stream instead of colliding with the last run's."""
     run_id = secrets.token_hex(RUN_ID_HEX // 2)
-    return STREAM_ID_UNSAFE.sub("_", sequence_name)[: 128 - RUN_ID_HEX - 1] + "-" + run_id
-
-
-def _headers(api_key: str | None) -> dict[str, str]:
-    return {"x-api-key": api_key} if api_key else {}
-
-
-def _stream_header(stream_id: str) -> dict[str, str]:
-    """The stream named outside the body too: routers that keep a stream on one replica hash on this header
-    (deploy/nginx.conf, deploy/kubernetes/ingress.yaml), and the service takes the frame's place in the stream
-    before its body is read."""
-    return {"X-Stream-Id": stream_id}
+    return stream_id_from(sequence_name)[: STREAM_ID_MAX_LENGTH - RUN_ID_HEX - 1] + "-" + run_id
 
 
 def _error_of(exc: urllib.error.HTTPError) -> tuple[str | None, str]:
@@ -161,7 +157,7 @@ def reset_stream(url: str, stream_id: str, timeout: float, api_key: str | None =
     """DELETE /streams/{id}: True when the service held the stream, False when it did not (404); ServiceError else."""
     request = urllib.request.Request(
         f"{url.rstrip('/')}/streams/{urllib.parse.quote(stream_id, safe='')}",
-        headers={**_headers(api_key), **_stream_header(stream_id)},
+        headers={**api_key_header(api_key), **stream_header(stream_id)},
         method="DELETE",
     )
     try:
@@ -221,21 +217,11 @@ def post_frame(
     stream id in the X-Stream-Id header as well as in the body; `previous_timestamp`: the stream's previous frame
     that was answered (the service restarts a chain that does not end there). RetryableError when the frame may be
     posted again (502 / 503 / 504, a connection error, a timeout)."""
-    body: dict[str, Any] = {
-        "stream_id": stream_id,
-        "timestamp": frame.timestamp,
-        "image": base64.b64encode(png).decode("ascii"),
-    }
-    if previous_timestamp is not None:
-        body["previous_timestamp"] = previous_timestamp
-    if use_pose and frame.pose is not None:
-        body["pose"] = {"x": float(frame.pose[0]), "y": float(frame.pose[1]), "yaw": float(frame.pose[2])}
-    headers = {"content-type": "application/json", **_headers(api_key), **_stream_header(stream_id)}
-    request = urllib.request.Request(
-        f"{url.rstrip('/')}/detect", data=json.dumps(body).encode(), headers=headers, method="POST"
-    )
+    pose = pose_of(frame.pose) if use_pose and frame.pose is not None else None
+    fields = FrameFields(frame.timestamp, stream_id, pose, previous_timestamp)
+    request = detect_request(json_body(fields, base64_png(png)), header_stream_id=stream_id, api_key=api_key)
     try:
-        with urllib.request.urlopen(request, timeout=timeout) as response:
+        with post(url, request, timeout) as response:
             return json.loads(response.read())
     except urllib.error.HTTPError as exc:
         code, reason = _error_of(exc)
@@ -274,7 +260,7 @@ def post_with_retries(
 def served_flow_geometry(url: str, timeout: float, api_key: str | None = None) -> tuple[int, int] | None:
     """(flow stride px, local radius) of the served model (GET /model's config); None, said on stderr, when the
     service does not tell them."""
-    request = urllib.request.Request(f"{url.rstrip('/')}/model", headers=_headers(api_key), method="GET")
+    request = urllib.request.Request(f"{url.rstrip('/')}/model", headers=api_key_header(api_key), method="GET")
     try:
         with urllib.request.urlopen(request, timeout=timeout) as response:
             flow = json.loads(response.read())["config"]["flow"]

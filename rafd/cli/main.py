@@ -1,12 +1,12 @@
 """`rafd COMMAND [ARGS]`: one command for every tool, in the manner of git.
 
-The commands are entry points of the group `rafd.commands` (pyproject.toml), found with importlib.metadata and
-imported only when that command runs, so `rafd --help` stays fast and this package imports none of the layers above
-it (export, service). `rafd bench NAME` runs the entry point `bench-NAME`. Each `rafd-*` script is an alias of its
-command (`rafd-serve` = `rafd serve`).
+`COMMANDS` is the one table of the commands: name, "module:function", summary. A command's module is imported only
+when that command runs, so `rafd --help` stays fast and this package imports none of the layers above it (export,
+service). `rafd bench NAME` runs the command `bench-NAME`. Each `rafd-*` script is an alias of its command
+(`rafd-serve` = `rafd serve`; pyproject.toml's [project.scripts], which a test checks against this table).
 
-An installation whose metadata predates the entry points (an editable install made before they were added) falls
-back to `COMMANDS`, the same table as pyproject.toml's (a test checks that they agree).
+Another package adds a command by declaring an entry point of the group `rafd.commands` (found with
+importlib.metadata); a name of this table stays this table's.
 """
 
 from __future__ import annotations
@@ -31,8 +31,7 @@ class Command:
     summary: str
 
 
-# What `rafd --help` says of each command, in this order; pyproject.toml's [project.entry-points."rafd.commands"]
-# lists the same names and targets.
+# What `rafd --help` says of each command, in this order.
 COMMANDS = (
     Command("serve", "service.cli:main", "serve the model over HTTP (FastAPI, onnxruntime or OpenVINO, no torch)"),
     Command("client", "rafd.cli.client:main", "stream a RADIATE-format sequence to a running service"),
@@ -55,9 +54,10 @@ GROUPS = {"bench": "benchmarks: rafd bench speed | accuracy | training | capacit
 
 
 def installed_commands() -> dict[str, str]:
-    """name -> "module:function" of every command: the installed entry points, else the built-in table."""
-    found = {ep.name: ep.value for ep in metadata.entry_points(group=GROUP)}
-    return found or {c.name: c.target for c in COMMANDS}
+    """name -> "module:function" of every command: the table's, and those other packages declare as entry points."""
+    table = {c.name: c.target for c in COMMANDS}
+    declared = {ep.name: ep.value for ep in metadata.entry_points(group=GROUP) if ep.name not in table}
+    return {**table, **declared}
 
 
 def load(target: str) -> Callable[[Sequence[str] | None], int]:

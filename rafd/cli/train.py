@@ -14,145 +14,126 @@ import dataclasses
 import json
 import logging
 import sys
-from collections.abc import Sequence
+import types
+import typing
+from collections.abc import Callable, Sequence
+from functools import lru_cache
 from pathlib import Path
+from typing import Any
 
 from rafd.cli import flags
 from rafd.config import BOX_ENCODINGS, FREEZABLE
-from rafd.train.run import TrainRun
+from rafd.train.run import TRAIN_CONFIG_NAMES, TrainRun
+
+Group = argparse.ArgumentParser | argparse._ArgumentGroup
+# Fields whose flag is a shared one (rafd.cli.flags: one meaning and help in every command), given the field's help
+# where the shared flag takes one. Every other field becomes --FIELD-NAME, made by field_flag.
+SHARED: dict[str, Callable[[Group, dataclasses.Field[Any]], object]] = {
+    "data": lambda group, field: group.add_argument(
+        "data", nargs="?", type=Path, metavar=field.metadata["metavar"], help=field.metadata["help"]
+    ),
+    "split": lambda group, field: flags.add_split(group, field.metadata["help"], required=True),
+    "val_split": lambda group, field: flags.add_split(group, field.metadata["help"], flag="--val-split"),
+    "mix_split": lambda group, field: flags.add_split(group, field.metadata["help"], flag="--mix-split"),
+    "out": lambda group, field: flags.add_out(group, field.metadata["metavar"], field.metadata["help"], required=True),
+    "frames": lambda group, field: flags.add_window_frames(group, choices=(1, 2, 4)),
+    "num_workers": lambda group, field: flags.add_workers(group, None, field.metadata["help"]),
+    "threads": lambda group, field: flags.add_threads(group, None, field.metadata["help"]),
+    "device": lambda group, field: flags.add_device(group),
+    "progress": lambda group, field: flags.add_quiet(group),
+    "resume": lambda group, field: flags.add_resume(group, field.metadata["help"]),
+    "warm_up_windows": lambda group, field: flags.add_warm_up_windows(group),
+}
 
 
 def build_parser() -> argparse.ArgumentParser:
-    from rafd.train.recipes import RECIPES
-
+    """One flag per TrainRun field, in the field's group, with the field's help and default, as `rafd serve`'s flags
+    are made from the service's Settings: a field added to TrainRun is a flag at once."""
     parser = argparse.ArgumentParser(
         prog=flags.prog("train"), description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
     )
-    parser.add_argument("data", nargs="?", type=Path, metavar="ROOT", help="data root holding sequence folders")
-    flags.add_split(parser, "the splits to train on", required=True)
-    flags.add_config(parser, RECIPES, "tiny", "; ".join(f"{r.name}: {r.description}" for r in RECIPES.values()))
-    flags.add_out(parser, "CKPT", "checkpoint to write (+ .optim.pt, .history.json)", required=True)
-    parser.add_argument("--cache", type=Path, help="scan cache written by rafd prepare (default: decode the PNGs)")
-    parser.add_argument(
-        "--estimate-poses",
-        action="store_true",
-        help="run radar odometry for sequences without ego_poses.csv (slow; prefer rafd odometry)",
-    )
-    recipe = parser.add_argument_group("overrides of the recipe (default: the recipe's value)")
-    flags.add_window_frames(recipe, choices=(1, 2, 4))
-    recipe.add_argument("--input-size", type=int, metavar="PX", help="side in pixels of the model's input crop")
-    recipe.add_argument("--epochs", type=int, help="epochs to train")
-    recipe.add_argument("--batch-size", type=int, help="GLOBAL windows per optimizer step (paper: 8)")
-    recipe.add_argument(
-        "--micro-batch-size",
-        type=int,
-        help="windows per process per forward (gradient accumulation makes up the global batch)",
-    )
-    recipe.add_argument("--lr", type=float, help="learning rate")
-    recipe.add_argument("--weight-decay", type=float, help="weight decay")
-    recipe.add_argument("--optimizer", choices=("adam", "adamw"), help="optimizer")
-    recipe.add_argument("--lr-schedule", choices=("constant", "cosine"), help="learning-rate schedule over the epochs")
-    recipe.add_argument("--augment", action=argparse.BooleanOptionalAction, help="window-consistent flip + rotation")
-    recipe.add_argument(
-        "--max-rotation-deg",
-        type=float,
-        metavar="DEG",
-        help="ROOT's windows turn by up to +-DEG about the crop's centre (180: any bearing; not the --mix-data's)",
-    )
-    recipe.add_argument(
-        "--shift-max-m",
-        type=float,
-        metavar="M",
-        help="ROOT's crops are cut around a point up to M metres from the radar (full-scan tiles; keep it inside "
-        "the labelled area of a few labelled scans; not the --mix-data's)",
-    )
-    recipe.add_argument(
-        "--shift-probability",
-        type=float,
-        metavar="P",
-        help="the share of ROOT's windows cut away from the radar (not the --mix-data's)",
-    )
-    recipe.add_argument("--flow-stride", type=int, help="input pixels per flow cell (4 = the paper's)")
-    recipe.add_argument("--enhance-window", type=int, help="attention window side in cells (0 = the paper's Hf/2)")
-    recipe.add_argument(
-        "--propagation-norm",
-        choices=("post", "pre"),
-        help="propagation blocks: post-norm (Deformable DETR) or pre-norm starting as the identity",
-    )
-    recipe.add_argument(
-        "--box-encoding",
-        choices=BOX_ENCODINGS,
-        help="symmetric: 180-degree periodic orientation, width <= length; as_labelled: the old targets",
-    )
-    recipe.add_argument("--heatmap-min-overlap", type=float, help="heatmap radius overlap (CenterPoint 0.1)")
-    recipe.add_argument("--heatmap-min-radius", type=int, help="heatmap radius floor in cells (CenterPoint 2)")
-    parser.add_argument(
-        "--precision",
-        choices=("fp32", "bf16", "fp16"),
-        default="fp32",
-        help="bf16: autocast (several times faster on CPUs with avx512_bf16/AMX and on GPUs); "
-        "fp16: autocast + gradient scaler (CUDA)",
-    )
-    parser.add_argument("--grad-clip", type=float, default=35.0, help="gradient norm clip (default %(default)s)")
-    parser.add_argument("--seed", type=int, default=0, help="seed of the weights, the data order and augmentation")
-    flags.add_resume(parser, "the same command again after an interruption (the flags must match the run's)")
-    parser.add_argument(
-        "--init",
-        type=Path,
-        help="start from this checkpoint's weights where names and shapes match (e.g. a single-frame "
-        "model under a 4-frame run); optimizer, schedule and epochs start fresh",
-    )
-    parser.add_argument(
-        "--freeze",
-        nargs="+",
-        choices=FREEZABLE,
-        default=[],
-        metavar="PART",
-        help=f"parts of the network that do not train ({', '.join(FREEZABLE)}): e.g. --init a "
-        "single-frame model and --freeze encoder, so a 4-frame run keeps its reading of the "
-        "current frame and learns only what the past adds",
-    )
-    flags.add_device(parser)
-    parser.add_argument("--val-data", type=Path, metavar="ROOT", help="validation data root (default: none)")
-    flags.add_split(parser, "validation splits (default: test)", flag="--val-split")
-    parser.add_argument("--val-cache", type=Path, help="scan cache of the validation root (default: --cache)")
-    parser.add_argument("--val-every", type=int, default=1, help="validate every N epochs (0: never)")
-    parser.add_argument("--no-enhancement", action="store_true", help="ablation: no window self-attention")
-    parser.add_argument("--no-flow-supervision", action="store_true", help="ablation: flow loss weight 0")
-    parser.add_argument("--no-flow-guidance", action="store_true", help="ablation: vanilla deformable attention")
-    parser.add_argument("--max-windows", type=int, help="use at most N (evenly spaced) training windows")
-    flags.add_warm_up_windows(parser)
-    parser.add_argument("--max-val-windows", type=int, help="use at most N validation windows")
-    mix = parser.add_argument_group(
-        "a second data root mixed into every epoch (e.g. simulated drives replayed while fine-tuning on real scans)"
-    )
-    mix.add_argument(
-        "--mix-data",
-        type=Path,
-        metavar="ROOT2",
-        help="every epoch holds each window of ROOT once plus windows of ROOT2 up to --mix-share of the epoch "
-        "(ROOT2's windows in turn over the epochs, augmented as the recipe says)",
-    )
-    flags.add_split(mix, "ROOT2's splits (default: --split)", flag="--mix-split")
-    mix.add_argument("--mix-cache", type=Path, metavar="CACHE", help="scan cache of ROOT2 (rafd prepare)")
-    mix.add_argument(
-        "--mix-share",
-        type=float,
-        default=0.5,
-        metavar="FRACTION",
-        help="share of each epoch's windows drawn from ROOT2, in (0, 1) (default %(default)s: as many as ROOT has)",
-    )
-    parser.add_argument("--max-steps-per-epoch", type=int, help="cap optimizer steps per epoch (smoke runs)")
-    flags.add_workers(parser, None, "DataLoader workers per process (default: 4 on CUDA, 0 on CPU)")
-    flags.add_threads(parser, None, "torch's CPU threads per process (default: CPUs / processes)")
-    parser.add_argument("--log-every", type=int, default=20, help="optimizer steps between loss logs")
-    parser.add_argument("--dist-timeout", type=float, default=30.0, help="process-group timeout in minutes")
-    flags.add_quiet(parser)
+    groups: dict[str | None, Group] = {None: parser}
+    adders = {**SHARED, "config": add_config}
+    for field in dataclasses.fields(TrainRun):
+        title = field.metadata["group"]
+        if title not in groups:
+            groups[title] = parser.add_argument_group(title)
+        adders.get(field.name, field_flag)(groups[title], field)
     flags.deprecated(parser, "--data", "the positional ROOT", "data_option", type=Path, metavar="ROOT")
     flags.deprecated(parser, "--frames", "--window-frames", "frames", type=int, metavar="N")
     flags.deprecated(parser, "--num-workers", "--workers", "workers", type=int, metavar="N")
     flags.deprecated(parser, "--no-progress", "--quiet", "quiet", kind="store_true")
     return parser
+
+
+def add_config(group: Group, field: dataclasses.Field[Any]) -> None:
+    from rafd.train.recipes import RECIPES
+
+    recipes = "; ".join(f"{r.name}: {r.description}" for r in RECIPES.values())
+    flags.add_config(group, RECIPES, str(field.default), f"{field.metadata['help']}; {recipes}")
+
+
+@lru_cache(maxsize=1)
+def choices() -> dict[str, Sequence[str]]:
+    """The values a field may take, from the code that checks them."""
+    from rafd.model.precision import PRECISIONS
+    from rafd.train.trainer import OPTIMIZERS, SCHEDULES
+
+    return {
+        "optimizer": OPTIMIZERS,
+        "lr_schedule": SCHEDULES,
+        "precision": PRECISIONS,
+        "box_encoding": BOX_ENCODINGS,
+        "propagation_norm": ("post", "pre"),
+        "freeze": FREEZABLE,
+    }
+
+
+def field_flag(group: Group, field: dataclasses.Field[Any]) -> None:
+    """--FIELD-NAME from the field's type: a flag for a bool (--x / --no-x for a bool that may be None), one or more
+    values for a tuple, else one value of the type."""
+    kind = field_types()[field.name]
+    options: dict[str, Any] = {"dest": field.name, "default": field.default, "help": help_text(field)}
+    if kind is bool:
+        options["action"] = "store_true" if field.default is False else argparse.BooleanOptionalAction
+    elif typing.get_origin(kind) is tuple:
+        options.update(nargs="+", type=typing.get_args(kind)[0])
+    else:
+        options["type"] = kind
+    if field.name in choices():
+        options["choices"] = choices()[field.name]
+    if field.metadata["metavar"]:
+        options["metavar"] = field.metadata["metavar"]
+        if "choices" in options:  # the metavar hides them in the usage line
+            options["help"] += f" (choices: {', '.join(options['choices'])})"
+    group.add_argument("--" + field.name.replace("_", "-"), **options)
+
+
+def help_text(field: dataclasses.Field[Any]) -> str:
+    """The field's help and its default: its own, else (None) the training default every recipe keeps."""
+    default = field.default if field.default is not None else recipe_default(field.name)
+    unset = default is None or isinstance(default, bool) or default == ()  # nothing to show: off, none
+    shown = "" if unset else f" (default: {default})"
+    return f"{field.metadata['help']}{shown}".replace("%", "%%")
+
+
+def recipe_default(name: str) -> Any:
+    """The value of the TrainConfig field `name` overrides when every recipe has the same one, else None."""
+    from rafd.train.recipes import RECIPES
+
+    config_name = TRAIN_CONFIG_NAMES.get(name, name)
+    values = {getattr(recipe.train, config_name, None) for recipe in RECIPES.values()}
+    return values.pop() if len(values) == 1 else None
+
+
+@lru_cache(maxsize=1)
+def field_types() -> dict[str, Any]:
+    """Field name -> its type, `X | None` read as X (None is the flag not given)."""
+    found = {}
+    for name, hint in typing.get_type_hints(TrainRun).items():
+        optional = typing.get_origin(hint) in (typing.Union, types.UnionType)
+        found[name] = next(a for a in typing.get_args(hint) if a is not type(None)) if optional else hint
+    return found
 
 
 def parse(argv: Sequence[str] | None = None) -> argparse.Namespace:

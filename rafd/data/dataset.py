@@ -125,7 +125,7 @@ class _SequenceMeta:
     condition: str | None = None  # meta.json's weather / RADIATE type (rafd.data.reader.meta_condition)
 
 
-def _protocol(boxes: np.ndarray, ids: np.ndarray, classes: list[str], crop: int, resolution: float):
+def objects_in_crop(boxes: np.ndarray, ids: np.ndarray, classes: list[str], crop: int, resolution: float):
     """Keep objects not of a dropped class whose centre lies inside the crop -> (boxes, ids, classes, ignore boxes):
     the labeller's ignore regions (rafd.data.labels.IGNORE_CLASS) that touch the crop, kept apart."""
     if len(boxes) == 0:
@@ -303,7 +303,9 @@ class RadarWindowDataset(_Base):
         frames = augmentation.intensity(np.stack([augmentation.image(self._scan(s, k), size) for k in span]))
         boxes, ids, classes, ignore = [], [], [], []
         for k in span:
-            b, i, c, g = _protocol(augmentation.boxes(meta.boxes[k]), meta.ids[k], meta.classes[k], size, resolution)
+            b, i, c, g = objects_in_crop(
+                augmentation.boxes(meta.boxes[k]), meta.ids[k], meta.classes[k], size, resolution
+            )
             boxes.append(b)
             ids.append(i)
             classes.append(c)

@@ -1,16 +1,18 @@
 """Radar odometry: SE(2) motion between consecutive Cartesian scans by image registration (opencv + numpy FFT).
 
-Method (one pair, ~20-40 ms on one CPU core whatever the scan size):
+Method (one pair, ~10 ms on one CPU core for the service's 512 px view; a stream's first pair about twice that):
 1. Each scan is prepared at two levels (area-downsampled to at most COARSE_SIZE and FINE_SIZE pixels): the
    slowly varying background (noise floor, range attenuation) is removed by subtracting a wide blur, the
    rest is clipped at its 97th percentile and square-rooted so that bright (often moving) vehicles do not
    outvote the static scene, and a radial window centred on the radar hides the ego's near-range returns
    and fades the scan border. The window is rotation invariant about the radar: no bias on the yaw search.
-2. Correlative yaw search (coarse): the previous scan is rotated about the radar by every yaw in
-   +-MAX_YAW_DEG (1 degree steps) and cross-correlated with the current one by FFT (cross-power spectrum
-   partly whitened); the highest peak within MAX_STEP_M of zero shift wins, sub-step by a parabola.
-3. The same at the fine level around the coarse yaw (+-0.5 degree) gives yaw and the sub-pixel shift.
-4. Refinement: cv2.findTransformECC (MOTION_EUCLIDEAN, blurred then sharp) from 3 improves the yaw; the
+2. Correlative yaw search (coarse): the previous scan is rotated about the radar by every yaw within
+   +-PRIOR_YAW_WINDOW_DEG (1 degree steps) of the prior's yaw and cross-correlated with the current one by FFT
+   (opencv's float32 DFT; cross-power spectrum partly whitened); the highest peak within MAX_STEP_M of zero shift
+   wins, sub-step by a parabola. Without a prior (or with the best yaw on the window's edge) the window is centred
+   on the best of all +-MAX_YAW_DEG, searched on the coarse level halved.
+3. At the fine level, the sub-pixel shift at that yaw (with refine=False: the yaw searched again, +-0.5 degree).
+4. Refinement: cv2.findTransformECC (MOTION_EUCLIDEAN, one sharp run) from 3 improves the yaw; the
    shift is then re-read from the correlation at that yaw (ECC's least squares is pulled by moving objects,
    the correlation peak is not). ECC results that fail or move far from 3 are rejected (3 stands).
 
@@ -59,10 +61,14 @@ WHITENING = 0.5  # cross-power spectrum divided by |.|^this: 1 = phase correlati
 MAX_STEP_M = 8.0  # largest ego translation between consecutive scans (32 m/s at 4 Hz): bounds the peak search
 MAX_ECC_SHIFT_PX = 3.0  # ECC refinements further than this (fine pixels) from the search result are rejected
 MAX_ECC_YAW_DEG = 1.0  # ... or turning further than this
-ECC_BLURS = (5, 1)  # ECC's Gaussian filter sizes, one run each: blurred first (wider basin), then sharp
-# ECC's iterations per run. Fewer were measured (docs/performance.md, "Odometry"): one step per run is 1.33x cheaper
-# per frame but moves the Oxford sample's mean yaw error from 0.1083 to 0.1090 degrees, past the 0.108 kept as the bar.
-ECC_ITERATIONS = 15
+# ECC's Gaussian filter sizes, one run each. One sharp run: a blurred run before it (5, for a wider basin) was measured
+# to buy nothing from the correlation's start (docs/performance.md, "Odometry": the Oxford sample's mean yaw error
+# 0.1074 degrees with the sharp run alone, 0.1083 with both) at twice the cost.
+ECC_BLURS = (1,)
+# ECC's iterations per run (about 0.35 ms each at 256 px): from the correlation's start 5 and 15 give the same poses on
+# the simulated drives and the Oxford sample; 3 move the Oxford sample's mean yaw error to 0.1099 degrees, past the
+# 0.108 kept as the bar.
+ECC_ITERATIONS = 5
 ECC_EPS = 1e-4
 PRIOR_YAW_WINDOW_DEG = 4.0  # coarse yaw search around the prior's yaw (the yaw rate changes less per scan)
 # A de-skewed pair is registered again with its own motion when it turned or moved this much more than the velocity
@@ -183,6 +189,18 @@ def _peak_vertex(left: float, mid: float, right: float) -> float:
     return _vertex(left, mid, right)
 
 
+def _spectrum(image: np.ndarray) -> np.ndarray:
+    """[n, n] real -> [n, n] complex64 2-D DFT. opencv's float32 DFT: about a fifth of numpy's float64 rfft2 time at
+    256 px, and the correlation peak needs no more precision."""
+    return cv2.dft(np.asarray(image, np.float32), flags=cv2.DFT_COMPLEX_OUTPUT).view(np.complex64)[..., 0]
+
+
+def _surface(spectrum: np.ndarray) -> np.ndarray:
+    """[n, n] complex64 Hermitian spectrum -> [n, n] float32 real signal (the inverse of _spectrum)."""
+    packed = np.ascontiguousarray(spectrum).view(np.float32).reshape(*spectrum.shape, 2)
+    return cv2.idft(packed, flags=cv2.DFT_REAL_OUTPUT | cv2.DFT_SCALE)
+
+
 def _search_rotation(
     previous: np.ndarray, current: np.ndarray, yaws: np.ndarray, max_shift_px: float
 ) -> tuple[float, tuple[float, float], float]:
@@ -190,12 +208,11 @@ def _search_rotation(
     whitened), keep the highest peak within `max_shift_px` of zero shift; sub-step yaw and shift by parabolas
     through the neighbours. -> (yaw, shift (x, y) with current(u) ~ rotated_previous(u - shift), score)."""
     n = current.shape[0]
-    cur_fft = np.fft.rfft2(current)
-    stack = np.stack([_rotated(previous, float(yaw)) for yaw in yaws])  # [N, n, n]
-    cross = np.conj(np.fft.rfft2(stack)) * cur_fft[None]  # [N, n, n/2 + 1]
+    cur_fft = _spectrum(current)  # [n, n] complex64
+    cross = np.stack([np.conj(_spectrum(_rotated(previous, float(yaw)))) for yaw in yaws]) * cur_fft[None]  # [N, n, n]
     magnitude = np.abs(cross)
     cross /= (np.sqrt(magnitude) if WHITENING == 0.5 else magnitude**WHITENING) + 1e-9  # sqrt: a third of pow's time
-    surfaces = np.fft.irfft2(cross, s=current.shape)  # [N, n, n]
+    surfaces = np.stack([_surface(spectrum) for spectrum in cross])  # [N, n, n]
     # The peak is searched only among shifts within max_shift_px: the wrapped surface's four corners, not all n^2.
     offsets, allowed, near = _shift_offsets(n, max_shift_px)
     region = surfaces[:, near[:, None], near[None, :]]  # [N, m, m]
@@ -212,6 +229,16 @@ def _search_rotation(
     dx = _peak_vertex(surface[row, (col - 1) % n], surface[row, col], surface[row, (col + 1) % n])
     dy = _peak_vertex(surface[(row - 1) % n, col], surface[row, col], surface[(row + 1) % n, col])
     return yaw, (float(offsets[col] + dx), float(offsets[row] + dy)), float(scores[best])
+
+
+def _wide_yaw(previous: np.ndarray, current: np.ndarray, resolution: float) -> float:
+    """The best yaw in all of +-MAX_YAW_DEG, searched on the coarse level halved (a quarter of its pixels): only the
+    centre of the windowed search at the coarse level (a stream's first pair, or a yaw on the prior window's edge)."""
+    side = previous.shape[0] // 2
+    halved = [cv2.resize(image, (side, side), interpolation=cv2.INTER_AREA) for image in (previous, current)]
+    yaws = np.deg2rad(np.arange(-MAX_YAW_DEG, MAX_YAW_DEG + 1e-9, COARSE_STEP_DEG))
+    yaw, _, _ = _search_rotation(halved[0], halved[1], yaws, MAX_STEP_M / (2.0 * resolution))
+    return yaw
 
 
 def _shift_to_warp(yaw: float, shift: tuple[float, float], size: int) -> np.ndarray:
@@ -404,15 +431,18 @@ class Odometer:
         if not (prev_fine.any() and cur_fine.any()):
             log.warning("odometry: a scan holds no structure (blank image); returning zero motion")
             return None
-        full = np.deg2rad(np.arange(-MAX_YAW_DEG, MAX_YAW_DEG + 1e-9, COARSE_STEP_DEG))
-        yaws = full
-        if expected_yaw is not None:
-            window = np.deg2rad(np.arange(-PRIOR_YAW_WINDOW_DEG, PRIOR_YAW_WINDOW_DEG + 1e-9, COARSE_STEP_DEG))
-            yaws = expected_yaw + window
-        yaw, shift, _ = _search_rotation(prev_coarse, cur_coarse, yaws, MAX_STEP_M / coarse.resolution)
-        if expected_yaw is not None and abs(yaw - expected_yaw) > np.deg2rad(PRIOR_YAW_WINDOW_DEG - COARSE_STEP_DEG):
-            yaw, shift, _ = _search_rotation(prev_coarse, cur_coarse, full, MAX_STEP_M / coarse.resolution)
-        steps = np.deg2rad(np.arange(-1, 2) * FINE_STEP_DEG)
+        window = np.deg2rad(np.arange(-PRIOR_YAW_WINDOW_DEG, PRIOR_YAW_WINDOW_DEG + 1e-9, COARSE_STEP_DEG))
+        if expected_yaw is None:
+            expected_yaw = _wide_yaw(prev_coarse, cur_coarse, coarse.resolution)
+        yaw, shift, _ = _search_rotation(prev_coarse, cur_coarse, expected_yaw + window, MAX_STEP_M / coarse.resolution)
+        if abs(yaw - expected_yaw) > np.deg2rad(PRIOR_YAW_WINDOW_DEG - COARSE_STEP_DEG):  # on the window's edge
+            expected_yaw = _wide_yaw(prev_coarse, cur_coarse, coarse.resolution)
+            yaw, shift, _ = _search_rotation(
+                prev_coarse, cur_coarse, expected_yaw + window, MAX_STEP_M / coarse.resolution
+            )
+        # With ECC refining the yaw (finish), the fine level only reads the shift at the coarse yaw: searching 3 fine
+        # yaws first gave the same final accuracy (docs/performance.md, "Odometry") at 3x this stage's cost.
+        steps = np.zeros(1) if self.refine else np.deg2rad(np.arange(-1, 2) * FINE_STEP_DEG)
         yaw, shift, _ = _search_rotation(prev_fine, cur_fine, yaw + steps, MAX_STEP_M / fine.resolution)
         return warp_to_pose(_shift_to_warp(yaw, shift, fine.work), fine.work, fine.resolution)
 

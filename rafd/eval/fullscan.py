@@ -21,15 +21,15 @@ import numpy as np
 import torch
 
 from rafd.config import RaFDConfig
-from rafd.data.dataset import _protocol
+from rafd.data.dataset import objects_in_crop
 from rafd.eval.flow_split import FlowTally, pooled, tally_pair
 from rafd.eval.predict import FrameResult, outside_ignored
 from rafd.eval.tiled import TileGrid, merge_tiles, tile_poses
 from rafd.flow_validity import config_validity
 from rafd.model import RaFD, relative_pose_torch
+from rafd.model.precision import autocast
 from rafd.preprocess import to_model_input
 from rafd.progress import bar as progress_bar
-from rafd.train.precision import autocast
 
 
 def scan_config(cfg: RaFDConfig, scan_size: int) -> RaFDConfig:
@@ -146,7 +146,9 @@ def predict_full_scan(
                 tally = _tile_tally(
                     pair_flows[:, -1].cpu().numpy(), newest_relative if real_pair else None, cfg, not real_pair
                 )
-            truth, _, _, ignore = _protocol(meta.boxes[k], meta.ids[k], meta.classes[k], scan.shape[0], cfg.resolution)
+            truth, _, _, ignore = objects_in_crop(
+                meta.boxes[k], meta.ids[k], meta.classes[k], scan.shape[0], cfg.resolution
+            )
             results.append(
                 FrameResult(
                     sequence=meta.name,

@@ -13,6 +13,7 @@ from torch import nn
 from torch.utils.data import DataLoader, Dataset
 
 from rafd.config import RaFDConfig
+from rafd.data.collate import Collator
 from rafd.detections import decode_detections
 from rafd.eval.flow_split import FlowTally, tally_pair
 from rafd.eval.metrics import end_point_error, match_centres, mean_average_precision
@@ -20,7 +21,6 @@ from rafd.flow_validity import config_validity
 from rafd.geometry import points_in_boxes, relative_pose
 from rafd.progress import bar
 from rafd.protocol import CENTRE_DISTANCE_M, IOU_THRESHOLDS
-from rafd.train.collate import Collator
 
 
 @dataclass
@@ -72,11 +72,11 @@ def predict(
     past_as_newest: bool = False,
 ) -> list[FrameResult]:
     """Every window of `dataset` -> one FrameResult; all K queries kept by default (AP wants the tail).
-    `precision` fp32 | bf16 | fp16 runs the forward under that autocast (rafd.train.precision).
+    `precision` fp32 | bf16 | fp16 runs the forward under that autocast (rafd.model.precision).
     `past_as_newest` is the temporal ablation: every past frame of a window is replaced by the newest one, at the
     newest pose (a still world with nothing more to see), so a multi-frame model sees exactly what a single-frame
     model sees; its score against the true windows is what the past frames add."""
-    from rafd.train.precision import autocast, check_precision
+    from rafd.model.precision import autocast, check_precision
 
     device = torch.device(device)
     check_precision(precision, device)

@@ -83,8 +83,8 @@ def calibrate(run: EvalRun, results: list[Any], cfg: Any, model: Any, meta: dict
     """--calibrate: the lowest threshold within the false-positive budget -> written into the checkpoint's meta
     (atomically; weights and config untouched). -> (threshold, a line saying so); CalibrationError when no threshold
     meets the budget."""
-    from rafd.checkpoint import save_checkpoint
     from rafd.eval.metrics import match_centres
+    from rafd.model.checkpoint import save_checkpoint
     from rafd.protocol import CENTRE_DISTANCE_M, OPERATING_THRESHOLD_KEY
 
     assert run.calibrate is not None
@@ -199,10 +199,10 @@ def evaluate(run: EvalRun) -> dict[str, Any]:
             raise EvalError(f"--mcap needs the logs extra (pip install 'rafd[logs]'): {error}") from error
     import torch
 
-    from rafd.checkpoint import load_checkpoint
+    from rafd.data.windows import DatasetError, open_windows
     from rafd.eval.predict import predict, summarise, summarise_by_condition, summarise_by_sequence
-    from rafd.train.datasets import DatasetError, open_windows
-    from rafd.train.distributed import resolve_device
+    from rafd.model.checkpoint import load_checkpoint
+    from rafd.model.device import resolve_device
 
     try:
         device = resolve_device(run.device)

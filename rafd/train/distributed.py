@@ -23,6 +23,8 @@ from torch import distributed as dist
 from torch import nn
 from torch.utils.data import Dataset, DistributedSampler
 
+from rafd.model.device import resolve_device
+
 log = logging.getLogger(__name__)
 
 DEFAULT_TIMEOUT_MINUTES = 30.0
@@ -54,21 +56,6 @@ def _env_int(name: str, default: int) -> int:
         return int(value)
     except ValueError as error:
         raise ValueError(f"environment variable {name}={value!r} is not an integer") from error
-
-
-def resolve_device(device: str) -> torch.device:
-    """'cpu' | 'cuda' | 'cuda:N' | 'auto' -> a torch.device, with a clear error when CUDA is missing."""
-    if device == "auto":
-        device = "cuda" if torch.cuda.is_available() else "cpu"
-    try:
-        resolved = torch.device(device)
-    except RuntimeError as error:
-        raise RuntimeError(f"unknown device {device!r} (use cpu, cuda, cuda:N or auto)") from error
-    if resolved.type == "cuda" and not torch.cuda.is_available():
-        raise RuntimeError(f"device {device!r} requested but CUDA is not available on this machine")
-    if resolved.type not in ("cpu", "cuda"):
-        raise RuntimeError(f"device {device!r} is not supported (use cpu, cuda, cuda:N or auto)")
-    return resolved
 
 
 def init_distributed(device: str = "auto", timeout_minutes: float = DEFAULT_TIMEOUT_MINUTES) -> DistContext:

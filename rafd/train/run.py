@@ -1,8 +1,11 @@
-"""One training run as plain Python: `train(TrainRun(...))`. `rafd-train` builds a TrainRun from its flags (one
-flag per field), and the synthetic benchmark's variants build theirs directly (rafd.bench.variants).
+"""One training run as plain Python: `train(TrainRun(...))`. `rafd train` makes one flag per TrainRun field
+(rafd.cli.train: the help is the field's metadata), and the synthetic benchmark's variants build theirs directly
+(rafd.bench.variants).
 
 A run starts from a named recipe (rafd.train.recipes): every field left None keeps the recipe's value, every field
-given overrides it, and the checkpoint records the result.
+given overrides it, and the checkpoint records the result. A field named as a TrainConfig field
+(rafd.train.trainer, where the training defaults are written once) overrides that field; the others choose the
+data, the network's changes and where the weights start.
 """
 
 from __future__ import annotations
@@ -10,76 +13,136 @@ from __future__ import annotations
 import dataclasses
 import logging
 import os
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
 from rafd.config import RaFDConfig
 from rafd.data.augment import AugmentConfig
+from rafd.data.parallel import default_workers as available_cpus
 
 log = logging.getLogger("rafd.train")
+
+# The flag groups of `rafd train` (a field's metadata "group"; none: the main group).
+RECIPE_GROUP = "overrides of the recipe (default: the recipe's value)"
+MIX_GROUP = "a second data root mixed into every epoch (e.g. simulated drives replayed while fine-tuning on real scans)"
+
+
+def setting(default: Any = None, help: str = "", group: str | None = None, metavar: str | None = None) -> Any:
+    """A TrainRun field with what its `rafd train` flag says in its metadata: help, group and metavar."""
+    return field(default=default, metadata={"help": help, "group": group, "metavar": metavar})
 
 
 @dataclass(frozen=True)
 class TrainRun:
-    data: Path  # data root holding sequence folders
-    split: tuple[str, ...]  # meta.json splits to train on
-    out: Path  # checkpoint to write (+ .optim.pt, .history.json)
-    config: str = "tiny"  # recipe name (rafd.train.recipes.RECIPES)
-    cache: Path | None = None  # scan cache written by rafd-prepare
-    estimate_poses: bool = False  # run odometry for sequences without ego_poses.csv
-    # overrides of the recipe's network (None: the recipe's)
-    frames: int | None = None
-    input_size: int | None = None
-    flow_stride: int | None = None
-    enhance_window: int | None = None
-    propagation_norm: str | None = None
-    box_encoding: str | None = None
-    heatmap_min_overlap: float | None = None
-    heatmap_min_radius: int | None = None
-    no_enhancement: bool = False  # ablation: no window self-attention
-    no_flow_guidance: bool = False  # ablation: vanilla deformable attention
-    no_flow_supervision: bool = False  # ablation: flow loss weight 0
-    # overrides of the recipe's optimisation (None: the recipe's)
-    epochs: int | None = None
-    batch_size: int | None = None  # GLOBAL windows per optimizer step
-    micro_batch_size: int | None = None
-    lr: float | None = None
-    weight_decay: float | None = None
-    optimizer: str | None = None
-    lr_schedule: str | None = None
-    augment: bool | None = None  # None: the recipe's augmentation
-    # overrides of the augmentation of `data` (None: the recipe's); the mix data keep the recipe's (mix_augmentation)
-    max_rotation_deg: float | None = None
-    shift_max_m: float | None = None
-    shift_probability: float | None = None
-    num_workers: int | None = None
-    max_steps_per_epoch: int | None = None
-    precision: str = "fp32"
-    grad_clip: float = 35.0
-    seed: int = 0
-    device: str = "auto"
-    threads: int | None = None  # torch CPU threads per process (None: CPUs / local processes)
-    log_every: int = 20
-    dist_timeout: float = 30.0  # minutes
-    progress: bool = True
+    data: Path = setting(dataclasses.MISSING, "data root holding sequence folders", metavar="ROOT")
+    split: tuple[str, ...] = setting(dataclasses.MISSING, "the splits to train on")
+    out: Path = setting(dataclasses.MISSING, "checkpoint to write (+ .optim.pt, .history.json)", metavar="CKPT")
+    config: str = setting("tiny", "the recipe the run starts from (a name of rafd.train.recipes.RECIPES)")
+    cache: Path | None = setting(None, "scan cache written by rafd prepare (default: decode the PNGs)")
+    estimate_poses: bool = setting(
+        False, "run radar odometry for sequences without ego_poses.csv (slow; prefer rafd odometry)"
+    )
+    # overrides of the recipe's network
+    frames: int | None = setting(None, "frames per window (the model's T)", RECIPE_GROUP)
+    input_size: int | None = setting(None, "side in pixels of the model's input crop", RECIPE_GROUP, "PX")
+    flow_stride: int | None = setting(None, "input pixels per flow cell (4 = the paper's)", RECIPE_GROUP)
+    enhance_window: int | None = setting(None, "attention window side in cells (0 = the paper's Hf/2)", RECIPE_GROUP)
+    propagation_norm: str | None = setting(
+        None, "propagation blocks: post-norm (Deformable DETR) or pre-norm starting as the identity", RECIPE_GROUP
+    )
+    box_encoding: str | None = setting(
+        None, "symmetric: 180-degree periodic orientation, width <= length; as_labelled: the old targets", RECIPE_GROUP
+    )
+    heatmap_min_overlap: float | None = setting(None, "heatmap radius overlap (CenterPoint 0.1)", RECIPE_GROUP)
+    heatmap_min_radius: int | None = setting(None, "heatmap radius floor in cells (CenterPoint 2)", RECIPE_GROUP)
+    no_enhancement: bool = setting(False, "ablation: no window self-attention")
+    no_flow_guidance: bool = setting(False, "ablation: vanilla deformable attention")
+    no_flow_supervision: bool = setting(False, "ablation: flow loss weight 0")
+    # overrides of the recipe's optimisation
+    epochs: int | None = setting(None, "epochs to train", RECIPE_GROUP)
+    batch_size: int | None = setting(None, "GLOBAL windows per optimizer step (paper: 8)", RECIPE_GROUP)
+    micro_batch_size: int | None = setting(
+        None, "windows per process per forward (gradient accumulation makes up the global batch)", RECIPE_GROUP
+    )
+    lr: float | None = setting(None, "learning rate", RECIPE_GROUP)
+    weight_decay: float | None = setting(None, "weight decay", RECIPE_GROUP)
+    optimizer: str | None = setting(None, "optimizer", RECIPE_GROUP)
+    lr_schedule: str | None = setting(None, "learning-rate schedule over the epochs", RECIPE_GROUP)
+    augment: bool | None = setting(None, "window-consistent flip + rotation", RECIPE_GROUP)
+    # overrides of the augmentation of `data`; the mix data keep the recipe's (mix_augmentation)
+    max_rotation_deg: float | None = setting(
+        None,
+        "ROOT's windows turn by up to +-DEG about the crop's centre (180: any bearing; not the --mix-data's)",
+        RECIPE_GROUP,
+        "DEG",
+    )
+    shift_max_m: float | None = setting(
+        None,
+        "ROOT's crops are cut around a point up to M metres from the radar (full-scan tiles; keep it inside the "
+        "labelled area of a few labelled scans; not the --mix-data's)",
+        RECIPE_GROUP,
+        "M",
+    )
+    shift_probability: float | None = setting(
+        None, "the share of ROOT's windows cut away from the radar (not the --mix-data's)", RECIPE_GROUP, "P"
+    )
+    num_workers: int | None = setting(None, "DataLoader workers per process (default: 4 on CUDA, 0 on CPU)")
+    max_steps_per_epoch: int | None = setting(None, "cap optimizer steps per epoch (smoke runs)")
+    # how it runs (None: the recipe's, i.e. TrainConfig's defaults)
+    precision: str | None = setting(
+        None,
+        "bf16: autocast (several times faster on CPUs with avx512_bf16/AMX and on GPUs); "
+        "fp16: autocast + gradient scaler (CUDA)",
+    )
+    grad_clip: float | None = setting(None, "gradient norm clip (0: none)")
+    seed: int | None = setting(None, "seed of the weights, the data order and augmentation")
+    device: str | None = setting(None, "torch device")
+    threads: int | None = setting(None, "torch's CPU threads per process (default: CPUs / processes)")
+    log_every: int | None = setting(None, "optimizer steps between loss logs")
+    dist_timeout: float | None = setting(None, "process-group timeout in minutes")
+    progress: bool | None = setting(None, "progress bars")
     # where the weights start
-    resume: Path | None = None  # a checkpoint of an unfinished run to continue
-    init: Path | None = None  # weights to start a new run from where names and shapes match
-    freeze: tuple[str, ...] = ()
+    resume: Path | None = setting(None, "the same command again after an interruption (the flags must match the run's)")
+    init: Path | None = setting(
+        None,
+        "start from this checkpoint's weights where names and shapes match (e.g. a single-frame model under a "
+        "4-frame run); optimizer, schedule and epochs start fresh",
+    )
+    freeze: tuple[str, ...] = setting(
+        (),
+        "parts of the network that do not train: e.g. --init a single-frame model and --freeze encoder, so a "
+        "4-frame run keeps its reading of the current frame and learns only what the past adds",
+        metavar="PART",
+    )
     # data limits and validation
-    max_windows: int | None = None
-    warm_up_windows: bool = False  # also the first frames of each sequence, padded (rafd.data.RadarWindowDataset)
-    val_data: Path | None = None
-    val_split: tuple[str, ...] | None = None
-    val_cache: Path | None = None
-    val_every: int = 1
-    max_val_windows: int | None = None
-    # a second data root mixed into every epoch (rafd.train.mixing): e.g. simulated drives replayed under real scans
-    mix_data: Path | None = None
-    mix_split: tuple[str, ...] | None = None  # None: `split`
-    mix_cache: Path | None = None
-    mix_share: float = 0.5  # share of each epoch's windows drawn from mix_data
+    max_windows: int | None = setting(None, "use at most N (evenly spaced) training windows")
+    warm_up_windows: bool = setting(False, "also the first frames of each sequence, padded (RadarWindowDataset)")
+    val_data: Path | None = setting(None, "validation data root (default: none)", metavar="ROOT")
+    val_split: tuple[str, ...] | None = setting(None, "validation splits (default: test)")
+    val_cache: Path | None = setting(None, "scan cache of the validation root (default: --cache)")
+    val_every: int | None = setting(None, "validate every N epochs (0: never)")
+    max_val_windows: int | None = setting(None, "use at most N validation windows")
+    # a second data root mixed into every epoch (rafd.train.mixing)
+    mix_data: Path | None = setting(
+        None,
+        "every epoch holds each window of ROOT once plus windows of ROOT2 up to --mix-share of the epoch "
+        "(ROOT2's windows in turn over the epochs, augmented as the recipe says)",
+        MIX_GROUP,
+        "ROOT2",
+    )
+    mix_split: tuple[str, ...] | None = setting(None, "ROOT2's splits (default: --split)", MIX_GROUP)
+    mix_cache: Path | None = setting(None, "scan cache of ROOT2 (rafd prepare)", MIX_GROUP, "CACHE")
+    mix_share: float = setting(
+        0.5,
+        "share of each epoch's windows drawn from ROOT2, in (0, 1); a half: as many as ROOT has",
+        MIX_GROUP,
+        "FRACTION",
+    )
+
+
+# TrainRun fields that override a TrainConfig field of another name.
+TRAIN_CONFIG_NAMES = {"dist_timeout": "dist_timeout_minutes"}
 
 
 def model_config(run: TrainRun, base: RaFDConfig) -> RaFDConfig:
@@ -117,35 +180,16 @@ def model_config(run: TrainRun, base: RaFDConfig) -> RaFDConfig:
 
 
 def train_config(run: TrainRun, base: Any) -> Any:
-    """The recipe's TrainConfig with the run's changes."""
+    """The recipe's TrainConfig with the run's changes: every field of the run named as one of TrainConfig's
+    (TRAIN_CONFIG_NAMES: of another name) and not None."""
+    names = {f.name for f in dataclasses.fields(base)}
     changes = {
-        name: value
-        for name, value in (
-            ("epochs", run.epochs),
-            ("batch_size", run.batch_size),
-            ("micro_batch_size", run.micro_batch_size),
-            ("lr", run.lr),
-            ("weight_decay", run.weight_decay),
-            ("optimizer", run.optimizer),
-            ("lr_schedule", run.lr_schedule),
-            ("num_workers", run.num_workers),
-            ("max_steps_per_epoch", run.max_steps_per_epoch),
-        )
-        if value is not None
+        TRAIN_CONFIG_NAMES.get(f.name, f.name): getattr(run, f.name)
+        for f in dataclasses.fields(run)
+        if TRAIN_CONFIG_NAMES.get(f.name, f.name) in names and getattr(run, f.name) is not None
     }
-    return dataclasses.replace(
-        base,
-        grad_clip=run.grad_clip,
-        seed=run.seed,
-        device=run.device,
-        precision=run.precision,
-        val_every=run.val_every,
-        log_every=run.log_every,
-        dist_timeout_minutes=run.dist_timeout,
-        progress=run.progress,
-        freeze=tuple(run.freeze),
-        **changes,
-    )
+    changes["freeze"] = tuple(run.freeze)  # a list given from Python becomes the tuple the config holds
+    return dataclasses.replace(base, **changes)
 
 
 def augmentation(run: TrainRun, recipe_augment: AugmentConfig | None) -> AugmentConfig | None:
@@ -179,8 +223,7 @@ def mix_augmentation(run: TrainRun, recipe_augment: AugmentConfig | None) -> Aug
 
 def default_threads(world_size: int) -> int:
     """CPUs this process may use (affinity, not cpu_count) shared among the local processes."""
-    cpus = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else (os.cpu_count() or 1)
-    return max(1, cpus // max(1, world_size))
+    return max(1, available_cpus() // max(1, world_size))
 
 
 class TrainSetupError(Exception):
@@ -205,7 +248,7 @@ def train(run: TrainRun) -> list[dict[str, Any]]:
     """Train one model as `run` says (one process, or one rank under torchrun) -> the epochs' history.
 
     Raises TrainSetupError before any training starts when the run cannot start."""
-    from rafd.train.datasets import DatasetError
+    from rafd.data.windows import DatasetError
 
     try:
         prepared = _prepare(run)
@@ -218,10 +261,11 @@ def _prepare(run: TrainRun) -> _Prepared:
     """Everything checked and opened before the first step: recipe, configs, datasets, the process group."""
     import torch
 
-    from rafd.train.datasets import DatasetError, open_windows
-    from rafd.train.distributed import init_distributed, resolve_device
+    from rafd.data.windows import DatasetError, open_windows
+    from rafd.model.device import resolve_device
+    from rafd.model.precision import check_precision
+    from rafd.train.distributed import init_distributed
     from rafd.train.losses import LossConfig
-    from rafd.train.precision import check_precision
     from rafd.train.recipes import RECIPES
     from rafd.train.trainer import plan_batches
 
@@ -232,7 +276,7 @@ def _prepare(run: TrainRun) -> _Prepared:
     recipe = RECIPES[run.config]
     cfg = model_config(run, recipe.model)
     train_cfg = train_config(run, recipe.train)
-    check_precision(train_cfg.precision, resolve_device(run.device))  # fail before reading any data
+    check_precision(train_cfg.precision, resolve_device(train_cfg.device))  # fail before reading any data
     plan_batches(train_cfg.batch_size, world_size, train_cfg.micro_batch_size)
     augment = augmentation(run, recipe.augment)
     loss_cfg = LossConfig(flow_weight=0.0 if run.no_flow_supervision else 1.0)
@@ -255,12 +299,12 @@ def _prepare(run: TrainRun) -> _Prepared:
         augment=augment,
         cache=run.cache,
         estimate_poses=run.estimate_poses,
-        seed=run.seed,
+        seed=train_cfg.seed,
         warm_up=run.warm_up_windows,
     )
     mix_meta = None
     if run.mix_data is not None:
-        train_set, mix_meta = _mixed(run, cfg, train_set, mix_augmentation(run, recipe.augment))
+        train_set, mix_meta = _mixed(run, cfg, train_set, mix_augmentation(run, recipe.augment), train_cfg.seed)
     val_set = None
     if run.val_data is not None or run.val_split is not None:
         val_root = run.val_data if run.val_data is not None else run.data
@@ -275,7 +319,7 @@ def _prepare(run: TrainRun) -> _Prepared:
             warm_up=run.warm_up_windows,
         )
     torch.set_num_threads(run.threads or default_threads(local_world))
-    ctx = init_distributed(run.device, train_cfg.dist_timeout_minutes)
+    ctx = init_distributed(train_cfg.device, train_cfg.dist_timeout_minutes)
     run_meta = {
         "recipe": recipe.name,
         "data": str(run.data),
@@ -288,10 +332,12 @@ def _prepare(run: TrainRun) -> _Prepared:
     return _Prepared(run, recipe, cfg, train_cfg, loss_cfg, train_set, val_set, ctx, run_meta)
 
 
-def _mixed(run: TrainRun, cfg: RaFDConfig, primary: Any, augment: AugmentConfig | None) -> tuple[Any, dict[str, Any]]:
-    """The primary windows topped up with run.mix_data's to run.mix_share of each epoch -> (dataset, what the
-    checkpoint records of the mix)."""
-    from rafd.train.datasets import open_windows
+def _mixed(
+    run: TrainRun, cfg: RaFDConfig, primary: Any, augment: AugmentConfig | None, seed: int
+) -> tuple[Any, dict[str, Any]]:
+    """The primary windows topped up with run.mix_data's to run.mix_share of each epoch (`seed`: the run's) ->
+    (dataset, what the checkpoint records of the mix)."""
+    from rafd.data.windows import open_windows
     from rafd.train.mixing import MixedWindows
 
     splits = list(run.mix_split or run.split)
@@ -302,10 +348,10 @@ def _mixed(run: TrainRun, cfg: RaFDConfig, primary: Any, augment: AugmentConfig 
         augment=augment,
         cache=run.mix_cache,
         estimate_poses=run.estimate_poses,
-        seed=run.seed + 1,  # its windows' augmentation independent of the primary windows' with the same index
+        seed=seed + 1,  # its windows' augmentation independent of the primary windows' with the same index
         warm_up=run.warm_up_windows,
     )
-    mixed = MixedWindows(primary, mix, run.mix_share, run.seed)
+    mixed = MixedWindows(primary, mix, run.mix_share, seed)
     log.info(
         "each epoch: the %d windows of %s and %d of the %d windows of %s (share %.2f)",
         len(primary),

@@ -19,7 +19,6 @@ import dataclasses
 import json
 import logging
 import math
-import os
 import random
 import time
 from collections.abc import Iterable, Iterator
@@ -33,8 +32,10 @@ from torch import nn
 from torch.utils.data import DataLoader, Dataset
 
 from rafd.config import FREEZABLE, RaFDConfig
+from rafd.data.collate import Batch, Collator
+from rafd.data.parallel import default_workers as available_cpus
+from rafd.model.precision import autocast, check_precision, grad_scaler
 from rafd.progress import bar as progress_bar
-from rafd.train.collate import Batch, Collator
 from rafd.train.distributed import (
     DEFAULT_TIMEOUT_MINUTES,
     DistContext,
@@ -47,7 +48,6 @@ from rafd.train.distributed import (
     wrap_model,
 )
 from rafd.train.losses import LOSS_TERMS, LossConfig, RaFDLoss
-from rafd.train.precision import autocast, check_precision, grad_scaler
 
 log = logging.getLogger(__name__)
 
@@ -57,6 +57,9 @@ SCHEDULES = ("constant", "cosine")
 
 @dataclass(frozen=True)
 class TrainConfig:
+    """The optimisation and how it runs; its defaults are the training defaults, written here only (a recipe sets
+    some, a TrainRun field or `rafd train` flag left unset keeps the recipe's: rafd.train.run.train_config)."""
+
     epochs: int = 10  # paper: 10 epochs
     batch_size: int = 8  # GLOBAL windows per optimizer step, over all ranks and accumulation steps; paper: 8
     micro_batch_size: int | None = None  # windows per rank per forward; None = batch_size / world_size
@@ -128,8 +131,7 @@ def default_workers(device: torch.device, local_world_size: int = 1) -> int:
     needs the cores far more than the prepared windows do)."""
     if device.type != "cuda":
         return 0
-    cpus = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else (os.cpu_count() or 1)
-    return max(1, min(4, cpus // max(1, local_world_size) - 1))
+    return max(1, min(4, available_cpus() // max(1, local_world_size) - 1))
 
 
 def optimizer_state_path(checkpoint: Path) -> Path:
@@ -371,8 +373,8 @@ class Trainer:
 
     def validate(self) -> dict[str, float]:
         """mAP@0.3/0.5/0.7 and EPE on the validation set: each rank predicts its shard, all ranks summarise."""
+        from rafd.data.windows import WindowSubset
         from rafd.eval.predict import predict, summarise
-        from rafd.train.datasets import WindowSubset
 
         assert self.val_set is not None
         shard = shard_indices(len(self.val_set), self.ctx)  # type: ignore[arg-type]
@@ -393,7 +395,7 @@ class Trainer:
     # ----------------------------------------------------------------- checkpoints
     def save(self, path: Path) -> None:
         """Model checkpoint via rafd.save_checkpoint + `<path>.optim.pt` + `<path>.history.json`."""
-        from rafd.checkpoint import save_checkpoint
+        from rafd.model.checkpoint import save_checkpoint
 
         path = Path(path)
         path.parent.mkdir(parents=True, exist_ok=True)
@@ -428,7 +430,7 @@ class Trainer:
         branch or propagation) keep this run's initialisation. Optimizer, epoch and history start fresh.
         The two models must read the same input (size, resolution, normalisation) and predict the same targets:
         otherwise the copied encoder would see other pixels, the copied head other boxes, than they learned."""
-        from rafd.checkpoint import read_checkpoint
+        from rafd.model.checkpoint import read_checkpoint
 
         state, source_cfg, _meta = read_checkpoint(Path(path), map_location="cpu")
         for field in ("input_size", "resolution", "output_stride", "input", "class_names", "targets"):
@@ -461,7 +463,7 @@ class Trainer:
 
     def resume(self, path: Path) -> None:
         """Continue from a checkpoint written by save(): weights, optimizer, scaler, epoch/step, history."""
-        from rafd.checkpoint import load_checkpoint
+        from rafd.model.checkpoint import load_checkpoint
 
         path = Path(path)
         state_path = optimizer_state_path(path)

@@ -10,7 +10,6 @@ from __future__ import annotations
 from dataclasses import dataclass
 from typing import Literal
 
-import orjson
 from fastapi import APIRouter, Depends, Header, Path, Query, Request, Response
 
 from service.dependencies import get_caller, get_service
@@ -86,8 +85,7 @@ class DetectCall:
 
     async def answer(self, request: Request, stream_hint: str | None) -> Response:
         answer = await self.service.detect(request, stream_hint, self.caller, self.options)
-        # The answer's flow values may be a numpy array (service.detector._flow).
-        return Response(orjson.dumps(answer, option=orjson.OPT_SERIALIZE_NUMPY), media_type="application/json")
+        return Response(answer.to_json(), media_type="application/json")
 
 
 async def detect_call(

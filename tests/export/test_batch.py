@@ -70,7 +70,7 @@ def test_batched_verification_catches_a_mixed_up_row(batched, monkeypatch):
 
 
 def _model(result):
-    from rafd.checkpoint import load_checkpoint
+    from rafd.model.checkpoint import load_checkpoint
 
     return load_checkpoint(result.path.with_name("model.pt"))[0].eval()
 

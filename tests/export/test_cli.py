@@ -62,8 +62,8 @@ def _truncated(path, source):
 
 
 def _mismatched(path):  # weights of the T = 4 network under a T = 1 config
-    from rafd.checkpoint import save_checkpoint
     from rafd.model import build_model
+    from rafd.model.checkpoint import save_checkpoint
 
     save_checkpoint(path, build_model(small_config(4)), small_config(1))
 

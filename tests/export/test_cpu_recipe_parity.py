@@ -26,8 +26,8 @@ def cpu_like_config():  # noqa: ANN201 - RaFDConfig, imported lazily with torch
 
 def test_cpu_network_matches_onnxruntime(tmp_path) -> None:
     from export.onnx_export import export_onnx
-    from rafd.checkpoint import save_checkpoint
     from rafd.model import build_model
+    from rafd.model.checkpoint import save_checkpoint
 
     cfg = cpu_like_config()
     torch.manual_seed(5)

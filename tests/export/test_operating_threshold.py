@@ -12,7 +12,7 @@ torch = pytest.importorskip("torch")
 
 
 def test_operating_threshold_is_carried_into_the_onnx_metadata(tmp_path):
-    from rafd.checkpoint import load_checkpoint, save_checkpoint
+    from rafd.model.checkpoint import load_checkpoint, save_checkpoint
 
     checkpoint = make_checkpoint(tmp_path / "model.pt", small_config(2))
     plain = export_onnx(checkpoint, tmp_path / "plain.onnx", verify=False, log=lambda _: None)

@@ -17,7 +17,7 @@ torch = pytest.importorskip("torch")
 
 def test_options_model_matches_onnxruntime(tmp_path) -> None:
     from export.onnx_export import export_onnx
-    from rafd.checkpoint import load_checkpoint
+    from rafd.model.checkpoint import load_checkpoint
 
     base = small_config(4)
     cfg = base.replace(
@@ -50,8 +50,8 @@ def test_pre_norm_propagation_matches_onnxruntime(tmp_path) -> None:
     """Pre-norm propagation blocks (the shipped recipe's), with their zero-initialised branches made non-zero so
     the exported graph's attention and FFN paths are exercised, not skipped as an identity."""
     from export.onnx_export import export_onnx
-    from rafd.checkpoint import load_checkpoint, save_checkpoint
     from rafd.model import build_model
+    from rafd.model.checkpoint import load_checkpoint, save_checkpoint
 
     base = small_config(4)
     cfg = base.replace(propagation=dataclasses.replace(base.propagation, norm="pre"))

@@ -163,7 +163,7 @@ def test_shipped_onnx_matches_the_shipped_checkpoint(radiate_sample_or_none):
         checkpoint, onnx_path = assets.default_checkpoint(), assets.default_onnx()
     except FileNotFoundError as error:
         pytest.skip(f"the shipped model is not built yet: {error}")
-    from rafd.checkpoint import load_checkpoint
+    from rafd.model.checkpoint import load_checkpoint
 
     model, cfg, _ = load_checkpoint(checkpoint)
     runner = OnnxRunner(onnx_path)

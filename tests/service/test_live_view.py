@@ -7,6 +7,7 @@ from __future__ import annotations
 import math
 import queue
 import sys
+import time
 import types
 
 import pytest
@@ -38,6 +39,11 @@ def test_a_viewer_receives_the_boxes_of_the_http_answer(live_client):
     frame = blob_frame(128, [(40, 60, 250), (90, 20, 180)])
     first = live_client.post("/detect", json=detect_json("car-1", 1.0, frame, (0.0, 0.0, 0.0)))
     assert first.status_code == 200
+    # Connect only once the publisher has made the stream's channels: foxglove-sdk can refuse a subscription to a
+    # channel created while the client was connecting ("subscribe to unknown channel"), a race of the library.
+    deadline = time.monotonic() + 10.0
+    while live._published.value < 1 and time.monotonic() < deadline:
+        time.sleep(0.01)
     viewer = Viewer(live.port)
     try:
         # the stream's channels, in the MCAP logs' schemas, under its own prefix

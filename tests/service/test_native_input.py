@@ -126,7 +126,7 @@ def test_a_native_scan_wider_than_a_sensor_is_refused_from_its_header(client: Te
     def never(*args: object) -> bytes:
         raise AssertionError("the image was inflated")
 
-    monkeypatch.setattr(service.png, "bounded_png", never)
+    monkeypatch.setattr(service.png, "inflate_idat", never)
     wide = zero_png(400_000, 400)
     assert len(wide) < 400_000
     as_json = client.post("/detect", json={"stream_id": "w", "timestamp": 1.0, "image": b64png_bytes(wide)})

@@ -8,9 +8,9 @@ from pathlib import Path
 import pytest
 import torch
 
-from rafd.checkpoint import load_checkpoint, save_checkpoint
 from rafd.config import RaFDConfig
 from rafd.model import build_model
+from rafd.model.checkpoint import load_checkpoint, save_checkpoint
 from tools.assemble_model import main
 
 

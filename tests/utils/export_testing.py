@@ -23,8 +23,8 @@ def small_config(num_frames: int) -> RaFDConfig:
 
 
 def make_checkpoint(path: Path, cfg: RaFDConfig, seed: int = 0) -> Path:
-    from rafd.checkpoint import save_checkpoint
     from rafd.model import build_model
+    from rafd.model.checkpoint import save_checkpoint
 
     torch.manual_seed(seed)
     save_checkpoint(path, build_model(cfg).eval(), cfg, meta={"purpose": "export tests"})
@@ -42,7 +42,7 @@ class Exported:
 
 def export_forms(root: Path, num_frames: int, forms: tuple[str, ...] = ("step", "window")) -> Exported:
     from export.onnx_export import export_onnx
-    from rafd.checkpoint import load_checkpoint
+    from rafd.model.checkpoint import load_checkpoint
 
     cfg = small_config(num_frames)
     checkpoint = make_checkpoint(root / "model.pt", cfg)

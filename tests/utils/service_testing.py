@@ -2,27 +2,22 @@
 
 from __future__ import annotations
 
-import base64
 import contextlib
 import threading
 import time
 from collections.abc import Iterator
 from typing import Any
 
-import cv2
 import numpy as np
 import uvicorn
 from fastapi.testclient import TestClient
 
-
-def png(image: np.ndarray) -> bytes:
-    ok, buffer = cv2.imencode(".png", image)
-    assert ok
-    return buffer.tobytes()
+from rafd.detect_client import FrameFields, base64_png, json_body
+from rafd.detect_client import png_bytes as png
 
 
 def b64png(image: np.ndarray) -> str:
-    return base64.b64encode(png(image)).decode("ascii")
+    return base64_png(png(image))
 
 
 def blob_frame(size: int, spots: list[tuple[int, int, int]], background: int = 0) -> np.ndarray:
@@ -36,10 +31,8 @@ def blob_frame(size: int, spots: list[tuple[int, int, int]], background: int = 0
 def detect_json(
     stream_id: str, timestamp: float, image: np.ndarray, pose: tuple[float, float, float] | None = None
 ) -> dict[str, Any]:
-    body: dict[str, Any] = {"stream_id": stream_id, "timestamp": timestamp, "image": b64png(image)}
-    if pose is not None:
-        body["pose"] = {"x": pose[0], "y": pose[1], "yaw": pose[2]}
-    return body
+    """A /detect JSON body as a dict (to post with a test client's json=, or to change first)."""
+    return FrameFields(timestamp, stream_id, pose).json_fields(b64png(image))
 
 
 def wait_ready(client: Any, timeout: float = 10.0) -> None:
@@ -132,6 +125,4 @@ def json_part(
     stream_id: str, timestamp: float, image: np.ndarray, pose: tuple[float, float, float] | None = None
 ) -> bytes:
     """A /detect JSON body as bytes."""
-    import json
-
-    return json.dumps(detect_json(stream_id, timestamp, image, pose)).encode()
+    return json_body(FrameFields(timestamp, stream_id, pose), b64png(image)).content

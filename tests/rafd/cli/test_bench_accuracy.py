@@ -80,7 +80,7 @@ def test_small_benchmark_end_to_end(tmp_path: Path) -> None:
         ("single", None),
         ("rafd4_from_single", "single"),
     ]
-    from rafd.checkpoint import read_checkpoint
+    from rafd.model.checkpoint import read_checkpoint
 
     _, cfg, meta = read_checkpoint(out / "rafd4_from_single" / "model.pt")
     assert cfg.num_frames == 4 and cfg.propagation.norm == "pre"

@@ -82,7 +82,7 @@ def test_calibrate_writes_the_operating_threshold_into_a_copy_of_the_checkpoint(
 
     import numpy as np
 
-    from rafd.checkpoint import read_checkpoint
+    from rafd.model.checkpoint import read_checkpoint
 
     checkpoint = Path(shutil.copy(trained_checkpoint, tmp_path / "model.pt"))
     before, cfg_before, _ = read_checkpoint(checkpoint)

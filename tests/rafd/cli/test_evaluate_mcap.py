@@ -63,10 +63,10 @@ def test_eval_writes_one_log_per_sequence(trained_checkpoint: Path, sim_root: Pa
 
 
 def test_logged_boxes_are_the_models_predictions(trained_checkpoint: Path, sim_root: Path, tmp_path: Path) -> None:
-    from rafd.checkpoint import load_checkpoint
+    from rafd.data.windows import open_windows
     from rafd.eval.mcap import write_evaluation_logs
     from rafd.eval.predict import predict
-    from rafd.train.datasets import open_windows
+    from rafd.model.checkpoint import load_checkpoint
 
     model, cfg, _ = load_checkpoint(trained_checkpoint, map_location="cpu")
     dataset = open_windows(sim_root, "train", cfg)
@@ -97,8 +97,8 @@ def test_logged_boxes_are_the_models_predictions(trained_checkpoint: Path, sim_r
     arrows = flow.entities[0].arrows
     # only moving cells whose flow is valid (rafd.flow_validity): never the ring the search cannot measure from
     assert 0 < len(arrows) <= moving
-    from rafd.checkpoint import read_checkpoint
     from rafd.flow_validity import search_reach_m
+    from rafd.model.checkpoint import read_checkpoint
 
     cfg = read_checkpoint(trained_checkpoint)[1]
     edge = 0.5 * cfg.input_size * cfg.resolution - 0.5 * cfg.flow.stride * cfg.resolution

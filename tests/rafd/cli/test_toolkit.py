@@ -1,4 +1,5 @@
-"""One toolkit: `rafd COMMAND` reaches every tool (found through the "rafd.commands" entry points), the shared flags
+"""One toolkit: `rafd COMMAND` reaches every tool (rafd.cli.main.COMMANDS, and other packages' "rafd.commands" entry
+points), the command table and the version are written once, the shared flags
 mean one thing everywhere (rafd.cli.flags), every flag has help, usage lines are argparse's own, old spellings warn
 and still work for one release, and docs/cli.md lists every command and the shared flags as the parsers have them."""
 
@@ -63,13 +64,36 @@ def pyproject() -> dict:
 
 
 # ----------------------------------------------------------------------------- the one command
-def test_the_command_table_is_pyprojects_entry_points_and_every_alias_runs_the_same_function():
+def test_the_command_table_is_written_once_and_every_alias_runs_the_same_function():
+    """rafd.cli.main.COMMANDS is the one table; pyproject.toml holds only what packaging needs: the `rafd` script and
+    each command's `rafd-NAME` alias, running what `rafd NAME` runs, and the old names kept for one release."""
     project = pyproject()["project"]
-    entry_points = project["entry-points"]["rafd.commands"]
-    assert entry_points == {c.name: c.target for c in COMMANDS}
-    assert project["scripts"]["rafd"] == "rafd.cli.main:main"
-    for command in COMMANDS:  # each rafd-* alias runs what `rafd COMMAND` runs
-        assert project["scripts"][f"rafd-{command.name}"] == command.target, command.name
+    assert "rafd.commands" not in project.get("entry-points", {})  # not a second table
+    scripts = dict(project["scripts"])
+    assert scripts.pop("rafd") == "rafd.cli.main:main"
+    for command in COMMANDS:
+        assert scripts.pop(f"rafd-{command.name}", None) == command.target, command.name
+    modules = {c.target.split(":")[0] for c in COMMANDS}
+    for name, target in scripts.items():  # the rest: old names, which warn and run a command of the table
+        module, _, function = target.partition(":")
+        assert function == "legacy_main" and module in modules, name
+
+
+def test_the_version_is_written_once():
+    """rafd.__version__ is the version; pyproject.toml reads it (dynamic) instead of writing it again."""
+    import rafd
+
+    config = pyproject()
+    assert "version" not in config["project"] and "version" in config["project"]["dynamic"]
+    assert config["tool"]["setuptools"]["dynamic"]["version"] == {"attr": "rafd.__version__"}
+    assert re.fullmatch(r"\d+\.\d+\.\d+", rafd.__version__)
+
+
+def test_rafd_version_prints_the_package_version(capsys):
+    import rafd
+
+    assert dispatcher.main(["--version"]) == 0
+    assert capsys.readouterr().out == f"rafd {rafd.__version__}\n"
 
 
 def test_rafd_help_lists_every_command(capsys):
@@ -91,7 +115,8 @@ def test_rafd_command_help_reaches_the_tool(command, capsys):
 
 def test_commands_are_found_through_the_installed_entry_points(monkeypatch, capsys):
     """The dispatcher reads the entry points, importing a command only when it runs: a command another package
-    declares is listed and run like the built-in ones."""
+    declares is listed and run like the built-in ones (an installation that still declares the built-in ones, as
+    before the table was written once, changes nothing)."""
     installed = [metadata.EntryPoint(c.name, c.target, dispatcher.GROUP) for c in COMMANDS]
     plugin = metadata.EntryPoint("hello", "tests.rafd.cli.test_toolkit:hello_command", dispatcher.GROUP)
     monkeypatch.setattr(
@@ -103,6 +128,15 @@ def test_commands_are_found_through_the_installed_entry_points(monkeypatch, caps
     assert "  hello " in listed and "  serve " in listed
     assert dispatcher.main(["hello", "a", "b"]) == 7
     assert capsys.readouterr().out == "hello ['a', 'b']\n"
+
+
+def test_every_command_runs_without_entry_points(monkeypatch, capsys):
+    """A fresh install declares no "rafd.commands" entry point: the table alone lists and runs the commands."""
+    monkeypatch.setattr(metadata, "entry_points", lambda group: [])
+    assert dispatcher.installed_commands() == {c.name: c.target for c in COMMANDS}
+    assert dispatcher.main(["--help"]) == 0
+    listed = capsys.readouterr().out
+    assert all(f"\n  {TYPED[c.name]} " in listed for c in COMMANDS)
 
 
 def hello_command(argv):
@@ -310,3 +344,30 @@ def test_stages_say_what_runs_and_how_far(capsys):
         stages.begin("gate")
     err = capsys.readouterr().err
     assert "bench speed: gate" in err and "3/3" in err
+
+
+# ----------------------------------------------------------------------------- the front page
+def readme_section(title: str) -> str:
+    return (REPO / "README.md").read_text().split(f"\n## {title}\n", 1)[1].split("\n## ", 1)[0]
+
+
+def test_the_front_page_lists_every_command():
+    """README's command list names every command (`rafd bench speed | accuracy | ...` names a group's members)."""
+    listed = readme_section("Command-line tools")
+    named = set(re.findall(r"^- `rafd ([a-z]+)", listed, re.M))
+    groups = {g: re.search(rf"^- `rafd {g} ([a-z |]+)`", listed, re.M) for g in dispatcher.GROUPS}
+    for command in COMMANDS:
+        group, _, member = command.name.partition("-")
+        if group in groups and member:
+            assert groups[group] and member in groups[group].group(1).split(" | "), command.name
+        else:
+            assert command.name in named, command.name
+
+
+def test_the_front_page_links_every_page_of_the_site():
+    yaml = pytest.importorskip("yaml")
+    config = yaml.safe_load((REPO / "mkdocs.yml").read_text().replace("!!python/name:", ""))
+    pages = [next(iter(item.values())) for item in config["nav"]]
+    table = readme_section("Documentation")
+    for page in pages:
+        assert f"](docs/{page})" in table, page

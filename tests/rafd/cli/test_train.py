@@ -12,7 +12,7 @@ from rafd.train.trainer import history_path, optimizer_state_path
 
 
 def test_tiny_run_writes_checkpoint_optimizer_state_and_history(trained_checkpoint: Path) -> None:
-    from rafd.checkpoint import load_checkpoint
+    from rafd.model.checkpoint import load_checkpoint
 
     assert optimizer_state_path(trained_checkpoint).is_file()
     history = json.loads(history_path(trained_checkpoint).read_text())
@@ -22,7 +22,7 @@ def test_tiny_run_writes_checkpoint_optimizer_state_and_history(trained_checkpoi
 
 
 def test_ablation_flags_reach_the_model_config(sim_root: Path, tmp_path: Path) -> None:
-    from rafd.checkpoint import load_checkpoint
+    from rafd.model.checkpoint import load_checkpoint
 
     out = tmp_path / "ablation.pt"
     argv = [
@@ -118,7 +118,7 @@ def test_init_and_resume_together_are_refused(
 
 
 def test_propagation_norm_flag_reaches_the_model_config(sim_root: Path, tmp_path: Path) -> None:
-    from rafd.checkpoint import load_checkpoint
+    from rafd.model.checkpoint import load_checkpoint
 
     out = tmp_path / "post.pt"
     argv = [

@@ -84,7 +84,7 @@ def test_window_content_follows_the_protocol(root: Path, sim_truth_and_folder) -
 
 
 def test_windows_collate_into_a_batch(root: Path) -> None:
-    from rafd.train.collate import Collator
+    from rafd.data.collate import Collator
 
     dataset = RadarWindowDataset(root, split=None, cfg=CFG)
     batch = Collator(CFG)([dataset[0], dataset[len(dataset) - 1]])

@@ -17,7 +17,7 @@ from rafd.preprocess import to_model_input
 def _scan_size() -> int:
     """2.5 model inputs: 3 x 3 overlapping tiles for any shipped model's input size."""
     from rafd.assets import default_checkpoint
-    from rafd.checkpoint import read_checkpoint
+    from rafd.model.checkpoint import read_checkpoint
 
     return 2 * (5 * read_checkpoint(default_checkpoint())[1].input_size // 4)
 
@@ -40,7 +40,7 @@ def test_streamed_tiles_equal_each_tiles_window(scans: Path, monkeypatch: pytest
     import rafd.eval.fullscan
     import rafd.eval.tiled
     from rafd.assets import default_checkpoint
-    from rafd.checkpoint import load_checkpoint
+    from rafd.model.checkpoint import load_checkpoint
 
     model, cfg, _ = load_checkpoint(default_checkpoint())  # trained weights: stable scores, as in use
     dataset = RadarWindowDataset(scans, split="test", cfg=scan_config(cfg, _scan_size()), warm_up=warm_up)
@@ -67,7 +67,7 @@ def test_streamed_tiles_equal_each_tiles_window(scans: Path, monkeypatch: pytest
     tallies = [r.flow_tally for r in results if r.flow_tally is not None]
     assert [t.repeated_pairs for t in tallies] == ([1, 0, 0, 0, 0, 0] if warm_up else [0, 0, 0])
     if not warm_up:  # --max-windows hands a WindowSubset: its windows only, the same figures
-        from rafd.train.datasets import WindowSubset
+        from rafd.data.windows import WindowSubset
 
         (one,) = predict_full_scan(model, WindowSubset(dataset, [1]), cfg, grid=grid, progress=False)
         assert one.frame == results[1].frame and one.flow_tally is not None

@@ -68,9 +68,9 @@ def test_past_as_newest_feeds_the_newest_frame_and_pose_in_every_slot(tiny_root,
     import torch
     from torch import nn
 
+    from rafd.data.windows import open_windows
     from rafd.eval.predict import predict
     from rafd.model.build import build_model
-    from rafd.train.datasets import open_windows
 
     model = build_model(tiny_cfg).eval()
     seen = []

@@ -8,8 +8,8 @@ from pathlib import Path
 import pytest
 import torch
 
-from rafd.checkpoint import CheckpointError, load_checkpoint, save_checkpoint
 from rafd.model import build_model
+from rafd.model.checkpoint import CheckpointError, load_checkpoint, save_checkpoint
 
 
 @pytest.fixture

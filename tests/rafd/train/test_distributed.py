@@ -15,7 +15,7 @@ import torch
 import torch.multiprocessing as mp
 
 from rafd.config import RaFDConfig
-from rafd.train.datasets import open_windows
+from rafd.data.windows import open_windows
 from rafd.train.distributed import DistContext, cleanup_distributed, init_distributed, shard_indices, wrap_model
 from rafd.train.trainer import TrainConfig, Trainer, plan_batches
 
@@ -143,7 +143,7 @@ def test_sync_batchnorm_only_under_ddp_on_cuda_and_checkpoints_keep_their_keys(t
 )
 def test_every_parameter_gets_a_gradient_so_ddp_needs_no_unused_parameter_search(tiny_cfg: RaFDConfig, variant) -> None:
     from rafd import build_model
-    from rafd.train.collate import Collator
+    from rafd.data.collate import Collator
     from rafd.train.losses import LossConfig, RaFDLoss
 
     if variant == "no_guidance":

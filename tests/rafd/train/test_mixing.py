@@ -76,7 +76,7 @@ def test_empty_data_and_out_of_range_slots_are_refused() -> None:
 def test_a_training_run_mixes_a_second_root_and_records_it(tiny_root: Path, tmp_path: Path) -> None:
     """Two roots through train(): each epoch holds ROOT's windows and the mix root's share; the checkpoint records
     the mix, and the augmentation overrides change ROOT's augmentation only."""
-    from rafd.checkpoint import read_checkpoint
+    from rafd.model.checkpoint import read_checkpoint
     from rafd.train.run import TrainRun, train
 
     out = tmp_path / "mixed.pt"

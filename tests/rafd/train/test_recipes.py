@@ -10,10 +10,10 @@ from pathlib import Path
 import torch
 
 from rafd.assets import default_checkpoint
-from rafd.checkpoint import load_checkpoint
 from rafd.config import RaFDConfig
-from rafd.train.collate import Collator
-from rafd.train.datasets import open_windows
+from rafd.data.collate import Collator
+from rafd.data.windows import open_windows
+from rafd.model.checkpoint import load_checkpoint
 from rafd.train.distributed import DistContext
 from rafd.train.losses import LOSS_TERMS
 from rafd.train.recipes import RECIPES, cpu_model_config

@@ -8,8 +8,8 @@ import pytest
 import torch
 
 from rafd.config import RaFDConfig
-from rafd.train.collate import Collator
-from rafd.train.datasets import open_windows
+from rafd.data.collate import Collator
+from rafd.data.windows import open_windows
 from rafd.train.distributed import DistContext
 from rafd.train.losses import LOSS_TERMS
 from rafd.train.trainer import TrainConfig, Trainer, optimizer_state_path
