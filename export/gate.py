@@ -24,6 +24,7 @@ from __future__ import annotations
 import json
 import math
 import os
+import shutil
 import tempfile
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field
@@ -34,6 +35,7 @@ import numpy as np
 
 from rafd.config import RaFDConfig
 from rafd.detections import decode_detections
+from rafd.model_files import int8_model_path
 from rafd.progress import bar
 from rafd.protocol import (
     DEFAULT_SCORE_THRESHOLD,
@@ -102,6 +104,8 @@ class GateReport:
     candidate: str  # e.g. "openvino/bf16"
     thresholds: GateThresholds
     sources: dict[str, SourceFigures]
+    # int8: the sha256 of the quantized file judged (MODEL.int8.onnx); the service serves that file only
+    judged_sha256: str | None = None
 
     @property
     def pooled(self) -> SourceFigures:
@@ -424,14 +428,19 @@ def run_export_gates(
     reduced = [(runtime, precision) for runtime, precision in supported_choices() if precision != "fp32"]
     if not reduced:
         log(
-            "accuracy gate: this CPU runs no reduced precision (bf16 needs openvino and avx512_bf16 or AMX); "
-            "nothing to gate"
+            "accuracy gate: this CPU runs no reduced precision (bf16 needs openvino and avx512_bf16 or AMX, int8 "
+            "VNNI or AMX); nothing to gate"
         )
         return {}
     sample = os.environ.get("RAFD_RADIATE_SAMPLE")
     radiate = sample if sample and Path(sample, "Navtech_Cartesian").is_dir() else None
     reports = {}
     for candidate in reduced:
+        if candidate[1] == "int8":  # its own model: quantized (again) here, then judged
+            from export.quantize import quantize_model
+
+            quantized = quantize_model(onnx_path, log=log)
+            log(f"int8: wrote {quantized}")
         report = gate_model(
             onnx_path,
             candidate,
@@ -443,6 +452,10 @@ def run_export_gates(
             options.thresholds,
             log,
         )
+        if candidate[1] == "int8":
+            from rafd.runtime.runners import file_sha256
+
+            report.judged_sha256 = file_sha256(quantized)
         for line in report.lines():
             log(line)
         reports[candidate[1]] = report
@@ -455,7 +468,7 @@ def gate_metadata(reports: dict[str, GateReport]) -> dict[str, str]:
     import datetime
 
     from rafd import __version__
-    from rafd.bench.machine import cpu_model_and_flags
+    from rafd.cpu import cpu_model_and_flags
 
     cpu, cpu_flags = cpu_model_and_flags()
     units = [f for f in ("avx512_bf16", "amx_bf16", "amx_int8", "avx512_vnni") if f in cpu_flags]
@@ -467,8 +480,15 @@ def gate_metadata(reports: dict[str, GateReport]) -> dict[str, str]:
     out = {}
     for precision, report in reports.items():
         out[f"gate_{precision}"] = "pass" if report.ok else "fail"
+        judged = {"int8_sha256": report.judged_sha256} if report.judged_sha256 else {}
         out[f"gate_{precision}_figures"] = json.dumps(
-            {"candidate": report.candidate, "reference": report.reference, "figures": report.figures(), **made},
+            {
+                "candidate": report.candidate,
+                "reference": report.reference,
+                "figures": report.figures(),
+                **made,
+                **judged,
+            },
             sort_keys=True,
         )
     return out
@@ -496,4 +516,7 @@ def record_gates(
         os.replace(tmp, target)
     finally:
         tmp.unlink(missing_ok=True)
+    quantized = int8_model_path(source)
+    if "int8" in reports and target != source and quantized.is_file():  # the judged int8 model goes with its record
+        shutil.copyfile(quantized, int8_model_path(target))
     return entries

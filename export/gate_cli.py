@@ -19,10 +19,11 @@ def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(
         prog=flags.prog("gate"),
         description="Run the accuracy gate of every reduced precision this CPU runs (OpenVINO bf16 where the CPU has "
-        "avx512_bf16 or AMX) against onnxruntime fp32 on held-out simulated sequences and, with "
-        "RAFD_RADIATE_SAMPLE, the real sample's frames; record each verdict and its figures in the ONNX "
-        "model's metadata (in place unless --out). The service picks a reduced precision automatically only "
-        "after a recorded pass.",
+        "avx512_bf16 or AMX; OpenVINO int8 where it has VNNI or AMX, on MODEL.int8.onnx, which this command "
+        "quantizes first, calibrated on other simulated sequences) against onnxruntime fp32 on held-out "
+        "simulated sequences and, with RAFD_RADIATE_SAMPLE, the real sample's frames; record each verdict and "
+        "its figures in the ONNX model's metadata (in place unless --out). The service picks a reduced "
+        "precision automatically only after a recorded pass.",
     )
     parser.add_argument("model", metavar="MODEL.onnx", type=Path, help="the exported ONNX model (step form)")
     flags.add_out(parser, "MODEL.onnx", "write the gated model here instead of replacing MODEL.onnx", type=Path)

@@ -47,3 +47,10 @@ def checkpoint_given_for_onnx(path: str | os.PathLike[str]) -> str | None:
         f"{path} is a PyTorch checkpoint, not an ONNX model: export it first "
         f"(`rafd export {Path(path).name} --out model.onnx`), then serve the ONNX file"
     )
+
+
+def int8_model_path(path: str | os.PathLike[str]) -> Path:
+    """Where the int8 (quantized) form of an ONNX model lives: beside it, MODEL.int8.onnx (`rafd gate` writes it on a
+    CPU with int8 units; the service serves it only where its accuracy gate, recorded in MODEL.onnx, passed)."""
+    model = Path(path)
+    return model.with_name(model.name.removesuffix(".onnx") + ".int8.onnx")

@@ -4,9 +4,9 @@ The model is loaded in the lifespan, in a background task, never at import: /hea
 once, /health/ready (and every model route) answers 503 until the model is loaded and warmed up.
 The interactive API pages (/docs, /redoc) load their assets from this process (/static-offline-docs/), not from
 the internet. Middleware, outermost first: metrics (counts every answer, 401s and 413s included), intake (arrival
-stamp, the per-client request limit and the minimum body rate: service/intake.py), API keys (401 before anything is
+stamp, the per-client request limit and the minimum body rate: service/http/intake.py), API keys (401 before anything is
 read), the body size limit (413), then the routes. The HTTP server limits each request head before any of them
-(service/protocol.py, run by service/server.py).
+(service/http/head_limits.py, run by service/http/server.py).
 """
 
 from __future__ import annotations
@@ -24,19 +24,19 @@ from fastapi_offline import FastAPIOffline
 from starlette.concurrency import run_in_threadpool
 
 from rafd import __version__
-from service.auth import OPEN_PATHS, ApiKeyMiddleware, load_api_keys
-from service.detector import DetectService, Executors
-from service.errors import ERRORS, error_responses, expand_codes, install_error_handlers
-from service.intake import IntakeMiddleware
-from service.limits import BodySizeLimitMiddleware
-from service.live import LiveView
+from service.http.auth import OPEN_PATHS, ApiKeyMiddleware, load_api_keys
+from service.http.body_limit import BodySizeLimitMiddleware
+from service.http.errors import ERRORS, error_responses, expand_codes, install_error_handlers
+from service.http.intake import IntakeMiddleware
+from service.http.penalty import RefusalPenalty
 from service.loading import check_buffer_length, open_runner, warm_up
-from service.metrics import MetricsMiddleware, ServiceMetrics
-from service.penalty import RefusalPenalty
-from service.poses import Odometry
+from service.pipeline.detector import DetectService, Executors
+from service.pipeline.live import LiveView
+from service.pipeline.poses import Odometry
+from service.pipeline.service_metrics import MetricsMiddleware, ServiceMetrics
+from service.pipeline.streams import StreamStore
 from service.routers import detect, health, metrics, model, streams
 from service.settings import Settings, get_settings
-from service.streams import StreamStore
 
 log = logging.getLogger(__name__)
 

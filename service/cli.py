@@ -1,6 +1,6 @@
 """rafd serve: one uvicorn process serving the model over HTTP.
 
-Every service setting (service/settings.py) is a flag (service/flags.py generates them from the Settings model)
+Every service setting (service/settings.py) is a flag (service/serve_flags.py generates them from the Settings model)
 and an RAFD_* environment variable; a flag wins over the variable. Scale out with more processes/containers,
 routing each stream id to one replica (a stream's buffer lives in its process).
 """
@@ -17,7 +17,7 @@ from pydantic import ValidationError
 
 from rafd.cli.flags import prog
 from rafd.model_files import checkpoint_given_for_onnx
-from service.flags import add_settings_flags, settings_overrides
+from service.serve_flags import add_settings_flags, settings_overrides
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -67,7 +67,7 @@ def main(argv: list[str] | None = None) -> int:
         return 2
 
     from service.app import create_app
-    from service.server import serve
+    from service.http.server import serve
 
     logging.basicConfig(level=args.log_level.upper(), format="%(asctime)s %(levelname)s %(name)s: %(message)s")
     try:

@@ -8,9 +8,9 @@ from __future__ import annotations
 
 from fastapi import Request
 
-from service.auth import caller_of
-from service.detector import DetectService
-from service.errors import ApiError
+from service.http.auth import caller_of
+from service.http.errors import ApiError
+from service.pipeline.detector import DetectService
 
 
 async def get_service(request: Request) -> DetectService:

@@ -2,8 +2,8 @@
 
 Answers are built as these models: the OpenAPI document is generated from them, and the tests validate real answers
 against them with unknown fields forbidden (`Answer`), so an answer cannot grow a field the schema does not declare.
-On the hot path /detect's answer is built without validation (service.detector, `model_construct`: its flow arrays
-stay numpy arrays) and orjson writes it (`DetectResponse.to_json`).
+On the hot path /detect's answer is built without validation (service.pipeline.detector, `model_construct`: its flow
+arrays stay numpy arrays) and orjson writes it (`DetectResponse.to_json`).
 """
 
 from __future__ import annotations
@@ -163,11 +163,11 @@ class ModelRef(Answer):
     version: str
     checkpoint_sha256: str
     runtime: str = Field(description="the runtime that computed the answer: onnxruntime or openvino")
-    precision: str = Field(description="what it computed in: fp32 or bf16")
+    precision: str = Field(description="what it computed in: fp32, bf16 or int8 (the quantized MODEL.int8.onnx)")
 
 
 # evicted / expired: the store ended the previous chain; gap / previous_timestamp_mismatch: the frame itself showed
-# that the chain held here is not its own (service/detector.py, `chain_break`), and it starts a new one.
+# that the chain held here is not its own (service/pipeline/detector.py, `chain_break`), and it starts a new one.
 RestartReason = Literal["evicted", "expired", "gap", "previous_timestamp_mismatch"]
 
 
@@ -207,7 +207,7 @@ class DetectResponse(Answer):
 
     def to_json(self) -> bytes:
         # orjson writes a numpy array as the nested lists' very text, faster than .tolist() first
-        # (tests/service/test_detect.py), and a float32 validity as its shortest text (0.57).
+        # (tests/service/pipeline/test_detect.py), and a float32 validity as its shortest text (0.57).
         return orjson.dumps(self.to_plain(), option=orjson.OPT_SERIALIZE_NUMPY)
 
 

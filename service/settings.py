@@ -61,12 +61,12 @@ class Settings(BaseSettings):
     # more requests wait. Default: one run per CPU. 1 = one run at a time.
     concurrent_runs: int = Field(default_factory=available_cpus, ge=1)
     # Inference runtime and precision (rafd.runtime.create_runner). "auto" times every supported choice on the
-    # model at start-up and keeps the fastest; bf16 (OpenVINO, CPUs with avx512_bf16 or AMX) is chosen
-    # automatically only for a model whose accuracy gate (rafd-export --gate) passed. onnxruntime fp32 is the
-    # reference path.
+    # model at start-up and keeps the fastest; bf16 (OpenVINO, CPUs with avx512_bf16 or AMX) and int8 (OpenVINO on
+    # the quantized MODEL.int8.onnx, CPUs with VNNI or AMX) are chosen automatically only for a model whose accuracy
+    # gate (rafd gate) passed for them. onnxruntime fp32 is the reference path.
     runtime: Literal["auto", "onnxruntime", "openvino"] = "auto"
-    precision: Literal["auto", "fp32", "bf16"] = "auto"
-    # The live view (service/live.py): publish every answered frame to a Foxglove WebSocket server on this port
+    precision: Literal["auto", "fp32", "bf16", "int8"] = "auto"
+    # The live view (service/pipeline/live.py): publish every answered frame to a Foxglove WebSocket server on this port
     # (0: any free port, logged), in the MCAP logs' channels, one topic prefix per stream; off when unset. Needs the
     # `live` extra (foxglove-sdk).
     foxglove_port: int | None = Field(default=None, ge=0, le=65535)
@@ -118,10 +118,10 @@ class Settings(BaseSettings):
     # 0 turns the rate check off (body_timeout_s still applies).
     min_body_bytes_per_s: int = Field(default=64 * 1024, ge=0)
     body_rate_grace_s: float = Field(default=1.0, ge=0)
-    # Limits on a request's head, enforced by the HTTP server before anything reaches the app (service/protocol.py):
-    # the request line (414 beyond), the number of header fields and their total size (431 beyond), and the time the
-    # head may take from the connection's first byte (or, on a kept-alive connection, the request's first byte;
-    # 408 `request_header_timeout` beyond).
+    # Limits on a request's head, enforced by the HTTP server before anything reaches the app
+    # (service/http/head_limits.py): the request line (414 beyond), the number of header fields and their total size
+    # (431 beyond), and the time the head may take from the connection's first byte (or, on a kept-alive connection,
+    # the request's first byte; 408 `request_header_timeout` beyond).
     max_request_line_bytes: int = Field(default=8 * 1024, ge=256)
     max_headers: int = Field(default=100, ge=8)
     max_header_bytes: int = Field(default=32 * 1024, ge=1024)
@@ -147,17 +147,17 @@ class Settings(BaseSettings):
     odometry_workers: int = Field(default=1, ge=1)
     odometry_queue_limit: int = Field(default=16, ge=0)
     model_queue_limit: int = Field(default=16, ge=0)
-    # Cross-stream batching (service/batcher.py): at most this many streams' steady-state steps in one model run, when
-    # the graph has a batch axis (rafd-export --batch dynamic); 1 = every step runs alone. Off by default: on the
-    # CPUs measured it does not pay (docs/performance.md, "Cross-stream batching").
+    # Cross-stream batching (service/pipeline/batcher.py): at most this many streams' steady-state steps in one model
+    # run, when the graph has a batch axis (rafd-export --batch dynamic); 1 = every step runs alone. Off by default: on
+    # the CPUs measured it does not pay (docs/performance.md, "Cross-stream batching").
     max_batch: int = Field(default=1, ge=1, le=64)
     # When the model is idle, a ready step waits this long for other streams' steps before it runs alone.
     batch_window_ms: float = Field(default=0.0, ge=0.0, le=50.0)
     # Seconds a 503 / 429 asks the client to wait (the Retry-After header).
     retry_after_s: int = Field(default=1, ge=1)
     # A client refused more than REFUSAL_PENALTY_AFTER times within a second (invalid or oversized bodies and images,
-    # refused fields, slow bodies, its own request limit: service/errors.py PENALISED_CODES) gets each further
-    # refusal only after REFUSAL_PENALTY_S seconds (service/penalty.py); 0 turns this off.
+    # refused fields, slow bodies, its own request limit: service/http/errors.py PENALISED_CODES) gets each further
+    # refusal only after REFUSAL_PENALTY_S seconds (service/http/penalty.py); 0 turns this off.
     refusal_penalty_s: float = Field(default=0.5, ge=0.0, le=30.0)
     refusal_penalty_after: int = Field(default=3, ge=0)
     # API keys, "KEY" or "NAME:KEY", comma-separated (e.g. RAFD_API_KEYS=car-fleet:4f9c...); empty: no keys.

@@ -38,7 +38,7 @@ import numpy as np
 
 from rafd.bench.server import cpu_seconds, free_port, serve_command, wait_ready
 from rafd.bench.timing import percentile
-from service.png import png_chunk
+from service.body.png import png_chunk
 
 if TYPE_CHECKING:  # the classes behind multiprocessing.Event() and multiprocessing.Queue()
     import multiprocessing.queues

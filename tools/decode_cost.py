@@ -4,9 +4,9 @@ polar scan, a native (Oxford / Boreas) scan and a model-size crop, each as the J
     python -m tools.decode_cost --cartesian DIR [--polar DIR] [--native DIR] [--repeats 15]
 
 Each DIR holds PNG scans of that form (e.g. tiny_foggy/Navtech_Cartesian, tiny_foggy_polar/Navtech_Polar,
-oxford_radar_sample/radar); the crops are the Cartesian scans' model-size centres. Times service.images.decode_frame
-(the hardened PNG path, conversion to the Cartesian grid included) for the shipped model's input size; rounds
-interleave the forms; prints each form's median ms and PNG size. Torch-free.
+oxford_radar_sample/radar); the crops are the Cartesian scans' model-size centres. Times
+service.body.images.decode_frame (the hardened PNG path, conversion to the Cartesian grid included) for the shipped
+model's input size; rounds interleave the forms; prints each form's median ms and PNG size. Torch-free.
 """
 
 from __future__ import annotations
@@ -22,7 +22,7 @@ import numpy as np
 
 from rafd.config import RaFDConfig
 from rafd.preprocess import model_crop
-from service.images import decode_frame
+from service.body.images import decode_frame
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -56,7 +56,7 @@ import numpy as np
 
 from rafd.bench.server import free_port, rss_bytes, serve_command, wait_ready
 from rafd.bench.timing import percentile
-from service.png import PNG_SIGNATURE, png_chunk
+from service.body.png import PNG_SIGNATURE, png_chunk
 from tools.attack_load import multipart_request, padded_png, scans_from
 
 if TYPE_CHECKING:

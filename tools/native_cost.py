@@ -1,5 +1,5 @@
 """What the largest accepted posted image costs the service's one decode: time and peak memory of
-`service.images.decode_frame` on the largest native scan the default settings accept (400 azimuths x 6848 range
+`service.body.images.decode_frame` on the largest native scan the default settings accept (400 azimuths x 6848 range
 bins), an Oxford-size native scan, a RADIATE polar scan and a 1152 px Cartesian scan.
 
     python -m tools.native_cost [--repeats 5]
@@ -49,7 +49,7 @@ def _image(case: str) -> np.ndarray:
 def _child(case: str, repeats: int) -> dict[str, float]:
     import cv2
 
-    from service.images import decode_frame
+    from service.body.images import decode_frame
 
     image = _image(case)
     ok, encoded = cv2.imencode(".png", image)

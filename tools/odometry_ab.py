@@ -4,7 +4,7 @@
     python -m tools.odometry_ab SEQUENCE... [--baseline /tmp/odometry_old.py] [--rounds 2]
 
 Each SEQUENCE (a simulated drive, the Oxford sample, any folder rafd's reader takes) is run as the service runs a
-stream posted without poses: `OdometryStream.add` on the centre 512 px of each scan (service/images.py), with the
+stream posted without poses: `OdometryStream.add` on the centre 512 px of each scan (service/body/images.py), with the
 scan's own azimuth timestamps for native scans, opencv on one thread. Prints, per way, the error against the
 folder's true poses over the pairs one scan apart (ego_poses.csv, or a native folder's ground truth; pairs across a
 recording gap left out: the stream starts again there, as the service restarts a stream's chain after a gap of more
@@ -34,7 +34,7 @@ from rafd.data.odometry import SweepTiming
 from rafd.data.reader import list_frames
 from rafd.geometry import relative_pose, wrap_angle
 from rafd.preprocess import model_crop
-from service.images import ODOMETRY_VIEW_SIZE
+from service.body.images import ODOMETRY_VIEW_SIZE
 
 
 @dataclass

@@ -5,8 +5,8 @@ motion as the prior: what it runs now).
     python -m tools.odometry_cost SEQUENCE [--rounds 5] [--threads 1]
 
 SEQUENCE: any folder rafd's reader takes (RADIATE, Oxford/Boreas native, simulated). Each frame's odometry view is
-what the service registers: the centre 512 px of the scan (service/images.py). Rounds alternate the two ways; prints
-each way's median ms per frame over all frames and rounds. Torch-free.
+what the service registers: the centre 512 px of the scan (service/body/images.py). Rounds alternate the two ways;
+prints each way's median ms per frame over all frames and rounds. Torch-free.
 """
 
 from __future__ import annotations
@@ -20,7 +20,7 @@ import cv2
 from rafd.data import read_sequence
 from rafd.data.odometry import OdometryStream, estimate_relative_pose
 from rafd.preprocess import model_crop
-from service.images import ODOMETRY_VIEW_SIZE
+from service.body.images import ODOMETRY_VIEW_SIZE
 
 
 def main(argv: list[str] | None = None) -> int:

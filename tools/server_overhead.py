@@ -1,6 +1,6 @@
 """The HTTP server layer's cost per request, side by side: uvicorn's httptools protocol (what rafd-serve ran before
-issue 34), the service's httptools protocol with head limits (service/protocol.py, what it runs now) and uvicorn's
-h11 protocol (the pure-Python parser that bounds a head's size itself: the alternative considered).
+issue 34), the service's httptools protocol with head limits (service/http/head_limits.py, what it runs now) and
+uvicorn's h11 protocol (the pure-Python parser that bounds a head's size itself: the alternative considered).
 
     python -m tools.server_overhead [--requests 300] [--rounds 5]
 
@@ -34,7 +34,7 @@ from rafd.config import RaFDConfig
 HOST = "127.0.0.1"
 VARIANTS = {
     "httptools": "uvicorn's httptools protocol, no head limits (rafd-serve before issue 34)",
-    "limited": "service.protocol: httptools with the head limits (rafd-serve now)",
+    "limited": "service.http.head_limits: httptools with the head limits (rafd-serve now)",
     "h11": "uvicorn's h11 protocol, h11_max_incomplete_event_size = the head limit",
 }
 KINDS = ("GET /health/live", "POST /detect")
@@ -89,7 +89,7 @@ def serve(variant: str, port: int) -> None:
     import uvicorn
 
     from service.app import create_app
-    from service.server import server_config
+    from service.http.server import server_config
     from service.settings import Settings
 
     settings = Settings(threads=1, concurrent_runs=1, refusal_penalty_s=0.0)

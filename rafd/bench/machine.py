@@ -3,28 +3,13 @@
 from __future__ import annotations
 
 import os
-from pathlib import Path
 
-BF16_UNITS = ("avx512_bf16", "amx_bf16")
-
-
-def cpu_model_and_flags() -> tuple[str, frozenset[str]]:
-    """(model name, feature flags) from /proc/cpuinfo; ("unknown CPU", {}) where it cannot be read."""
-    model, flags = "unknown CPU", frozenset[str]()
-    try:
-        for line in Path("/proc/cpuinfo").read_text().splitlines():
-            if line.startswith("model name") and model == "unknown CPU":
-                model = line.split(":", 1)[1].strip()
-            if line.startswith("flags") and not flags:
-                flags = frozenset(line.split(":", 1)[1].split())
-    except OSError:
-        pass
-    return model, flags
+from rafd.cpu import BF16_UNITS, cpu_model_and_flags, has_units
 
 
 def has_bf16_units() -> bool:
     """Whether the CPU computes bf16 natively (avx512_bf16 or AMX); elsewhere bf16 is emulated and slow."""
-    return any(unit in cpu_model_and_flags()[1] for unit in BF16_UNITS)
+    return has_units(BF16_UNITS)
 
 
 def usable_cores() -> int:

@@ -9,7 +9,7 @@ import numpy as np
 
 RUNTIMES = ("onnxruntime", "openvino")
 DYNAMIC = -1  # an input dimension the graph leaves free (the batch axis of a batchable export)
-PRECISIONS = ("fp32", "bf16")
+PRECISIONS = ("fp32", "bf16", "int8")  # int8: the quantized MODEL.int8.onnx (OpenVINO)
 
 
 class Backend(Protocol):

@@ -3,6 +3,7 @@ picks the fastest runtime and precision this CPU supports by timing them on the 
 
 from __future__ import annotations
 
+import hashlib
 import json
 import logging
 import os
@@ -13,7 +14,7 @@ from typing import Any, cast
 
 import numpy as np
 
-from rafd.model_files import checkpoint_given_for_onnx
+from rafd.model_files import checkpoint_given_for_onnx, int8_model_path
 from rafd.protocol import GATE_MIN_FRAMES, GATE_MIN_REFERENCE_DETECTIONS
 from rafd.runtime.backend import DYNAMIC, PRECISIONS, RUNTIMES, default_threads
 from rafd.runtime.ort_backend import OrtBackend
@@ -86,7 +87,8 @@ def precision_choice(
     cpu = sorted({p for _, p in supported}, key=PRECISIONS.index)
     reduced = [p for p in cpu if p != "fp32"]
     records = {p: gate_record(metadata, p) for p in PRECISIONS if p != "fp32"}
-    allowed = [p for p in cpu if p == "fp32" or records[p] == "pass"]
+    unusable = {"int8": int8_unusable(model_path, metadata)} if records["int8"] == "pass" else {}
+    allowed = [p for p in cpu if p == "fp32" or (records[p] == "pass" and not unusable.get(p))]
     runtime, precision = served
     serving = f"serving {runtime}/{precision}"
     if len(selection) > 1:
@@ -99,7 +101,8 @@ def precision_choice(
             reason = f"precision {precision} set by the operator: {serving}"
     elif not reduced:
         reason = (
-            "this CPU runs no reduced precision (bf16 needs the openvino package and avx512_bf16 or AMX): " + serving
+            "this CPU runs no reduced precision (bf16 needs the openvino package and avx512_bf16 or AMX, int8 VNNI or "
+            "AMX): " + serving
         )
     else:
         parts = []
@@ -108,6 +111,8 @@ def precision_choice(
             origin = gate_origin(metadata, p)
             if record == "none":
                 parts.append(f"{p} capable, no gate record for this model")
+            elif record == "pass" and unusable.get(p):
+                parts.append(f"{p} capable, gate passed{origin} but {unusable[p]}")
             elif record == "pass":
                 parts.append(f"{p} capable, gate passed{origin}")
             else:
@@ -171,7 +176,8 @@ class OpenVinoRunner(StreamRunner):
 
 def supported_choices() -> list[tuple[str, str]]:
     """(runtime, precision) pairs this machine can run: onnxruntime fp32 always; OpenVINO when installed, bf16 only
-    where the CPU computes it (avx512_bf16 or AMX)."""
+    where the CPU computes it (avx512_bf16 or AMX), int8 only where it has int8 dot-product units (VNNI or AMX)."""
+    from rafd.cpu import INT8_UNITS, has_units
     from rafd.runtime.openvino_backend import openvino_supports_bf16
 
     choices = [("onnxruntime", "fp32")]
@@ -181,8 +187,34 @@ def supported_choices() -> list[tuple[str, str]]:
         return choices
     if openvino_supports_bf16():
         choices.append(("openvino", "bf16"))
+    if has_units(INT8_UNITS):
+        choices.append(("openvino", "int8"))
     choices.append(("openvino", "fp32"))
     return choices
+
+
+def file_sha256(path: str | os.PathLike[str]) -> str:
+    digest = hashlib.sha256()
+    with open(path, "rb") as file:
+        for block in iter(lambda: file.read(1 << 20), b""):
+            digest.update(block)
+    return digest.hexdigest()
+
+
+def int8_unusable(model_path: str | os.PathLike[str], metadata: dict[str, str]) -> str | None:
+    """Why the int8 model beside `model_path` may not be served automatically, or None: its gate record in
+    MODEL.onnx names the quantized file it judged by its sha256, so a MODEL.int8.onnx replaced or quantized again
+    after the gate is not taken for the one that passed."""
+    quantized = int8_model_path(model_path)
+    if not quantized.is_file():
+        return f"no quantized model {quantized.name} beside it"
+    try:
+        judged = json.loads(metadata.get(GATE_KEY.format(precision="int8") + "_figures") or "")["int8_sha256"]
+    except (ValueError, KeyError, TypeError):
+        return "its int8 gate record names no quantized file"
+    if judged != file_sha256(quantized):
+        return f"{quantized.name} is not the file its int8 gate judged (sha256 differs)"
+    return None
 
 
 def open_runner(
@@ -266,6 +298,11 @@ def create_runner(
         if precision == "auto" and metadata is not None and not gate_passed(metadata, candidate[1]):
             log.info("%s/%s not considered: no passed accuracy gate for this model in that precision", *candidate)
             continue
+        if candidate[1] == "int8" and metadata is not None and precision == "auto":
+            unusable = int8_unusable(model_path, metadata)
+            if unusable:
+                log.info("openvino/int8 not considered: %s", unusable)
+                continue
         runner = open_runner(model_path, *candidate, threads, concurrent_runs)
         metadata = runner.metadata
         if precision == "auto" and not gate_passed(metadata, runner.precision):

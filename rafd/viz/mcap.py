@@ -14,7 +14,7 @@ Topics (every message stamped with the scan's own time, so the file replays at t
 
 Each SceneUpdate first deletes everything older on its topic, so a frame shows exactly its own boxes.
 `RadarChannels` holds these channels on any foxglove Context: an MCAP file (`RadarMcapLog`), or the service's live
-view (service/live.py: a WebSocket server, one topic prefix per stream, the same channels and schemas).
+view (service/pipeline/live.py: a WebSocket server, one topic prefix per stream, the same channels and schemas).
 `frame_from_answer` turns one /detect answer into a LoggedFrame (rafd client and the live view).
 Needs foxglove-sdk (the `logs` extra; the live view's `live` extra; reading back: mcap + mcap-protobuf-support):
 import this module only when a log or the live view is asked for.

@@ -13,8 +13,8 @@ from typing import Literal
 from fastapi import APIRouter, Depends, Header, Path, Query, Request, Response
 
 from service.dependencies import get_caller, get_service
-from service.detector import DetectOptions, DetectService
-from service.errors import ApiError, error_responses
+from service.http.errors import ApiError, error_responses
+from service.pipeline.detector import DetectOptions, DetectService
 from service.schemas import STREAM_ID_PATTERN, DetectJson, DetectResponse
 
 router = APIRouter(tags=["detect"])

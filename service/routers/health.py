@@ -8,8 +8,8 @@ from __future__ import annotations
 from fastapi import APIRouter, Depends
 
 from service.dependencies import get_service
-from service.detector import DetectService
-from service.errors import error_responses
+from service.http.errors import error_responses
+from service.pipeline.detector import DetectService
 from service.schemas import Liveness, Readiness
 
 router = APIRouter(prefix="/health", tags=["health"])

@@ -5,7 +5,7 @@ from __future__ import annotations
 from fastapi import APIRouter, Request, Response
 from prometheus_client import CONTENT_TYPE_LATEST, generate_latest
 
-from service.errors import error_responses
+from service.http.errors import error_responses
 
 router = APIRouter(tags=["metrics"])
 

@@ -4,9 +4,9 @@ from __future__ import annotations
 
 from fastapi import APIRouter, Depends
 
+from service.body.images import POLAR_SHAPE, accepts_polar, native_description
 from service.dependencies import get_service
-from service.detector import DetectService
-from service.images import POLAR_SHAPE, accepts_polar, native_description
+from service.pipeline.detector import DetectService
 from service.schemas import ModelInfo, RuntimeOut
 
 router = APIRouter(tags=["model"])

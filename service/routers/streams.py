@@ -7,8 +7,8 @@ import dataclasses
 from fastapi import APIRouter, Depends, Path, Response
 
 from service.dependencies import get_caller, get_service
-from service.detector import DetectService
-from service.errors import ApiError, error_responses
+from service.http.errors import ApiError, error_responses
+from service.pipeline.detector import DetectService
 from service.schemas import STREAM_ID_PATTERN, StreamOut, StreamsResponse
 
 router = APIRouter(prefix="/streams", tags=["streams"])

@@ -7,7 +7,7 @@
 - refused requests do not touch the stream (LRU position, idle time);
 - client disconnects are 499, never 500;
 - error bodies do not grow with the input;
-- every error code is documented (docs/api.md) and in the OpenAPI responses (the case table is test_bad_input.py).
+- every error code is documented (docs/api.md) and in the OpenAPI responses (the case table is body/test_bad_input.py).
 """
 
 from __future__ import annotations
@@ -29,10 +29,10 @@ import numpy as np
 import pytest
 from fastapi.testclient import TestClient
 
-import service.detector
-import service.images
+import service.body.images
+import service.pipeline.detector
 from service.app import create_app
-from service.errors import ERRORS
+from service.http.errors import ERRORS
 from service.settings import Settings
 from tests.utils.fake_runner import FakeRunner
 from tests.utils.png_testing import grey_png, padded_scan
@@ -98,7 +98,7 @@ def test_padded_png_is_refused_from_its_chunk_headers_without_decoding(monkeypat
     padded = padded_scan(scan_png)  # ~900 zTXt chunks, 7.7 MB: ~27 s of libpng time here before the fix
     assert 7_000_000 < len(padded) < 8 * 1024 * 1024
     decoded = []
-    monkeypatch.setattr(service.images.cv2, "imdecode", lambda *a: decoded.append(1))
+    monkeypatch.setattr(service.body.images.cv2, "imdecode", lambda *a: decoded.append(1))
     with TestClient(create_app(Settings(threads=1, max_request_bytes=8 * 1024 * 1024), runner=FakeRunner())) as client:
         wait_ready(client)
         response = client.post(
@@ -112,7 +112,7 @@ def test_padded_png_is_refused_from_its_chunk_headers_without_decoding(monkeypat
 def test_image_data_past_its_header_is_refused_before_decoding(monkeypatch):
     bomb = grey_png(FRAME, extra_compressed=50_000_000)  # 50 MB of zeros after the last row: libpng inflates all
     decoded = []
-    monkeypatch.setattr(service.images.cv2, "imdecode", lambda *a: decoded.append(1))
+    monkeypatch.setattr(service.body.images.cv2, "imdecode", lambda *a: decoded.append(1))
     with TestClient(create_app(Settings(threads=1), runner=FakeRunner())) as client:
         wait_ready(client)
         response = client.post("/detect", json=detect_json("bomb", 1.0, FRAME) | {"image": _b64(bomb)})
@@ -126,7 +126,9 @@ def test_a_few_ancillary_chunks_are_dropped_and_the_frame_served(monkeypatch):
 
     seen = []
     real = cv2.imdecode
-    monkeypatch.setattr(service.images.cv2, "imdecode", lambda buf, flags: seen.append(bytes(buf)) or real(buf, flags))
+    monkeypatch.setattr(
+        service.body.images.cv2, "imdecode", lambda buf, flags: seen.append(bytes(buf)) or real(buf, flags)
+    )
     image = grey_png(FRAME, before_idat=chunk(b"tIME", bytes(7)) + text_chunks(3, 1000), interlaced=True)
     with TestClient(create_app(Settings(threads=1), runner=FakeRunner())) as client:
         wait_ready(client)
@@ -192,14 +194,14 @@ def test_frames_sent_in_order_on_separate_connections_are_all_served_in_that_ord
     """Later frames decode faster (as a small crop after a full scan would); before the fix they overtook the
     earlier ones and got spurious 409s. Now each takes its place on arrival, before decoding."""
     count = 6
-    real = service.detector.decode_frame
+    real = service.pipeline.detector.decode_frame
 
     def slow_early_frames(image, size, resolution, *native):
         decoded = real(image, size, resolution, *native)
         time.sleep(0.02 * (count + 1 - decoded.crop[0, 0] // 8))  # frame i: (count + 1 - i) * 20 ms
         return decoded
 
-    monkeypatch.setattr(service.detector, "decode_frame", slow_early_frames)
+    monkeypatch.setattr(service.pipeline.detector, "decode_frame", slow_early_frames)
     settings = Settings(threads=1, decode_workers=count)  # decodes run in parallel, so they could overtake
     with TestClient(create_app(settings, runner=FakeRunner())) as client:
         wait_ready(client)

@@ -1,5 +1,5 @@
 """A bounded schemathesis run of the API against its own OpenAPI document, on the server `rafd-serve` runs (the
-FakeRunner app behind service/server.py): no input may give a 5xx, and every answer must match the schema of its
+FakeRunner app behind service/http/server.py): no input may give a 5xx, and every answer must match the schema of its
 status (unknown status codes, content types and answer shapes are failures). Issue 34 asked for it after finding 6
 (non-ASCII base64 answered 500). Each operation gets `EXAMPLES` generated cases of valid data and as many of
 invalid data (schemathesis's positive and negative modes), derandomised so a run repeats.

@@ -9,7 +9,7 @@ import pytest
 import uvicorn
 
 from service.cli import main
-from service.protocol import LimitedHttpToolsProtocol
+from service.http.head_limits import LimitedHttpToolsProtocol
 
 pytestmark = pytest.mark.network
 
@@ -28,7 +28,7 @@ def test_serves_the_given_model_on_the_given_address(tmp_path, recorded):
     ((app, options),) = recorded
     assert options["host"] == "0.0.0.0" and options["port"] == 9001
     assert app.state.settings.model_path == model and app.state.settings.threads == 2
-    # the server rafd-serve runs (service/server.py): the service's HTTP protocol with its head limits, and a bound
+    # the server rafd-serve runs (service/http/server.py): the service's HTTP protocol with its head limits, and a bound
     # on the graceful shutdown (issue 34 findings 1 and 8)
     assert issubclass(options["http"], LimitedHttpToolsProtocol)
     assert options["http"].limits.max_header_bytes == app.state.settings.max_header_bytes == 32 * 1024

@@ -20,7 +20,7 @@ REPO = Path(__file__).resolve().parents[2]
 
 
 def test_the_json_floods_fit_the_body_limit_and_break_the_structure_bound():
-    from service.requests import MAX_JSON_COMMAS, MAX_JSON_QUOTES
+    from service.body.requests import MAX_JSON_COMMAS, MAX_JSON_QUOTES
     from service.settings import Settings
 
     assert BODY_LIMIT == Settings().max_request_bytes

@@ -7,8 +7,8 @@ import zlib
 
 import numpy as np
 
-from service.png import ADAM7, PNG_SIGNATURE
-from service.png import png_chunk as chunk
+from service.body.png import ADAM7, PNG_SIGNATURE
+from service.body.png import png_chunk as chunk
 
 
 def ihdr(width: int, height: int, depth: int = 8, colour: int = 0, interlace: int = 0) -> bytes:

@@ -67,9 +67,9 @@ class FakeOdometry:
 
 @contextlib.contextmanager
 def serve_in_thread(app: Any, settings: Any = None) -> Iterator[str]:
-    """Run `app` on a free loopback port under the server `rafd-serve` runs (service/server.py: uvicorn with the
+    """Run `app` on a free loopback port under the server `rafd-serve` runs (service/http/server.py: uvicorn with the
     service's HTTP protocol and limits; `settings`: the app's own by default); yields its base URL."""
-    from service.server import server_config
+    from service.http.server import server_config
 
     config = server_config(app, settings or app.state.settings, host="127.0.0.1", port=0, log_level="warning")
     server = uvicorn.Server(config)

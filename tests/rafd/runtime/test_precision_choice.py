@@ -30,7 +30,7 @@ def test_gate_records_are_read_as_pass_fail_too_little_or_none():
 def test_bf16_capable_without_a_record_serves_fp32_and_says_run_rafd_gate():
     choice = precision_choice("m.onnx", {}, ("auto", "auto"), ("openvino", "fp32"), {}, ALL)
     assert choice["cpu_precisions"] == ["fp32", "bf16"]
-    assert choice["gate_records"] == {"bf16": "none"} and choice["allowed_precisions"] == ["fp32"]
+    assert choice["gate_records"] == {"bf16": "none", "int8": "none"} and choice["allowed_precisions"] == ["fp32"]
     assert choice["reason"] == (
         "bf16 capable, no gate record for this model: serving openvino/fp32; run `rafd gate m.onnx`"
     )
@@ -71,7 +71,7 @@ def test_a_pass_on_too_little_is_not_allowed_and_asks_for_a_new_gate():
 def test_a_cpu_without_reduced_precision_says_so_whatever_the_record():
     choice = precision_choice("m.onnx", _record("pass"), ("auto", "auto"), ("openvino", "fp32"), {}, FP32_ONLY)
     assert choice["cpu_precisions"] == ["fp32"] and choice["allowed_precisions"] == ["fp32"]
-    assert choice["gate_records"] == {"bf16": "pass"}  # the record is reported even where it cannot be used
+    assert choice["gate_records"]["bf16"] == "pass"  # the record is reported even where it cannot be used
     assert choice["reason"].startswith("this CPU runs no reduced precision")
 
 
@@ -90,7 +90,7 @@ def test_create_runner_reports_the_fallback_on_a_bf16_cpu(ungated_onnx, monkeypa
     monkeypatch.setattr(runners, "supported_choices", lambda: ALL)
     runner = create_runner(ungated_onnx, "auto", "auto", threads=1, timer=lambda r: 0.01)
     assert runner.precision == "fp32"
-    assert runner.precision_choice["gate_records"] == {"bf16": "none"}
+    assert runner.precision_choice["gate_records"] == {"bf16": "none", "int8": "none"}
     assert runner.precision_choice["reason"].startswith("bf16 capable, no gate record for this model: serving ")
     assert runner.precision_choice["reason"].endswith(f"; run `rafd gate {ungated_onnx}`")
     assert runner.describe()["precision_choice"] == runner.precision_choice
@@ -100,9 +100,54 @@ def test_create_runner_reports_a_cpu_without_bf16(gated_onnx, monkeypatch):
     monkeypatch.setattr(runners, "supported_choices", lambda: [("onnxruntime", "fp32")])
     runner = create_runner(gated_onnx, "auto", "auto", threads=1)
     assert (runner.runtime, runner.precision) == ("onnxruntime", "fp32")
-    assert runner.precision_choice["gate_records"] == {"bf16": "pass"}
+    assert runner.precision_choice["gate_records"] == {"bf16": "pass", "int8": "none"}
     assert runner.precision_choice["allowed_precisions"] == ["fp32"]
     assert runner.precision_choice["reason"] == (
-        "this CPU runs no reduced precision (bf16 needs the openvino package and avx512_bf16 or AMX): "
-        "serving onnxruntime/fp32"
+        "this CPU runs no reduced precision (bf16 needs the openvino package and avx512_bf16 or AMX, int8 VNNI or "
+        "AMX): serving onnxruntime/fp32"
     )
+
+
+# ---------------------------------------------------------------- int8 (the quantized MODEL.int8.onnx beside it)
+def _int8_record(sha256: str) -> dict[str, str]:
+    pooled = {"frames": 699, "reference_detections": 1909, "candidate_detections": 1909}
+    figures = {"candidate": "openvino/int8", "figures": {"all": pooled}, "int8_sha256": sha256}
+    return {"gate_int8": "pass", "gate_int8_figures": json.dumps(figures)}
+
+
+def test_int8_is_offered_only_on_a_cpu_with_int8_units(monkeypatch):
+    pytest.importorskip("openvino")
+    import rafd.cpu
+
+    for flags, offered in (({"avx2"}, False), ({"avx2", "avx512_vnni"}, True), ({"amx_int8"}, True)):
+        monkeypatch.setattr(rafd.cpu, "cpu_model_and_flags", lambda flags=flags: ("a CPU", frozenset(flags)))
+        assert (("openvino", "int8") in runners.supported_choices()) is offered, flags
+
+
+def test_a_passed_int8_record_serves_only_the_file_it_judged(tmp_path):
+    model = tmp_path / "m.onnx"
+    quantized = tmp_path / "m.int8.onnx"
+    with_int8 = ALL + [("openvino", "int8")]
+    missing = precision_choice(model, _int8_record("0" * 64), ("auto", "auto"), ("openvino", "fp32"), {}, with_int8)
+    assert missing["allowed_precisions"] == ["fp32"]
+    assert "int8 capable, gate passed but no quantized model m.int8.onnx beside it" in missing["reason"]
+    quantized.write_bytes(b"the judged file")
+    judged = runners.file_sha256(quantized)
+    allowed = precision_choice(model, _int8_record(judged), ("auto", "auto"), ("openvino", "int8"), {}, with_int8)
+    assert allowed["allowed_precisions"] == ["fp32", "int8"] and "int8 capable, gate passed" in allowed["reason"]
+    quantized.write_bytes(b"quantized again after the gate")
+    replaced = precision_choice(model, _int8_record(judged), ("auto", "auto"), ("openvino", "fp32"), {}, with_int8)
+    assert replaced["allowed_precisions"] == ["fp32"]
+    assert "is not the file its int8 gate judged" in replaced["reason"]
+
+
+def test_create_runner_does_not_consider_int8_without_its_judged_file(gated_onnx, monkeypatch, caplog):
+    import logging
+
+    pytest.importorskip("openvino")
+    monkeypatch.setattr(runners, "supported_choices", lambda: [("onnxruntime", "fp32"), ("openvino", "int8")])
+    monkeypatch.setattr(runners, "gate_passed", lambda metadata, precision: True)  # as if int8 had passed
+    with caplog.at_level(logging.INFO, logger="rafd.runtime.runners"):
+        runner = create_runner(gated_onnx, "auto", "auto", threads=1, timer=lambda r: 0.01)
+    assert (runner.runtime, runner.precision) == ("onnxruntime", "fp32")
+    assert "openvino/int8 not considered: no quantized model" in caplog.text

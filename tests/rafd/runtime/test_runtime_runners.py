@@ -29,7 +29,7 @@ def test_explicit_choices(shipped_onnx):
     [
         ("onnxruntime", "bf16", "fp32 only"),
         ("tensorrt", "auto", "runtime must be"),
-        ("auto", "int8", "precision must be"),
+        ("auto", "int4", "precision must be"),
     ],
 )
 def test_impossible_choices_are_refused(shipped_onnx, runtime, precision, message):

@@ -1,0 +1,1 @@
+"""Parsing a request body: strict JSON and multipart, the PNG chunk check and the decode to the model's crop."""

@@ -1,0 +1,234 @@
+"""Posted radar frames: 8-bit greyscale PNG, a full RADIATE scan, the model's input size, a polar scan in
+RADIATE's Navtech_Polar layout or a native scan as Oxford Radar RobotCar and Boreas store them, -> the model's crop.
+
+`decode_frame` is THE decode: every posted image goes through it (on the decode executor), and it ends in
+rafd.preprocess, the one torch-free path from a scan to the model input. A polar scan is recognised by its
+shape (576 rows of range x 400 columns of azimuth; Cartesian inputs are square, so none has it) and converted
+there with rafd.preprocess.polar_to_cartesian to RADIATE's 1152 px Cartesian scan, which then takes the
+Cartesian path unchanged. A native scan (one row per azimuth: timestamp, encoder angle, valid flag, then the range
+bins; rafd.native) is recognised by its shape too (a few hundred rows, far wider than high) and converted with
+rafd.native.to_cartesian the same way. `check_posted_image` is its cheap first half (chunk headers only), run on the
+event loop as soon as the body is parsed so a hostile file is refused before it takes a decode slot; `upload_check`
+runs the same rules on a multipart upload while it streams in.
+"""
+
+from __future__ import annotations
+
+import binascii
+import logging
+from collections.abc import Callable
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+
+from rafd.geometry import RADIATE_RESOLUTION, RADIATE_SCAN_SIZE
+from rafd.native import (
+    HEADER_COLUMNS,
+    NATIVE_FORMATS,
+    SENSOR_SHAPE,
+    NativeShape,
+    is_native_shape,
+    parse_native_scan,
+)
+from rafd.native import to_cartesian as native_to_cartesian
+from rafd.polar import RADIATE_AZIMUTHS, RADIATE_RANGE_BINS
+from rafd.preprocess import polar_to_cartesian, to_model_input
+from service.body import png
+from service.http.errors import ApiError
+
+log = logging.getLogger(__name__)
+
+# Odometry registers this much of the posted scan around the radar (89 m at RADIATE's resolution):
+# on the model's small crop alone the static scene is too sparse and registration sometimes locks
+# onto vehicles that move with the ego.
+ODOMETRY_VIEW_SIZE = 512
+DATA_URL_PREFIX = "data:image/png;base64,"
+# A posted polar scan: (height, width) = (range bins, azimuths), RADIATE's Navtech_Polar PNGs as they are on disk.
+POLAR_SHAPE = (RADIATE_RANGE_BINS, RADIATE_AZIMUTHS)
+
+# A posted native scan: the Oxford Radar RobotCar's 3768 range bins; any other native width is read as Boreas'.
+OXFORD_RANGE_BINS = 3768
+
+# A posted image: PNG bytes (multipart file) or base64 text of them (JSON field).
+PostedImage = bytes | str
+
+
+@dataclass(frozen=True)
+class DecodedFrame:
+    crop: np.ndarray  # [S, S] uint8, the model's input crop centred on the radar
+    # Side of the Cartesian scan that polygons and the flow grid are answered in: the posted image, or the
+    # RADIATE scan a posted polar scan was converted to (1152).
+    posted_size: int
+    crop_offset: int  # pixel of that scan where the crop's top-left corner lies (0 when posted at model size)
+    odometry_view: np.ndarray  # [V, V] uint8 centre of that scan that odometry registers (V >= S)
+    posted_format: str = "cartesian"  # or "polar" (RADIATE's Navtech_Polar), or "native" (Oxford / Boreas)
+    # native scans: (per-azimuth timestamps in UNIX microseconds [A], azimuths in radians clockwise from forward [A])
+    sweep: tuple[np.ndarray, np.ndarray] | None = None
+
+    def model_input(self) -> np.ndarray:
+        """[S, S] uint8 -> [S, S] float32 in [0, 1], the runner's frame."""
+        return to_model_input(self.crop)
+
+
+def accepted_sizes(input_size: int, resolution: float) -> tuple[int, ...]:
+    """Square sides accepted: the model's input, plus a full RADIATE scan when the model runs at its resolution."""
+    sizes = [input_size]
+    if input_size < RADIATE_SCAN_SIZE and abs(resolution - RADIATE_RESOLUTION) < 1e-6:
+        sizes.append(RADIATE_SCAN_SIZE)
+    return tuple(sizes)
+
+
+def accepts_polar(input_size: int, resolution: float) -> bool:
+    """Polar scans are accepted wherever a full RADIATE scan is: they are converted to one."""
+    return RADIATE_SCAN_SIZE in accepted_sizes(input_size, resolution)
+
+
+def strip_data_url(text: str) -> str:
+    """A base64 JSON image may carry a `data:image/png;base64,` prefix."""
+    if text.startswith("data:"):
+        if not text.startswith(DATA_URL_PREFIX):
+            raise ApiError("invalid_image", f"a data URL image must start with {DATA_URL_PREFIX!r}")
+        return text[len(DATA_URL_PREFIX) :]
+    return text
+
+
+def _source(image: PostedImage) -> png.ByteSource:
+    return png.Base64Bytes(strip_data_url(image)) if isinstance(image, str) else png.RawBytes(image)
+
+
+def native_format_name(width: int) -> str:
+    """The dataset a posted native scan is read as, from its width: Oxford's 3768 range bins, else Boreas'."""
+    return "oxford" if width - HEADER_COLUMNS == OXFORD_RANGE_BINS else "boreas"
+
+
+def native_description(shape: NativeShape = SENSOR_SHAPE) -> dict[str, object]:
+    """What GET /model says about native scans (rafd.native): the shape rule and each dataset's range bin."""
+    return {
+        "rows": f"one per azimuth, {shape.min_azimuths}-{shape.max_azimuths} (Oxford and Boreas: 400; "
+        "RAFD_NATIVE_MAX_AZIMUTHS)",
+        "columns": f"{HEADER_COLUMNS} header columns (timestamp, encoder angle, valid flag) + the range bins, more "
+        f"than twice the rows and at most {shape.max_range_bins} (RAFD_NATIVE_MAX_RANGE_BINS)",
+        "formats": {name: fmt.range_bin_m for name, fmt in NATIVE_FORMATS.items()},
+        "format_rule": f"{OXFORD_RANGE_BINS} range bins: oxford; any other number: boreas (boreas-2021 after its "
+        "sensor upgrade, by the scan's timestamp)",
+    }
+
+
+def _check_size(header: png.PngHeader, input_size: int, resolution: float, native: NativeShape = SENSOR_SHAPE) -> None:
+    """422 unless the PNG is an accepted square Cartesian size or (where accepted) a RADIATE polar or a native scan
+    of a real sensor's size (`native`): from the header alone, so the inflate and the conversion are bounded before
+    any work."""
+    sizes = accepted_sizes(input_size, resolution)
+    polar = accepts_polar(input_size, resolution)
+    if polar and ((header.height, header.width) == POLAR_SHAPE or is_native_shape(header.width, header.height, native)):
+        return
+    if header.width != header.height or header.width not in sizes:
+        accepted = " or ".join(f"{s}x{s}" for s in sizes)
+        if polar:
+            accepted += (
+                f" (Cartesian), or {POLAR_SHAPE[1]}x{POLAR_SHAPE[0]} (a polar scan: {POLAR_SHAPE[1]} "
+                f"azimuth columns x {POLAR_SHAPE[0]} range rows, RADIATE's Navtech_Polar layout), or a native scan "
+                f"(Oxford / Boreas: one row per azimuth, {native.describe()})"
+            )
+        raise ApiError(
+            "unsupported_image_size",
+            f"image is {header.width}x{header.height} (width x height); accepted sizes: {accepted}",
+        )
+
+
+def check_posted_image(
+    image: PostedImage, input_size: int, resolution: float, native: NativeShape = SENSOR_SHAPE
+) -> png.PngLayout:
+    """Chunk structure, format and size from the headers alone: 422 before any pixel is decoded."""
+    layout = png.read_layout(_source(image))
+    _check_size(layout.header, input_size, resolution, native)
+    return layout
+
+
+def upload_check(input_size: int, resolution: float, native: NativeShape = SENSOR_SHAPE) -> Callable[[bytes], None]:
+    """A feeder for a PNG file upload as it streams in: refuses by chunk headers, format and size as soon as they
+    arrive, so a hostile upload is answered before the rest of its body is received."""
+    check = png.StreamingCheck()
+
+    def feed(data: bytes) -> None:
+        had_header = check.header is not None
+        check.feed(data)
+        if not had_header and check.header is not None:
+            _check_size(check.header, input_size, resolution, native)
+
+    return feed
+
+
+def decode_frame(
+    image: PostedImage, input_size: int, resolution: float, native: NativeShape = SENSOR_SHAPE
+) -> DecodedFrame:
+    """A posted PNG (bytes, or base64 text; Cartesian or polar) -> the model's [S, S] uint8 crop; 422 naming what
+    was expected. No input gives anything else: a failure of the decoding libraries on a posted file is that file's
+    fault (422 `invalid_image`, logged as a warning), never a 500."""
+    try:
+        return _decode_frame(image, input_size, resolution, native)
+    except ApiError:
+        raise
+    except Exception as exc:
+        log.warning("decoding a posted image failed: %s: %s", type(exc).__name__, exc)
+        raise ApiError("invalid_image", f"the image could not be decoded ({type(exc).__name__})") from exc
+
+
+def _centre_crop(scan_top: np.ndarray, size: int) -> np.ndarray:
+    """[R, N] top rows (R <= N) of an [N, N] scan centred on the radar -> its [size, size] centre crop, which must
+    lie within those rows (the Cartesian path decodes only down to the odometry view's last row)."""
+    side = scan_top.shape[1]
+    if (side - size) % 2:
+        raise ValueError(f"a {side} px scan cannot be centre-cropped to {size} px (odd difference)")
+    top = (side - size) // 2
+    if top + size > scan_top.shape[0]:
+        raise ValueError(f"the {size} px centre crop reaches below the {scan_top.shape[0]} rows decoded")
+    return np.ascontiguousarray(scan_top[top : top + size, top : top + size])
+
+
+def _decode_frame(image: PostedImage, input_size: int, resolution: float, native: NativeShape) -> DecodedFrame:
+    layout = check_posted_image(image, input_size, resolution, native)
+    if isinstance(image, str):
+        try:
+            data = png.a2b_base64_strict(strip_data_url(image))
+        except (binascii.Error, ValueError) as exc:
+            raise ApiError("invalid_image", f"field 'image' is not valid base64: {exc}") from exc
+    else:
+        data = image
+    header = layout.header
+    square = header.width == header.height
+    # A square scan is read only down to the odometry view's last row: the rows below are never unfiltered.
+    view_side = max(input_size, min(header.width, ODOMETRY_VIEW_SIZE))
+    rows = (header.height + view_side) // 2 if square else header.height
+    decoded = cv2.imdecode(np.frombuffer(png.decoder_png(data, layout, rows), np.uint8), cv2.IMREAD_UNCHANGED)
+    if decoded is None:
+        raise ApiError("invalid_image", "the PNG could not be decoded (corrupt image data)")
+    if decoded.ndim != 2 or decoded.dtype != np.uint8:  # the header said 8-bit greyscale: a decoder mismatch
+        raise ApiError("unsupported_image_format", f"decoded {decoded.dtype} {decoded.shape}; expected 8-bit grey")
+    posted_format = "cartesian"
+    sweep = None
+    width = decoded.shape[1]
+    # A polar or native scan is converted only where the service looks: the odometry view around the radar (which
+    # holds the model's crop), not the whole 1152 px disc; the same pixels as the whole conversion's centre.
+    converted = max(input_size, ODOMETRY_VIEW_SIZE)
+    if decoded.shape == POLAR_SHAPE:  # the size check let it through: polar scans are accepted here
+        width, posted_format = RADIATE_SCAN_SIZE, "polar"
+        decoded = polar_to_cartesian(decoded, min(converted, width))  # [576, 400] -> [V, V] uint8
+    elif not square:  # a native scan (the size check let only these through)
+        try:
+            scan = parse_native_scan(decoded, native_format_name(decoded.shape[1]))
+        except ValueError as exc:
+            raise ApiError("invalid_image", f"the native scan's header columns do not read as one: {exc}") from exc
+        width, posted_format = RADIATE_SCAN_SIZE, "native"
+        decoded = native_to_cartesian(scan, min(converted, width))  # [A, 11 + R] -> [V, V] uint8
+        sweep = (scan.timestamps_us, scan.azimuths)
+    view = _centre_crop(decoded, max(input_size, min(width, ODOMETRY_VIEW_SIZE)))
+    return DecodedFrame(
+        crop=_centre_crop(decoded, input_size),
+        posted_size=width,
+        crop_offset=(width - input_size) // 2,
+        odometry_view=view,
+        posted_format=posted_format,
+        sweep=sweep,
+    )
