@@ -157,6 +157,10 @@ def bench_model(
     step_flops = count_step_flops(model, cfg)
     window_flops = count_flops(model, window, window_poses)
     choices = supported_choices()
+    if ("openvino", "int8") in choices:  # int8 runs its own quantized graph, made as `rafd gate` makes it
+        from export.quantize import quantize_model
+
+        quantize_model(forms["step"])  # within this stage (MODEL_STAGES counts the stages)
     runners = {f"{r}/{p}": open_runner(forms["step"], r, p, threads) for r, p in choices}
     states = {}
     for key, runner in runners.items():  # past the warm-up: every timed step is a steady-state frame

@@ -15,7 +15,7 @@ from fastapi import APIRouter, Depends, Header, Path, Query, Request, Response
 from service.dependencies import get_caller, get_service
 from service.http.errors import ApiError, error_responses
 from service.pipeline.detector import DetectOptions, DetectService
-from service.schemas import STREAM_ID_PATTERN, DetectJson, DetectResponse
+from service.schemas import STREAM_ID_MAX_LENGTH, STREAM_ID_PATTERN, DetectJson, DetectResponse
 
 router = APIRouter(tags=["detect"])
 
@@ -99,7 +99,7 @@ async def detect_call(
         default=None,
         alias="X-Stream-Id",
         min_length=1,
-        max_length=128,
+        max_length=STREAM_ID_MAX_LENGTH,
         pattern=STREAM_ID_PATTERN,
         description="the stream, named outside the body (route on it; must equal the body's stream_id when both "
         "are given)",
@@ -118,7 +118,7 @@ async def detect(request: Request, call: DetectCall = Depends(detect_call)) -> R
 @router.post("/streams/{stream_id}/detect", responses=_RESPONSES, openapi_extra=_REQUEST_BODY)
 async def detect_on_stream(
     request: Request,
-    stream_id: str = Path(min_length=1, max_length=128, pattern=STREAM_ID_PATTERN),
+    stream_id: str = Path(min_length=1, max_length=STREAM_ID_MAX_LENGTH, pattern=STREAM_ID_PATTERN),
     call: DetectCall = Depends(detect_call),
 ) -> Response:
     """The same as POST /detect with the stream named in the path."""

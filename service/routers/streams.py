@@ -9,7 +9,7 @@ from fastapi import APIRouter, Depends, Path, Response
 from service.dependencies import get_caller, get_service
 from service.http.errors import ApiError, error_responses
 from service.pipeline.detector import DetectService
-from service.schemas import STREAM_ID_PATTERN, StreamOut, StreamsResponse
+from service.schemas import STREAM_ID_MAX_LENGTH, STREAM_ID_PATTERN, StreamOut, StreamsResponse
 
 router = APIRouter(prefix="/streams", tags=["streams"])
 
@@ -37,7 +37,7 @@ async def list_streams(
     ),
 )
 async def delete_stream(
-    stream_id: str = Path(min_length=1, max_length=128, pattern=STREAM_ID_PATTERN),
+    stream_id: str = Path(min_length=1, max_length=STREAM_ID_MAX_LENGTH, pattern=STREAM_ID_PATTERN),
     service: DetectService = Depends(get_service),
     caller: str | None = Depends(get_caller),
 ) -> Response:
