@@ -453,7 +453,7 @@ def run_export_gates(
             log,
         )
         if candidate[1] == "int8":
-            from rafd.runtime.runners import file_sha256
+            from rafd.model_files import file_sha256
 
             report.judged_sha256 = file_sha256(quantized)
         for line in report.lines():

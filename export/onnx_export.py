@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import hashlib
 import json
 import os
 import tempfile
@@ -23,6 +22,7 @@ from export.step import build_graph, example_inputs, feature_channels
 from export.verify import Report, verify_export
 from rafd.config import RaFDConfig
 from rafd.model.checkpoint import load_checkpoint
+from rafd.model_files import file_sha256
 from rafd.protocol import OPERATING_THRESHOLD_KEY, check_score_threshold
 from rafd.runtime import FORMS, graph_inputs, graph_outputs
 
@@ -59,14 +59,6 @@ def check_output_path(output: Path) -> None:
             pass
     except OSError as error:
         raise ExportError(f"cannot write {output}: {error.strerror or error}") from error
-
-
-def file_sha256(path: Path) -> str:
-    digest = hashlib.sha256()
-    with open(path, "rb") as handle:
-        for block in iter(lambda: handle.read(1 << 20), b""):
-            digest.update(block)
-    return digest.hexdigest()
 
 
 def build_metadata(

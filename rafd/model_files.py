@@ -4,6 +4,7 @@ model, not a checkpoint" (and the reverse) instead of passing on a library's par
 
 from __future__ import annotations
 
+import hashlib
 import os
 from pathlib import Path
 from typing import Literal
@@ -54,3 +55,12 @@ def int8_model_path(path: str | os.PathLike[str]) -> Path:
     CPU with int8 units; the service serves it only where its accuracy gate, recorded in MODEL.onnx, passed)."""
     model = Path(path)
     return model.with_name(model.name.removesuffix(".onnx") + ".int8.onnx")
+
+
+def file_sha256(path: str | os.PathLike[str]) -> str:
+    """The hex sha256 of a file's bytes (a checkpoint, a model), read in 1 MiB blocks."""
+    digest = hashlib.sha256()
+    with open(path, "rb") as file:
+        for block in iter(lambda: file.read(1 << 20), b""):
+            digest.update(block)
+    return digest.hexdigest()

@@ -19,10 +19,9 @@ import math
 
 import numpy as np
 
-from rafd.geometry import centre_crop
 from rafd.polar import polar_to_cartesian  # the polar step of this path, re-exported
 
-__all__ = ["GREY_LEVELS", "model_crop", "model_frame", "polar_to_cartesian", "to_model_input"]
+__all__ = ["GREY_LEVELS", "model_crop", "model_crop_of_top_rows", "model_frame", "polar_to_cartesian", "to_model_input"]
 
 GREY_LEVELS = 255.0  # RADIATE's scans are 8-bit
 
@@ -32,9 +31,22 @@ def model_crop(scan: np.ndarray, input_size: int) -> np.ndarray:
     scan = np.asarray(scan)
     if scan.ndim != 2 or scan.shape[0] != scan.shape[1]:
         raise ValueError(f"expected a square 2-D scan with the radar at the centre, got shape {scan.shape}")
-    if (scan.shape[0] - input_size) % 2:
-        raise ValueError(f"a {scan.shape[0]} px scan cannot be centre-cropped to {input_size} px (odd difference)")
-    return np.ascontiguousarray(centre_crop(scan, input_size))
+    return model_crop_of_top_rows(scan, input_size)
+
+
+def model_crop_of_top_rows(scan_top: np.ndarray, input_size: int) -> np.ndarray:
+    """uint8 [R, N] top rows (R <= N) of an [N, N] scan centred on the radar -> the same [S, S] centre crop as
+    model_crop of the whole scan, which must lie within those rows (the service decodes a posted scan only down to
+    the last row it reads)."""
+    side = scan_top.shape[1]
+    if input_size > side:
+        raise ValueError(f"cannot crop {input_size}x{input_size} from a {scan_top.shape[0]}x{side} image")
+    if (side - input_size) % 2:
+        raise ValueError(f"a {side} px scan cannot be centre-cropped to {input_size} px (odd difference)")
+    top = (side - input_size) // 2
+    if top + input_size > scan_top.shape[0]:
+        raise ValueError(f"the {input_size} px centre crop reaches past the {scan_top.shape[0]} x {side} px given")
+    return np.ascontiguousarray(scan_top[top : top + input_size, top : top + input_size])
 
 
 def rotation_crop(input_size: int) -> int:

@@ -30,7 +30,6 @@ from __future__ import annotations
 import argparse
 import contextlib
 import datetime
-import hashlib
 import io
 import json
 import os
@@ -44,6 +43,8 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+
+from rafd.model_files import file_sha256
 
 REPO = Path(__file__).resolve().parents[1]
 PICTURES = {
@@ -118,14 +119,6 @@ def _shown_path(path: Path) -> str:
         return str(path)
 
 
-def sha256_of(path: Path) -> str:
-    digest = hashlib.sha256()
-    with Path(path).open("rb") as file:
-        for block in iter(lambda: file.read(1 << 20), b""):
-            digest.update(block)
-    return digest.hexdigest()
-
-
 def onnx_metadata(path: Path) -> dict[str, str]:
     """The metadata every RaFD export carries (rafd.runtime.contract.METADATA_KEYS)."""
     import onnxruntime as ort
@@ -169,16 +162,16 @@ def resolve_model(model: Path | None, work: Path) -> Model:
             )
     elif file_kind(model) == "checkpoint":
         checkpoint, beside = model, model.with_suffix(".onnx")
-        wanted = sha256_of(model)
+        wanted = file_sha256(model)
         if beside.is_file() and onnx_metadata(beside).get("checkpoint_sha256") == wanted:
             onnx = beside
         else:
             onnx = export_onnx(model, work / f"{model.stem}.onnx")
     else:
         raise PictureError(f"--model {model} is neither an ONNX model nor a checkpoint")
-    onnx_sha = sha256_of(onnx)
+    onnx_sha = file_sha256(onnx)
     if checkpoint is not None:
-        checkpoint_sha = sha256_of(checkpoint)
+        checkpoint_sha = file_sha256(checkpoint)
         exported_from = onnx_metadata(onnx).get("checkpoint_sha256")
         if exported_from and exported_from != checkpoint_sha:
             raise PictureError(

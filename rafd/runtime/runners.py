@@ -3,7 +3,6 @@ picks the fastest runtime and precision this CPU supports by timing them on the 
 
 from __future__ import annotations
 
-import hashlib
 import json
 import logging
 import os
@@ -14,7 +13,7 @@ from typing import Any, cast
 
 import numpy as np
 
-from rafd.model_files import checkpoint_given_for_onnx, int8_model_path
+from rafd.model_files import checkpoint_given_for_onnx, file_sha256, int8_model_path
 from rafd.protocol import GATE_MIN_FRAMES, GATE_MIN_REFERENCE_DETECTIONS
 from rafd.runtime.backend import DYNAMIC, PRECISIONS, RUNTIMES, default_threads
 from rafd.runtime.ort_backend import OrtBackend
@@ -191,14 +190,6 @@ def supported_choices() -> list[tuple[str, str]]:
         choices.append(("openvino", "int8"))
     choices.append(("openvino", "fp32"))
     return choices
-
-
-def file_sha256(path: str | os.PathLike[str]) -> str:
-    digest = hashlib.sha256()
-    with open(path, "rb") as file:
-        for block in iter(lambda: file.read(1 << 20), b""):
-            digest.update(block)
-    return digest.hexdigest()
 
 
 def int8_unusable(model_path: str | os.PathLike[str], metadata: dict[str, str]) -> str | None:

@@ -33,7 +33,7 @@ from rafd.native import (
 )
 from rafd.native import to_cartesian as native_to_cartesian
 from rafd.polar import RADIATE_AZIMUTHS, RADIATE_RANGE_BINS
-from rafd.preprocess import polar_to_cartesian, to_model_input
+from rafd.preprocess import model_crop_of_top_rows, polar_to_cartesian, to_model_input
 from service.body import png
 from service.http.errors import ApiError
 
@@ -175,18 +175,6 @@ def decode_frame(
         raise ApiError("invalid_image", f"the image could not be decoded ({type(exc).__name__})") from exc
 
 
-def _centre_crop(scan_top: np.ndarray, size: int) -> np.ndarray:
-    """[R, N] top rows (R <= N) of an [N, N] scan centred on the radar -> its [size, size] centre crop, which must
-    lie within those rows (the Cartesian path decodes only down to the odometry view's last row)."""
-    side = scan_top.shape[1]
-    if (side - size) % 2:
-        raise ValueError(f"a {side} px scan cannot be centre-cropped to {size} px (odd difference)")
-    top = (side - size) // 2
-    if top + size > scan_top.shape[0]:
-        raise ValueError(f"the {size} px centre crop reaches below the {scan_top.shape[0]} rows decoded")
-    return np.ascontiguousarray(scan_top[top : top + size, top : top + size])
-
-
 def _decode_frame(image: PostedImage, input_size: int, resolution: float, native: NativeShape) -> DecodedFrame:
     layout = check_posted_image(image, input_size, resolution, native)
     if isinstance(image, str):
@@ -223,9 +211,9 @@ def _decode_frame(image: PostedImage, input_size: int, resolution: float, native
         width, posted_format = RADIATE_SCAN_SIZE, "native"
         decoded = native_to_cartesian(scan, min(converted, width))  # [A, 11 + R] -> [V, V] uint8
         sweep = (scan.timestamps_us, scan.azimuths)
-    view = _centre_crop(decoded, max(input_size, min(width, ODOMETRY_VIEW_SIZE)))
+    view = model_crop_of_top_rows(decoded, max(input_size, min(width, ODOMETRY_VIEW_SIZE)))
     return DecodedFrame(
-        crop=_centre_crop(decoded, input_size),
+        crop=model_crop_of_top_rows(decoded, input_size),
         posted_size=width,
         crop_offset=(width - input_size) // 2,
         odometry_view=view,

@@ -7,8 +7,8 @@ import json
 import numpy as np
 import pytest
 
-from export.onnx_export import file_sha256
 from export.verify import Report, radiate_sequence, random_sequence, torch_window, verify_stream, verify_windows
+from rafd.model_files import file_sha256
 from rafd.runtime import METADATA_KEYS, OnnxRunner
 from tests.utils.export_testing import export_forms
 

@@ -7,6 +7,7 @@ import json
 
 import pytest
 
+from rafd.model_files import file_sha256
 from rafd.runtime import create_runner, runners
 from rafd.runtime.runners import gate_record, precision_choice
 
@@ -132,7 +133,7 @@ def test_a_passed_int8_record_serves_only_the_file_it_judged(tmp_path):
     assert missing["allowed_precisions"] == ["fp32"]
     assert "int8 capable, gate passed but no quantized model m.int8.onnx beside it" in missing["reason"]
     quantized.write_bytes(b"the judged file")
-    judged = runners.file_sha256(quantized)
+    judged = file_sha256(quantized)
     allowed = precision_choice(model, _int8_record(judged), ("auto", "auto"), ("openvino", "int8"), {}, with_int8)
     assert allowed["allowed_precisions"] == ["fp32", "int8"] and "int8 capable, gate passed" in allowed["reason"]
     quantized.write_bytes(b"quantized again after the gate")
