@@ -51,9 +51,7 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def main(argv: list[str] | None = None) -> int:
-    parser = build_parser()
-    args = parser.parse_args(argv)
-    flags.apply_quiet(args)
+    parser, args = flags.parse(build_parser, argv)
     from rafd.model_files import checkpoint_given_for_onnx
 
     if not args.model.is_file():

@@ -4,7 +4,7 @@ Training (rafd.data.dataset, rafd.data.collate), export verification, the benchm
 call these functions, so what the network sees cannot drift between them:
 
     polar uint8 [576, 400] (the sensor's native scan, RADIATE's Navtech_Polar layout; optional first step)
-      -> polar_to_cartesian uint8 [1152, 1152] (rafd.polar: RADIATE's conventions, opencv remap)
+      -> polar_to_cartesian uint8 [1152, 1152] (rafd.scans.polar: RADIATE's conventions, opencv remap)
     scan uint8 [N, N] (RADIATE Cartesian grid, radar at the centre)
       -> model_crop      uint8 [S, S], the centre S x S pixels (S = the model's input_size)
       -> to_model_input  float32 [S, S] in [0, 1] (grey / 255)
@@ -19,7 +19,7 @@ import math
 
 import numpy as np
 
-from rafd.polar import polar_to_cartesian  # the polar step of this path, re-exported
+from rafd.scans.polar import polar_to_cartesian  # the polar step of this path, re-exported
 
 __all__ = ["GREY_LEVELS", "model_crop", "model_crop_of_top_rows", "model_frame", "polar_to_cartesian", "to_model_input"]
 

@@ -17,7 +17,7 @@ import httpx
 import numpy as np
 import pytest
 
-from rafd.bench.server import free_port
+from bench.server import free_port
 
 pytestmark = pytest.mark.network
 

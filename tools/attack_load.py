@@ -36,8 +36,8 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from rafd.bench.server import cpu_seconds, free_port, serve_command, wait_ready
-from rafd.bench.timing import percentile
+from bench.server import cpu_seconds, free_port, serve_command, wait_ready
+from bench.timing import percentile
 from service.body.png import png_chunk
 
 if TYPE_CHECKING:  # the classes behind multiprocessing.Event() and multiprocessing.Queue()

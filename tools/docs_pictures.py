@@ -225,7 +225,7 @@ def first_drive(root: Path) -> Path:
 def served(onnx: Path):
     """`rafd serve --model ONNX` on loopback (onnxruntime fp32, the reference runtime; the service's own defaults
     otherwise) -> its URL."""
-    from rafd.bench.server import start_server
+    from bench.server import start_server
 
     print(f"$ RAFD_RUNTIME=onnxruntime rafd serve --model {onnx}  (loopback, a free port)", flush=True)
     with start_server(onnx, env={"RAFD_RUNTIME": "onnxruntime"}, clean_env=True) as server:
@@ -441,7 +441,7 @@ CAPACITY_RUN_BUDGET_MS = 5000.0  # the budget the bench runs with here: it climb
 
 def held_within(levels: list[dict[str, Any]], budget_ms: float) -> int:
     """The most streams of a rising run of levels (sorted by streams) that held `budget_ms` at p99 with only 200
-    answers, every smaller level holding too (rafd.bench.capacity's rule); 0: not even one."""
+    answers, every smaller level holding too (bench.capacity's rule); 0: not even one."""
     held = 0
     for level in levels:
         if {str(status) for status in level["statuses"]} != {"200"} or level["p99_ms"] > budget_ms:
@@ -704,7 +704,7 @@ def make_capacity(run: Run, wanted: set[str], sim_root: Path | None) -> None:
     if run.model.onnx is None:
         run.skip("capacity_latency", "no ONNX model to serve")
         return
-    from export.capacity_cli import main
+    from bench.capacity_cli import main
 
     report_path = run.work / "capacity.json"
     sizes = run.sizes
@@ -764,7 +764,7 @@ def make_odometry(run: Run, wanted: set[str], sim_root: Path | None) -> None:
 def write_manifest(run: Run, load_average: float) -> Path:
     """OUT/manifest.json: per picture what made it; pictures not made this time keep their entry while their file
     is there."""
-    from rafd.bench.machine import machine_description, usable_cores
+    from bench.machine import machine_description, usable_cores
 
     path = run.out / "manifest.json"
     previous: dict[str, Any] = {}

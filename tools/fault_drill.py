@@ -1,5 +1,5 @@
 """`python -m tools.fault_drill [--replicas 3] [--streams 3] [--frames 24] [--keepalive-posts 8]`: a fault drill of
-the shipped scale-out (deploy/nginx.conf on loopback in front of rafd-serve replicas, tools/loopback.py).
+the shipped scale-out (deploy/nginx.conf on loopback in front of rafd-serve replicas, bench/loopback.py).
 
 M streams post at the radar's 4 Hz through nginx (X-Stream-Id, `previous_timestamp`, retries with backoff as
 `rafd client` does: rafd.cli.client.post_with_retries) while faults are injected, one scenario at a time:
@@ -43,8 +43,8 @@ from typing import Any
 import cv2
 import numpy as np
 
+from bench.loopback import LoopbackCluster
 from rafd.cli.client import RETRY_STATUSES, RetryableError, ServiceError, post_with_retries
-from tools.loopback import LoopbackCluster
 
 PERIOD = 0.25  # a 4 Hz radar
 NUM_FRAMES = 4  # the shipped model's buffer

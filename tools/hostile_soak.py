@@ -54,8 +54,8 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from rafd.bench.server import free_port, rss_bytes, serve_command, wait_ready
-from rafd.bench.timing import percentile
+from bench.server import free_port, rss_bytes, serve_command, wait_ready
+from bench.timing import percentile
 from service.body.png import PNG_SIGNATURE, png_chunk
 from tools.attack_load import multipart_request, padded_png, scans_from
 

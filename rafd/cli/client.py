@@ -2,7 +2,7 @@
 
 Posts every radar frame in timestamp order (with its pose from ego_poses.csv when present, else the
 service estimates ego motion). A folder with only the sensor's polar scans (Navtech_Polar/) posts them as
-they are (the service converts them with the same rafd.polar conversion the client draws and logs), or
+they are (the service converts them with the same rafd.scans.polar conversion the client draws and logs), or
 converted first when meta.json asks for another size or resolution. With --out: each frame's picture
 (rafd.viz.answer: the model's crop zoomed, predictions with scores, ground truth where labelled, flow,
 legend), the answers as JSON lines and an MP4. With --mcap: a Foxglove/MCAP log of scans, poses, boxes, flow and
@@ -43,8 +43,7 @@ import numpy as np
 
 from rafd import progress
 from rafd.cli import flags
-from rafd.data.native_folder import NativeSource
-from rafd.data.reader import RadarFrame
+from rafd.data.frames import RadarFrame
 from rafd.detect_client import (
     STREAM_ID_MAX_LENGTH,
     FrameFields,
@@ -59,7 +58,8 @@ from rafd.detect_client import (
     stream_id_from,
 )
 from rafd.geometry import RADIATE_RESOLUTION, RADIATE_SCAN_SIZE
-from rafd.polar import RADIATE_AZIMUTHS, RADIATE_RANGE_BINS
+from rafd.scans.native import NativeSource
+from rafd.scans.polar import RADIATE_AZIMUTHS, RADIATE_RANGE_BINS
 
 
 def _png_size(path: Path) -> tuple[int, int] | None:

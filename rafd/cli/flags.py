@@ -284,12 +284,47 @@ def apply_quiet(args: argparse.Namespace) -> None:
     progress.set_quiet(bool(getattr(args, "quiet", False)))
 
 
+def parse(
+    build_parser: Callable[[], argparse.ArgumentParser], argv: Sequence[str] | None
+) -> tuple[argparse.ArgumentParser, argparse.Namespace]:
+    """A command's parser built and `argv` parsed with it, --quiet applied -> (parser, args): the parser for
+    parser.error() on what argparse cannot check alone."""
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    apply_quiet(args)
+    return parser, args
+
+
 # ----------------------------------------------------------------------------- value types
 def positive_int(text: str) -> int:
     value = int(text)
     if value < 1:
         raise argparse.ArgumentTypeError(f"must be >= 1, got {value}")
     return value
+
+
+def int_in(low: int, high: int) -> Callable[[str], int]:
+    """An argparse type: an integer from low to high inclusive (a benchmark's bounded counts)."""
+
+    def parse(text: str) -> int:
+        try:
+            value = int(text)
+        except ValueError as error:
+            raise argparse.ArgumentTypeError(f"an integer, got {text!r}") from error
+        if not low <= value <= high:
+            raise argparse.ArgumentTypeError(f"must be {low}-{high}, got {value}")
+        return value
+
+    return parse
+
+
+def add_count(
+    parser: argparse.ArgumentParser | argparse._ArgumentGroup, flag: str, default: int, high: int, what: str
+) -> None:
+    """A bounded count of a benchmark (--rounds, --repeats, ...): 1 to `high`, `what` its help."""
+    parser.add_argument(
+        flag, type=int_in(1, high), default=default, metavar="N", help=f"{what}, 1-{high} (default %(default)s)"
+    )
 
 
 def int_list(text: str) -> list[int]:

@@ -25,9 +25,10 @@ import numpy as np
 
 from rafd.cli import flags
 from rafd.data.candidates import propose
+from rafd.data.frames import RadarSequence
 from rafd.data.labels import IGNORE_CLASS, LABELLED_AREA_KEY, parse_box_lines, to_annotations, write_annotations
-from rafd.data.native_folder import MVDNET_LABELS
-from rafd.data.reader import RadarSequence, read_sequence
+from rafd.data.mvdnet_labels import MVDNET_LABELS
+from rafd.data.reader import read_sequence
 from rafd.progress import track
 from rafd.viz.labelling import candidate_sheet, into_frame, overview
 
@@ -290,9 +291,7 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def main(argv: list[str] | None = None) -> int:
-    parser = build_parser()
-    args = parser.parse_args(argv)
-    flags.apply_quiet(args)
+    parser, args = flags.parse(build_parser, argv)
     run = {"propose": run_propose, "apply": run_apply, "render": run_render, "compare": run_compare, "link": run_link}[
         args.command
     ]

@@ -44,13 +44,31 @@ COMMANDS = (
     Command("prepare", "rafd.cli.prepare:main", "decode a data root's scans once into a memory-mapped scan cache"),
     Command("polar", "rafd.cli.polar:main", "convert polar or native scans to RADIATE's Cartesian grid; compare"),
     Command("label", "rafd.cli.label:main", "label real scans: candidates, box text -> RADIATE labels, compare, link"),
-    Command("bench-speed", "export.speed_cli:main", "speed, accuracy drift and memory of every runtime and precision"),
-    Command("bench-accuracy", "rafd.cli.bench_accuracy:main", "the synthetic accuracy benchmark: data, run, compare"),
-    Command("bench-training", "rafd.cli.bench_training:main", "training speed: input pipeline, fp32 against bf16"),
-    Command("bench-capacity", "export.capacity_cli:main", "streams per replica at 4 Hz within a p99 budget"),
+    Command("bench-speed", "bench.speed_cli:main", "speed, accuracy drift and memory of every runtime and precision"),
+    Command("bench-accuracy", "bench.accuracy_cli:main", "the synthetic accuracy benchmark: data, run, compare"),
+    Command("bench-training", "bench.training_cli:main", "training speed: input pipeline, fp32 against bf16"),
+    Command("bench-capacity", "bench.capacity_cli:main", "streams per replica at 4 Hz within a p99 budget"),
+    Command("bench-batch", "bench.batch:main", "model cost per frame against batch size and threads (RAFD_MAX_BATCH)"),
+    Command("bench-steps", "bench.steps:main", "two exported step graphs' speed side by side"),
+    Command("bench-bf16-modules", "bench.bf16_modules:main", "which module bf16 hurts: one at a time in bf16 vs fp32"),
+    Command(
+        "bench-decode", "bench.decode:main", "decoding each posted form (Cartesian, polar, native, crop) side by side"
+    ),
+    Command("bench-decode-memory", "bench.decode_memory:main", "time and peak memory of the largest accepted image"),
+    Command(
+        "bench-odometry", "bench.odometry:main", "the service's odometry: accuracy and CPU, against a baseline copy"
+    ),
+    Command(
+        "bench-odometry-prior", "bench.odometry_prior:main", "odometry per frame: each pair from scratch vs the prior"
+    ),
+    Command("bench-server", "bench.server_overhead:main", "the HTTP server layer's cost per request (a stub model)"),
+    Command("bench-memory", "bench.stream_memory:main", "resident memory as streams come and expire"),
+    Command("bench-scaleout", "bench.scaleout:main", "frames per second through nginx to 1 and to 3 replicas"),
 )
 SUMMARIES = {c.name: c.summary for c in COMMANDS}
-GROUPS = {"bench": "benchmarks: rafd bench speed | accuracy | training | capacity"}
+GROUPS = {
+    "bench": "benchmarks (package bench/): what a frame, a stream and a replica cost, and how accurate a model is"
+}
 
 
 def installed_commands() -> dict[str, str]:
@@ -90,7 +108,8 @@ def usage(commands: dict[str, str]) -> str:
 def group_usage(group: str, commands: dict[str, str]) -> str:
     members = [n for n in commands if n.startswith(group + "-")]
     lines = [f"usage: rafd {group} {{{','.join(n.split('-', 1)[1] for n in members)}}} [ARGS]", "", GROUPS[group], ""]
-    lines += [f"  {n.split('-', 1)[1]:<10}{SUMMARIES.get(n, '')}" for n in members]
+    width = max(len(n) for n in members) - len(group)
+    lines += [f"  {n.split('-', 1)[1]:<{width}}{SUMMARIES.get(n, '')}" for n in members]
     return "\n".join(lines)
 
 

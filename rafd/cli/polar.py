@@ -22,14 +22,17 @@ import cv2
 import numpy as np
 
 from rafd.cli import flags
-from rafd.data.native_folder import NativeSource, is_native_folder
+from rafd.data.folders import POLAR_DIR, POLAR_TIMESTAMPS_FILE
+from rafd.data.native_folder import is_native_folder
 from rafd.data.poses import POSES_FILE, write_ego_poses
-from rafd.data.reader import POLAR_DIR, POLAR_TIMESTAMPS_FILE, load_image, read_sequence, read_timestamps
+from rafd.data.radiate_files import read_timestamps
+from rafd.data.reader import read_sequence
 from rafd.geometry import RADIATE_SCAN_SIZE
-from rafd.native import read_native_scan
-from rafd.native import to_cartesian as native_to_cartesian
-from rafd.polar import NOMINAL_POLAR, RADIATE_POLAR, PolarConventions, polar_to_cartesian, scan_agreement
 from rafd.progress import track
+from rafd.scans.cartesian import load_image
+from rafd.scans.native import NativeSource, read_native_scan
+from rafd.scans.native import to_cartesian as native_to_cartesian
+from rafd.scans.polar import NOMINAL_POLAR, RADIATE_POLAR, PolarConventions, polar_to_cartesian, scan_agreement
 
 FIT_STEPS = (0.25, 0.25, 0.5, 0.5)  # first step of (azimuth offset, range offset, centre u, centre v)
 FIT_HALVINGS = 6  # final step 1/64 of the first: below 0.01 bins / pixels

@@ -1,4 +1,5 @@
-"""RADIATE data: sequence reader (numpy + opencv), ego pose files, and the torch window dataset.
+"""RADIATE data: sequence reader (numpy + opencv; the scan formats themselves are rafd.scans), ego pose files, and
+the torch window dataset.
 
 `read_sequence` and the pose file helpers are torch-free; `RadarWindowDataset` imports torch on first
 access (so `rafd.data` stays importable where only the reader is needed, e.g. rafd-client).
@@ -8,8 +9,10 @@ from __future__ import annotations
 
 from typing import Any
 
+from rafd.data.frames import RadarFrame, RadarObject, RadarSequence
 from rafd.data.poses import POSES_FILE, read_ego_poses, write_ego_poses
-from rafd.data.reader import RadarFrame, RadarObject, RadarSequence, load_image, read_sequence
+from rafd.data.reader import read_sequence
+from rafd.scans.cartesian import load_image
 
 __all__ = [
     "POSES_FILE",

@@ -36,10 +36,12 @@ import numpy as np
 from rafd.config import RaFDConfig
 from rafd.data.augment import Augmentation, AugmentConfig
 from rafd.data.cache import CROPS_FILE, cache_folder, read_cached, required_crop
+from rafd.data.folders import IMAGE_DIR, META_FILE, POLAR_DIR
 from rafd.data.labels import IGNORE_CLASS
 from rafd.data.native_folder import NATIVE_DIR, is_native_folder
 from rafd.data.poses import POSES_FILE
-from rafd.data.reader import IMAGE_DIR, META_FILE, POLAR_DIR, read_meta, read_sequence
+from rafd.data.radiate_files import read_meta
+from rafd.data.reader import read_sequence
 from rafd.geometry import metres_to_pixels
 
 try:  # a torch Dataset when torch is installed (DataLoader works with any __getitem__/__len__ object)
@@ -113,7 +115,7 @@ class _SequenceMeta:
     """What windows need from one sequence, in compact arrays (picklable for DataLoader workers)."""
 
     name: str
-    frames: list  # N rafd.data.reader.RadarFrame (load() decodes a Cartesian scan or converts a polar one)
+    frames: list  # N rafd.data.frames.RadarFrame (load() decodes a Cartesian scan or converts a polar one)
     numbers: np.ndarray  # [N] int64 frame numbers
     timestamps: np.ndarray  # [N] float64
     poses: np.ndarray  # [N, 3]
@@ -122,7 +124,7 @@ class _SequenceMeta:
     ids: list[np.ndarray]  # N x [M] int64
     classes: list[list[str]]  # N x M RADIATE class names
     cache: Path | None = None  # CACHE/<sequence> with crops.npy, when prepared
-    condition: str | None = None  # meta.json's weather / RADIATE type (rafd.data.reader.meta_condition)
+    condition: str | None = None  # meta.json's weather / RADIATE type (rafd.data.radiate_files.meta_condition)
 
 
 def objects_in_crop(boxes: np.ndarray, ids: np.ndarray, classes: list[str], crop: int, resolution: float):

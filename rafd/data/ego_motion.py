@@ -13,13 +13,13 @@ from pathlib import Path
 
 import numpy as np
 
-from rafd.data.native_folder import NativeSource
+from rafd.data.folders import FrameList, list_frames
 from rafd.data.odometry import GAP_PERIODS, OdometryStream, SweepTiming
 from rafd.data.parallel import run_per_sequence
 from rafd.data.poses import POSES_FILE, write_ego_poses
-from rafd.data.reader import FrameList, list_frames, read_sequence
+from rafd.data.reader import read_sequence
 from rafd.geometry import compose_poses, relative_pose, wrap_angle
-from rafd.native import read_native_scan, to_cartesian
+from rafd.scans.native import NativeSource, read_native_scan, to_cartesian
 
 
 def scan_and_timing(listing: FrameList, index: int) -> tuple[np.ndarray, SweepTiming | None]:

@@ -1,4 +1,4 @@
-"""Sequence folders of the datasets that store Navtech scans in the sensor's own polar layout (rafd.native):
+"""Sequence folders of the datasets that store Navtech scans in the sensor's own polar layout (rafd.scans.native):
 Oxford Radar RobotCar and Boreas.
 
 Layout (Oxford's; Boreas keeps its scans the same way):
@@ -8,55 +8,35 @@ Layout (Oxford's; Boreas keeps its scans the same way):
     gt/radar_odometry.csv               optional (Oxford): the dataset's ground-truth radar odometry, used as the poses
     annotations/annotations.json        optional: labels in RADIATE's format keyed by scan timestamps (rafd.data.labels)
     label_2d/<UNIX microseconds>.txt    optional, when there is no annotations.json: MVDNet's published car labels
+                                        (rafd.data.mvdnet_labels)
     meta.json                           optional: {"name", "set", "native_format" ("oxford", "boreas", ...)}
 
-Scans are numbered 1..N in time order and converted on load to RADIATE's Cartesian grid (rafd.native.to_cartesian),
-so everything downstream (datasets, evaluation, the client) reads them like a RADIATE sequence.
+Scans are numbered 1..N in time order and converted on load to RADIATE's Cartesian grid (rafd.scans.native.NativeSource;
+rafd.data.folders lists them), so everything downstream (datasets, evaluation, the client) reads them like a RADIATE
+sequence.
 
 Ground-truth odometry (Oxford's `radar_odometry.csv`: one row per consecutive pair, `source_radar_timestamp` the
 newer scan, `destination_radar_timestamp` the older, x, y, yaw the newer scan's pose in the older one's frame, in the
 dataset's axes: x forward, y right, yaw clockwise seen from above, i.e. z down). In this project's ego frame (x right, y
 forward, yaw counter-clockwise) that is (x, y, yaw)_ours = (y, x, -yaw)_oxford: under it, radar odometry on the
 converted scans agrees with the ground truth in sign and size on every pair of the real sample.
-
-MVDNet's car labels (`label_2d/<timestamp>.txt`, one car per line: `Car <track id> xc yc width length yaw_deg`, metres
-around the radar, drawn on the scan converted with the Oxford SDK's convention): xc points right and yc backwards
-(image down), and yaw is the box's angle in the image (clockwise on screen), so in this project's box convention
-(x, y, width, length, yaw) = (xc, -yc, width, length, -radians(yaw_deg)). Established on the one labelled frame of
-`oxford_labelled`: the centres sit on (or beside, on the far side: lidar labels box the whole car) the cars' returns,
-and the boxes' long sides lie along the returns' elongation (its 3D labels, KITTI-style with z forward, give the same
-centres with z = -yc).
 """
 
 from __future__ import annotations
 
 import csv
 import re
-from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 
-from rafd.geometry import RADIATE_RESOLUTION, RADIATE_SCAN_SIZE, compose_poses
-from rafd.native import NativeFormat, format_for, is_native_shape, read_native_scan, to_cartesian
+from rafd.geometry import compose_poses
+from rafd.scans.native import NativeFormat, format_for, is_native_shape
 
 NATIVE_DIR = "radar"
 NATIVE_TIMESTAMPS_FILE = "radar.timestamps"
 GROUND_TRUTH_ODOMETRY = "gt/radar_odometry.csv"
 _NATIVE_NAME = re.compile(r"(\d{13,19})\.png")
-
-
-@dataclass(frozen=True)
-class NativeSource:
-    """How a native folder's scans become Cartesian ones: the dataset's format, the side and resolution."""
-
-    fmt: NativeFormat
-    size: int = RADIATE_SCAN_SIZE
-    resolution: float = RADIATE_RESOLUTION
-
-    def load(self, path: Path) -> np.ndarray:
-        """Native scan PNG -> uint8 [size, size] Cartesian scan (RADIATE's grid)."""
-        return to_cartesian(read_native_scan(path, self.fmt), self.size, self.resolution)
 
 
 def is_native_folder(folder: Path) -> bool:
@@ -66,8 +46,14 @@ def is_native_folder(folder: Path) -> bool:
 
 
 def microseconds_text(microseconds: int) -> str:
-    """UNIX microseconds -> the canonical 'seconds.nnnnnnnnn' text of rafd.data.reader (nanoseconds, exact)."""
+    """UNIX microseconds -> the canonical 'seconds.nnnnnnnnn' text (rafd.data.radiate_files.parse_radiate_time's;
+    nanoseconds, exact)."""
     return f"{microseconds // 1_000_000}.{(microseconds % 1_000_000) * 1000:09d}"
+
+
+def text_microseconds(text: str) -> int:
+    """A canonical 'seconds.nnnnnnnnn' text -> UNIX microseconds (microseconds_text's inverse: a native scan's name)."""
+    return int(text.replace(".", "")) // 1000
 
 
 def list_native_scans(folder: Path) -> list[tuple[int, Path]]:
@@ -136,37 +122,3 @@ def read_ground_truth_odometry(path: Path, timestamps_us: list[int]) -> np.ndarr
             pose = compose_poses(pose, relative)
         poses.append(pose)
     return np.stack(poses)
-
-
-MVDNET_LABELS = "label_2d"
-
-
-def read_mvdnet_labels(path: Path) -> list[tuple[int, str, np.ndarray]]:
-    """One MVDNet label_2d file -> [(track id, class name in lower case, box [5] in this project's convention)]."""
-    out = []
-    for number, line in enumerate(path.read_text().splitlines(), 1):
-        fields = line.split()
-        if not fields:
-            continue
-        if len(fields) != 7:
-            raise ValueError(f"{path}:{number}: expected 'Car <track id> xc yc width length yaw_deg', got {line!r}")
-        try:
-            track = int(fields[1])
-            xc, yc, width, length, yaw_deg = (float(v) for v in fields[2:])
-        except ValueError as error:
-            raise ValueError(f"{path}:{number}: {error}") from error
-        out.append((track, fields[0].lower(), np.array([xc, -yc, width, length, -np.radians(yaw_deg)])))
-    return out
-
-
-def mvdnet_labels_by_scan(folder: Path, timestamps_us: list[int]) -> dict[int, list[tuple[int, str, np.ndarray]]]:
-    """{scan timestamp: labels} from a native folder's label_2d/ (files named <timestamp>.txt or
-    <timestamp>_label_2d.txt); scans without a file get none."""
-    labels = folder / MVDNET_LABELS
-    out: dict[int, list[tuple[int, str, np.ndarray]]] = {}
-    for stamp in timestamps_us:
-        for name in (f"{stamp}.txt", f"{stamp}_label_2d.txt"):
-            if (labels / name).is_file():
-                out[stamp] = read_mvdnet_labels(labels / name)
-                break
-    return out

@@ -293,7 +293,7 @@ class SweepTiming:
 
     @classmethod
     def of_native(cls, timestamps_us: np.ndarray, azimuths: np.ndarray) -> SweepTiming:
-        """A native scan's own timing (rafd.native.NativeScan.timestamps_us / .azimuths), referred to its first
+        """A native scan's own timing (rafd.scans.native.NativeScan.timestamps_us / .azimuths), referred to its first
         azimuth (the time the datasets name the scan by)."""
         seconds = (np.asarray(timestamps_us, np.int64) - int(timestamps_us[0])) * 1e-6
         azimuths = np.asarray(azimuths, np.float64)

@@ -17,6 +17,7 @@ Written by the simulator (true poses) and by `rafd-odometry SEQ_DIR` (poses esti
 from __future__ import annotations
 
 import csv
+import logging
 import math
 import os
 from collections.abc import Sequence
@@ -24,8 +25,11 @@ from pathlib import Path
 
 import numpy as np
 
+log = logging.getLogger(__name__)
+
 POSES_FILE = "ego_poses.csv"
 POSES_HEADER = ("frame", "timestamp", "x", "y", "yaw")
+POSE_TIMESTAMP_TOLERANCE = 1e-3  # seconds: ego_poses.csv rows must carry their frame's timestamp
 
 
 def _format_timestamp(value: float | str) -> str:
@@ -107,3 +111,22 @@ def read_ego_poses(path: str | Path) -> dict[int, tuple[float, np.ndarray]]:
     if not poses:
         raise ValueError(f"{path}: no pose rows")
     return poses
+
+
+def read_frame_poses(path: Path, numbers: list[int], stamps: list[float]) -> np.ndarray:
+    """ego_poses.csv -> [N, 3] poses of the frames on disk (`numbers`, with the scans' timestamps `stamps`); ValueError
+    naming the file when a frame has no row or its row carries another timestamp (a pose file of another sequence)."""
+    table = read_ego_poses(path)
+    missing = [n for n in numbers if n not in table]
+    if missing:
+        raise ValueError(f"{path}: no pose for {len(missing)} frames on disk (first: frame {missing[0]})")
+    for number, stamp in zip(numbers, stamps):
+        if abs(table[number][0] - stamp) > POSE_TIMESTAMP_TOLERANCE:
+            raise ValueError(
+                f"{path}: frame {number} has timestamp {table[number][0]:.6f}, "
+                f"the scans' timestamp file says {stamp:.6f} (pose file of another sequence?)"
+            )
+    extra = len(table) - len(numbers)
+    if extra:
+        log.debug("%s: %d pose rows for frames not on disk ignored", path, extra)
+    return np.stack([table[n][1] for n in numbers])

@@ -41,7 +41,7 @@ def scan_config(cfg: RaFDConfig, scan_size: int) -> RaFDConfig:
 def scan_size_of(root, split) -> int:
     """Side in pixels of the scans of the first sequence of `split` under `root` (all must share it)."""
     from rafd.data.dataset import select_sequences
-    from rafd.data.reader import list_frames
+    from rafd.data.folders import list_frames
 
     folders, seen = select_sequences(root, split)
     if not folders:

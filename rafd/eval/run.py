@@ -1,5 +1,5 @@
 """One evaluation as plain Python: `evaluate(EvalRun(...))` -> the report `rafd-eval` prints and writes. `rafd-eval`
-builds an EvalRun from its flags (one flag per field); the synthetic benchmark builds its own (rafd.bench.accuracy).
+builds an EvalRun from its flags (one flag per field); the synthetic benchmark builds its own (bench.accuracy).
 """
 
 from __future__ import annotations

@@ -19,7 +19,7 @@ import cv2
 import numpy as np
 
 from rafd.geometry import RADIATE_RESOLUTION, RADIATE_SCAN_SIZE
-from rafd.polar import PolarConventions
+from rafd.scans.polar import PolarConventions
 from rafd.sim.scene import Scatterers
 
 MOUNT_GAIN = 3.0  # the mounting pattern's power scales by this (matched to the real 3 m ring)

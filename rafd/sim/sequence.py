@@ -16,7 +16,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from rafd.geometry import RADIATE_RESOLUTION, rotation_matrix
-from rafd.polar import to_radiate_polar
+from rafd.scans.polar import to_radiate_polar
 from rafd.sim.city import LANE_WIDTH, Street, build_city
 from rafd.sim.road import drive_ego, make_route
 from rafd.sim.scene import Scatterers

@@ -1,6 +1,6 @@
 """One training run as plain Python: `train(TrainRun(...))`. `rafd train` makes one flag per TrainRun field
 (rafd.cli.train: the help is the field's metadata), and the synthetic benchmark's variants build theirs directly
-(rafd.bench.variants).
+(bench.variants).
 
 A run starts from a named recipe (rafd.train.recipes): every field left None keeps the recipe's value, every field
 given overrides it, and the checkpoint records the result. A field named as a TrainConfig field

@@ -6,10 +6,13 @@ rafd.preprocess, the one torch-free path from a scan to the model input. A polar
 shape (576 rows of range x 400 columns of azimuth; Cartesian inputs are square, so none has it) and converted
 there with rafd.preprocess.polar_to_cartesian to RADIATE's 1152 px Cartesian scan, which then takes the
 Cartesian path unchanged. A native scan (one row per azimuth: timestamp, encoder angle, valid flag, then the range
-bins; rafd.native) is recognised by its shape too (a few hundred rows, far wider than high) and converted with
-rafd.native.to_cartesian the same way. `check_posted_image` is its cheap first half (chunk headers only), run on the
-event loop as soon as the body is parsed so a hostile file is refused before it takes a decode slot; `upload_check`
-runs the same rules on a multipart upload while it streams in.
+bins; rafd.scans.native) is recognised by its shape too (a few hundred rows, far wider than high) and converted with
+rafd.scans.native.to_cartesian the same way. `check_posted_image` is its cheap first half (chunk headers only), run on
+the event loop as soon as the body is parsed so a hostile file is refused before it takes a decode slot;
+`upload_check` runs the same rules on a multipart upload while it streams in.
+
+What each form is (its shape, the dataset a native width is read as, the sizes a model accepts) is rafd.scans; this
+module decodes a posted body and answers every failure with an ApiError.
 """
 
 from __future__ import annotations
@@ -22,18 +25,12 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
-from rafd.geometry import RADIATE_RESOLUTION, RADIATE_SCAN_SIZE
-from rafd.native import (
-    HEADER_COLUMNS,
-    NATIVE_FORMATS,
-    SENSOR_SHAPE,
-    NativeShape,
-    is_native_shape,
-    parse_native_scan,
-)
-from rafd.native import to_cartesian as native_to_cartesian
-from rafd.polar import RADIATE_AZIMUTHS, RADIATE_RANGE_BINS
+from rafd.geometry import RADIATE_SCAN_SIZE
 from rafd.preprocess import model_crop_of_top_rows, polar_to_cartesian, to_model_input
+from rafd.scans.cartesian import accepted_sizes
+from rafd.scans.native import SENSOR_SHAPE, NativeShape, is_native_shape, native_format_name, parse_native_scan
+from rafd.scans.native import to_cartesian as native_to_cartesian
+from rafd.scans.polar import RADIATE_POLAR_SHAPE, accepts_polar
 from service.body import png
 from service.http.errors import ApiError
 
@@ -44,11 +41,6 @@ log = logging.getLogger(__name__)
 # onto vehicles that move with the ego.
 ODOMETRY_VIEW_SIZE = 512
 DATA_URL_PREFIX = "data:image/png;base64,"
-# A posted polar scan: (height, width) = (range bins, azimuths), RADIATE's Navtech_Polar PNGs as they are on disk.
-POLAR_SHAPE = (RADIATE_RANGE_BINS, RADIATE_AZIMUTHS)
-
-# A posted native scan: the Oxford Radar RobotCar's 3768 range bins; any other native width is read as Boreas'.
-OXFORD_RANGE_BINS = 3768
 
 # A posted image: PNG bytes (multipart file) or base64 text of them (JSON field).
 PostedImage = bytes | str
@@ -71,19 +63,6 @@ class DecodedFrame:
         return to_model_input(self.crop)
 
 
-def accepted_sizes(input_size: int, resolution: float) -> tuple[int, ...]:
-    """Square sides accepted: the model's input, plus a full RADIATE scan when the model runs at its resolution."""
-    sizes = [input_size]
-    if input_size < RADIATE_SCAN_SIZE and abs(resolution - RADIATE_RESOLUTION) < 1e-6:
-        sizes.append(RADIATE_SCAN_SIZE)
-    return tuple(sizes)
-
-
-def accepts_polar(input_size: int, resolution: float) -> bool:
-    """Polar scans are accepted wherever a full RADIATE scan is: they are converted to one."""
-    return RADIATE_SCAN_SIZE in accepted_sizes(input_size, resolution)
-
-
 def strip_data_url(text: str) -> str:
     """A base64 JSON image may carry a `data:image/png;base64,` prefix."""
     if text.startswith("data:"):
@@ -97,38 +76,22 @@ def _source(image: PostedImage) -> png.ByteSource:
     return png.Base64Bytes(strip_data_url(image)) if isinstance(image, str) else png.RawBytes(image)
 
 
-def native_format_name(width: int) -> str:
-    """The dataset a posted native scan is read as, from its width: Oxford's 3768 range bins, else Boreas'."""
-    return "oxford" if width - HEADER_COLUMNS == OXFORD_RANGE_BINS else "boreas"
-
-
-def native_description(shape: NativeShape = SENSOR_SHAPE) -> dict[str, object]:
-    """What GET /model says about native scans (rafd.native): the shape rule and each dataset's range bin."""
-    return {
-        "rows": f"one per azimuth, {shape.min_azimuths}-{shape.max_azimuths} (Oxford and Boreas: 400; "
-        "RAFD_NATIVE_MAX_AZIMUTHS)",
-        "columns": f"{HEADER_COLUMNS} header columns (timestamp, encoder angle, valid flag) + the range bins, more "
-        f"than twice the rows and at most {shape.max_range_bins} (RAFD_NATIVE_MAX_RANGE_BINS)",
-        "formats": {name: fmt.range_bin_m for name, fmt in NATIVE_FORMATS.items()},
-        "format_rule": f"{OXFORD_RANGE_BINS} range bins: oxford; any other number: boreas (boreas-2021 after its "
-        "sensor upgrade, by the scan's timestamp)",
-    }
-
-
 def _check_size(header: png.PngHeader, input_size: int, resolution: float, native: NativeShape = SENSOR_SHAPE) -> None:
     """422 unless the PNG is an accepted square Cartesian size or (where accepted) a RADIATE polar or a native scan
     of a real sensor's size (`native`): from the header alone, so the inflate and the conversion are bounded before
     any work."""
     sizes = accepted_sizes(input_size, resolution)
     polar = accepts_polar(input_size, resolution)
-    if polar and ((header.height, header.width) == POLAR_SHAPE or is_native_shape(header.width, header.height, native)):
+    polar_shape = (header.height, header.width) == RADIATE_POLAR_SHAPE
+    if polar and (polar_shape or is_native_shape(header.width, header.height, native)):
         return
     if header.width != header.height or header.width not in sizes:
         accepted = " or ".join(f"{s}x{s}" for s in sizes)
         if polar:
+            bins, azimuths = RADIATE_POLAR_SHAPE
             accepted += (
-                f" (Cartesian), or {POLAR_SHAPE[1]}x{POLAR_SHAPE[0]} (a polar scan: {POLAR_SHAPE[1]} "
-                f"azimuth columns x {POLAR_SHAPE[0]} range rows, RADIATE's Navtech_Polar layout), or a native scan "
+                f" (Cartesian), or {azimuths}x{bins} (a polar scan: {azimuths} azimuth columns x {bins} range "
+                "rows, RADIATE's Navtech_Polar layout), or a native scan "
                 f"(Oxford / Boreas: one row per azimuth, {native.describe()})"
             )
         raise ApiError(
@@ -200,7 +163,7 @@ def _decode_frame(image: PostedImage, input_size: int, resolution: float, native
     # A polar or native scan is converted only where the service looks: the odometry view around the radar (which
     # holds the model's crop), not the whole 1152 px disc; the same pixels as the whole conversion's centre.
     converted = max(input_size, ODOMETRY_VIEW_SIZE)
-    if decoded.shape == POLAR_SHAPE:  # the size check let it through: polar scans are accepted here
+    if decoded.shape == RADIATE_POLAR_SHAPE:  # the size check let it through: polar scans are accepted here
         width, posted_format = RADIATE_SCAN_SIZE, "polar"
         decoded = polar_to_cartesian(decoded, min(converted, width))  # [576, 400] -> [V, V] uint8
     elif not square:  # a native scan (the size check let only these through)

@@ -34,12 +34,12 @@ from starlette.requests import ClientDisconnect
 from rafd.detections import decode_detections
 from rafd.flow_validity import FLOW_VALID_MIN, config_validity, search_reach_m
 from rafd.geometry import box_polygons_pixels, relative_pose
-from rafd.native import NativeShape
 from rafd.protocol import operating_threshold, warming_up
+from rafd.scans.cartesian import accepted_sizes
+from rafd.scans.native import NativeShape
 from service.body.images import (
     DecodedFrame,
     PostedImage,
-    accepted_sizes,
     check_posted_image,
     decode_frame,
     upload_check,
@@ -225,7 +225,8 @@ class DetectService:
         self.batcher.on_batch = metrics.model_batch_size.observe
         # RAFD_SCORE_THRESHOLD when set, else the model's documented operating threshold (rafd.protocol)
         self.score_threshold = operating_threshold(runner.metadata, settings.score_threshold)
-        # the native scan sizes accepted, checked from the PNG header before any inflating (rafd.native.NativeShape)
+        # the native scan sizes accepted, checked from the PNG header before any inflating
+        # (rafd.scans.native.NativeShape)
         self.native_shape = NativeShape(
             max_azimuths=settings.native_max_azimuths, max_range_bins=settings.native_max_range_bins
         )

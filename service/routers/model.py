@@ -4,12 +4,25 @@ from __future__ import annotations
 
 from fastapi import APIRouter, Depends
 
-from service.body.images import POLAR_SHAPE, accepts_polar, native_description
+from rafd.scans.native import HEADER_COLUMNS, NATIVE_FORMAT_RULE, NATIVE_FORMATS, SENSOR_SHAPE, NativeShape
+from rafd.scans.polar import RADIATE_POLAR_SHAPE, accepts_polar
 from service.dependencies import get_service
 from service.pipeline.detector import DetectService
 from service.schemas import ModelInfo, RuntimeOut
 
 router = APIRouter(tags=["model"])
+
+
+def native_description(shape: NativeShape = SENSOR_SHAPE) -> dict[str, object]:
+    """What GET /model says about native scans (rafd.scans.native): the shape rule and each dataset's range bin."""
+    return {
+        "rows": f"one per azimuth, {shape.min_azimuths}-{shape.max_azimuths} (Oxford and Boreas: 400; "
+        "RAFD_NATIVE_MAX_AZIMUTHS)",
+        "columns": f"{HEADER_COLUMNS} header columns (timestamp, encoder angle, valid flag) + the range bins, more "
+        f"than twice the rows and at most {shape.max_range_bins} (RAFD_NATIVE_MAX_RANGE_BINS)",
+        "formats": {name: fmt.range_bin_m for name, fmt in NATIVE_FORMATS.items()},
+        "format_rule": NATIVE_FORMAT_RULE,
+    }
 
 
 @router.get("/model", response_model=ModelInfo)
@@ -26,7 +39,7 @@ async def model_info(service: DetectService = Depends(get_service)) -> ModelInfo
         class_names=list(cfg.class_names),
         accepted_image_sizes=list(service.accepted_sizes),
         # a Navtech_Polar scan [range rows, azimuth columns] is accepted where a full RADIATE scan is
-        accepted_polar_shape=list(POLAR_SHAPE) if accepts_polar(cfg.input_size, cfg.resolution) else None,
+        accepted_polar_shape=list(RADIATE_POLAR_SHAPE) if accepts_polar(cfg.input_size, cfg.resolution) else None,
         accepted_native=native_description(service.native_shape)
         if accepts_polar(cfg.input_size, cfg.resolution)
         else None,

@@ -39,7 +39,7 @@ if shutil.which("docker") is None or subprocess.run(["docker", "info"], capture_
         allow_module_level=True,
     )
 
-from rafd.bench.server import free_port, http_get  # noqa: E402
+from bench.server import free_port, http_get  # noqa: E402
 
 pytestmark = pytest.mark.docker
 

@@ -272,7 +272,7 @@ def test_ingress_hashes_on_the_stream_header_the_service_reads(openapi: dict[str
     variable = "$http_" + header.lower().replace("-", "_")
     assert annotations()[HASH_BY] == variable
     # the compose router hashes on the same header (and, there, also the path form)
-    from tools.loopback import NGINX_CONF
+    from bench.loopback import NGINX_CONF
 
     assert re.search(rf"map {re.escape(variable)} \$rafd_stream ", NGINX_CONF.read_text())
     # ingress-nginx must pick the pod itself: through the Service's ClusterIP, kube-proxy would spread a stream
@@ -283,7 +283,7 @@ def test_ingress_hashes_on_the_stream_header_the_service_reads(openapi: dict[str
 
 
 def test_ingress_body_limit_and_timeouts_leave_the_limits_to_the_service():
-    from tools.loopback import NGINX_CONF
+    from bench.loopback import NGINX_CONF
 
     body = nginx_size(annotations()["nginx.ingress.kubernetes.io/proxy-body-size"])
     assert body >= setting("max_request_bytes")  # 2.5 MiB: the service answers 413 itself, as JSON

@@ -8,7 +8,7 @@ from pathlib import Path
 
 import pytest
 
-from tools.loopback import NGINX_CONF, loopback_config, nginx_binary
+from bench.loopback import NGINX_CONF, loopback_config, nginx_binary
 
 
 def test_loopback_config_changes_only_addresses_and_temporary_paths(tmp_path: Path):

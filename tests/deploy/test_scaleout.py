@@ -18,9 +18,9 @@ from typing import Any
 import pytest
 from fastapi.testclient import TestClient
 
-from rafd.bench.server import http_get
+from bench.loopback import LoopbackCluster, nginx_binary
+from bench.server import http_get
 from tests.utils.answers_testing import assert_same_answer, in_process_service
-from tools.loopback import LoopbackCluster, nginx_binary
 
 pytestmark = pytest.mark.network
 

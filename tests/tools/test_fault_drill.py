@@ -9,8 +9,8 @@ from pathlib import Path
 
 import pytest
 
+from bench.loopback import LoopbackCluster, nginx_binary
 from tools.fault_drill import PINNED, Drill, targets_missed
-from tools.loopback import LoopbackCluster, nginx_binary
 
 pytestmark = [pytest.mark.network, pytest.mark.slow]
 

@@ -11,7 +11,7 @@ import pytest
 from rafd.cli.label import agreement, main
 from rafd.data import read_sequence
 from tests.rafd.data.test_native_folder import STAMPS, write_folder
-from tests.rafd.test_native import native_png
+from tests.rafd.scans.test_native import native_png
 
 
 @pytest.fixture

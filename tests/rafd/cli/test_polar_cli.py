@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 from rafd.cli.polar import fit_conventions, main
-from rafd.polar import PolarConventions, polar_to_cartesian
+from rafd.scans.polar import PolarConventions, polar_to_cartesian
 
 
 def test_fit_recovers_the_conventions_that_made_an_image():

@@ -257,7 +257,7 @@ def test_old_spellings_warn_naming_the_new_one_and_still_work(tmp_path, capsys):
 
     args = export_parser().parse_args(["ck.pt", "m.onnx", "--gate-frames", "30"])
     assert args.gate_frames == 30 and "use --gate-sequence-frames" in capsys.readouterr().err
-    from export.speed_cli import build_parser as speed_parser
+    from bench.speed_cli import build_parser as speed_parser
 
     args = speed_parser().parse_args(["--checkpoint", "ck.pt"])
     assert str(args.checkpoint_option) == "ck.pt" and "use the positional CHECKPOINT" in capsys.readouterr().err
@@ -307,7 +307,7 @@ def test_the_shared_flags_table_matches_the_parsers():
     for row in rows:
         cells = [cell.strip() for cell in row.strip("|").split("|")]
         flag = re.match(r"`(--[a-z-]+)", cells[0]).group(1)
-        named = set(re.findall(r"`rafd ([a-z ]+?)`", cells[2]))
+        named = set(re.findall(r"`rafd ([a-z0-9 -]+?)`", cells[2]))
         takes = {TYPED[c.name] for c in COMMANDS if flag in options_of(c.name)}
         assert named == takes, f"{flag}: the table says {sorted(named)}, the parsers {sorted(takes)}"
 
@@ -355,7 +355,7 @@ def test_the_front_page_lists_every_command():
     """README's command list names every command (`rafd bench speed | accuracy | ...` names a group's members)."""
     listed = readme_section("Command-line tools")
     named = set(re.findall(r"^- `rafd ([a-z]+)", listed, re.M))
-    groups = {g: re.search(rf"^- `rafd {g} ([a-z |]+)`", listed, re.M) for g in dispatcher.GROUPS}
+    groups = {g: re.search(rf"^- `rafd {g} ([a-z0-9 |-]+)`", listed, re.M) for g in dispatcher.GROUPS}
     for command in COMMANDS:
         group, _, member = command.name.partition("-")
         if group in groups and member:

@@ -22,7 +22,7 @@ from rafd.data.labels import (
     to_annotations,
     write_annotations,
 )
-from rafd.data.native_folder import read_mvdnet_labels
+from rafd.data.mvdnet_labels import read_mvdnet_labels
 from rafd.data.targets import build_targets
 from rafd.eval.predict import outside_ignored
 from rafd.geometry import box_corners, points_in_boxes

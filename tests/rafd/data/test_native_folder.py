@@ -11,9 +11,10 @@ import pytest
 
 from rafd.data import read_sequence
 from rafd.data.dataset import find_sequences
-from rafd.data.native_folder import NativeSource, microseconds_text, read_ground_truth_odometry
+from rafd.data.native_folder import microseconds_text, read_ground_truth_odometry
 from rafd.geometry import relative_pose
-from tests.rafd.test_native import native_png
+from rafd.scans.native import NativeSource
+from tests.rafd.scans.test_native import native_png
 
 HEADER = (
     "source_timestamp,destination_timestamp,x,y,z,roll,pitch,yaw,source_radar_timestamp,destination_radar_timestamp"

@@ -247,7 +247,7 @@ def test_compensated_odometry_on_the_real_oxford_ground_truth(oxford_sample: Pat
     """A regression bound, not the target: on the 11 consecutive pairs (512 px around the radar, each scan's own
     azimuth timestamps) the errors stay near the measured 0.07 m / 0.1 deg (docs/data.md, "Radar odometry")."""
     from rafd.data.odometry import SweepTiming as Timing
-    from rafd.native import read_native_scan
+    from rafd.scans.native import read_native_scan
 
     sequence = read_sequence(oxford_sample, estimate_poses=False)
     errors = []

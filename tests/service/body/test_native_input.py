@@ -1,5 +1,6 @@
 """Native scans (Oxford Radar RobotCar, Boreas) in /detect: posted as they are on disk, they answer exactly as their
-Cartesian conversion does (rafd.native.to_cartesian, the one decode); bad native files are 422; GET /model says so.
+Cartesian conversion does (rafd.scans.native.to_cartesian, the one decode); bad native files are 422; GET /model says
+so.
 """
 
 from __future__ import annotations
@@ -12,9 +13,9 @@ import numpy as np
 import pytest
 from fastapi.testclient import TestClient
 
-from rafd.native import parse_native_scan, to_cartesian
+from rafd.scans.native import parse_native_scan, to_cartesian
 from service.app import create_app
-from tests.rafd.test_native import native_png
+from tests.rafd.scans.test_native import native_png
 from tests.utils.fake_runner import FakeRunner
 from tests.utils.service_testing import FakeOdometry, b64png, wait_ready
 
@@ -174,7 +175,7 @@ def test_the_native_bound_is_a_setting_for_other_sensors(settings):
 def test_a_degenerate_native_header_is_422_naming_the_rule(client: TestClient, case: str, rule: str):
     """The finding: all-zero angles moved the pose -2.80 m instead of -0.05 m, and the chain stayed offset. Now the
     frame is refused, naming the rule, and the stream keeps what it had."""
-    from tests.rafd.test_native import DEGENERATE_HEADERS, _with_header
+    from tests.rafd.scans.test_native import DEGENERATE_HEADERS, _with_header
 
     times, encoder, _ = DEGENERATE_HEADERS[case]
     first = post(client, "deg", 0, native_scan(0))

@@ -18,8 +18,8 @@ import pytest
 from fastapi.testclient import TestClient
 
 from rafd.preprocess import polar_to_cartesian
+from rafd.scans.polar import RADIATE_POLAR_SHAPE
 from service.app import create_app
-from service.body.images import POLAR_SHAPE
 from service.settings import Settings
 from tests.utils.fake_runner import FakeRunner
 from tests.utils.service_testing import FakeOdometry, b64png, png, wait_ready
@@ -30,7 +30,7 @@ POSES = [(0.0, 0.0, 0.0), (0.4, 1.5, 0.02)]
 def polar_scan(seed: int) -> np.ndarray:
     """uint8 [576, 400] speckle with a few bright targets near the radar (inside a 128 px model crop)."""
     rng = np.random.default_rng(seed)
-    polar = rng.integers(0, 30, POLAR_SHAPE, dtype=np.uint8)
+    polar = rng.integers(0, 30, RADIATE_POLAR_SHAPE, dtype=np.uint8)
     for azimuth in (10, 130, 260, 370):
         polar[40 + seed : 60 + seed, azimuth : azimuth + 6] = 220
     return polar
@@ -91,7 +91,8 @@ def test_polar_scan_differs_from_a_transposed_reading(client):
 
 def test_transposed_polar_scan_is_refused_naming_the_layout(client):
     response = client.post(
-        "/detect", json={"stream_id": "t", "timestamp": 1.0, "image": b64png(np.zeros(POLAR_SHAPE[::-1], np.uint8))}
+        "/detect",
+        json={"stream_id": "t", "timestamp": 1.0, "image": b64png(np.zeros(RADIATE_POLAR_SHAPE[::-1], np.uint8))},
     )
     assert response.status_code == 422
     error = response.json()["error"]
@@ -135,7 +136,7 @@ def test_real_polar_scans_answer_as_their_cartesian_conversion(shipped_client, r
     assert len(paths) >= 2
     for t, path in enumerate(paths):
         polar = cv2.imread(str(path), cv2.IMREAD_GRAYSCALE)
-        assert polar.shape == POLAR_SHAPE
+        assert polar.shape == RADIATE_POLAR_SHAPE
         body = {"timestamp": 10.0 + t}
         from_polar = shipped_client.post(
             "/detect", json={**body, "stream_id": "real-polar", "image": b64png(polar)}

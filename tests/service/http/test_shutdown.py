@@ -13,7 +13,7 @@ from pathlib import Path
 
 import pytest
 
-from rafd.bench.server import free_port, wait_ready
+from bench.server import free_port, wait_ready
 
 pytestmark = pytest.mark.network
 

@@ -1,0 +1,515 @@
+"""The speed benchmark (`rafd-bench-speed`): speed, accuracy drift and memory of every runtime and precision, side
+by side in one run.
+
+For each config (the shipped default model, the paper's network with random weights, and the paper's network with
+the speed options flow.stride 8 and enhance.window 16):
+  - PyTorch eager and onnxruntime on the full window (the references);
+  - the streaming step (the service's path) on every runtime and precision this CPU runs (onnxruntime fp32,
+    OpenVINO fp32, OpenVINO bf16 where the CPU has bf16), timed interleaved, with the achieved TFLOP/s against the
+    fp32 and bf16 matmul peaks measured in the same run;
+  - 1 stream against 8 concurrent streams through one runner, with one run at a time and with the service's
+    default of one concurrent run per CPU;
+  - the accuracy gate of every reduced precision against onnxruntime fp32 (export.gate, a small sample);
+then `POST /detect` over HTTP on loopback against a real `rafd-serve` per runtime (1 and N streams, memory with
+100 streams; for the default model also full 1152 px scans). Prints one table.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import os
+import statistics
+import time
+from collections.abc import Callable, Sequence
+from concurrent.futures import ThreadPoolExecutor
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from bench.flops import count_flops
+from bench.http_load import encode_png, load_streams
+from bench.server import rss_bytes, start_server
+from bench.timing import percentiles, time_calls, time_interleaved
+from rafd.preprocess import model_crop, to_model_input
+from rafd.progress import Stages
+
+log = logging.getLogger("bench")
+
+CONFIGS = ("default", "paper", "paper-options")
+FULL_SCAN = 1152  # a RADIATE Navtech Cartesian scan
+
+
+@dataclass
+class Row:
+    config: str
+    path: str
+    p50_ms: float
+    p95_ms: float | None  # None where only a mean is measured (aggregate throughput rows)
+    fps: float
+    note: str = ""
+
+
+@dataclass
+class Report:
+    rows: list[Row] = field(default_factory=list)
+    facts: dict[str, Any] = field(default_factory=dict)
+
+
+def simulated_frames(size: int, count: int, seed: int) -> tuple[list[np.ndarray], np.ndarray]:
+    """`count` simulated scans of size x size (uint8) and their true world poses [count, 3]."""
+    from rafd.sim.sensor import Difficulty
+    from rafd.sim.sequence import run_simulation
+
+    sequence = run_simulation(seed, count, "test", size, Difficulty(), name="bench")
+    return list(sequence.images), np.asarray(sequence.poses, dtype=np.float64)
+
+
+def count_step_flops(model: Any, cfg: Any) -> float:
+    """FLOPs of one streaming step: the exported StepGraph itself (new frame, newest pair flow, detect)."""
+    from export.step import build_graph, example_inputs, feature_channels
+
+    return count_flops(build_graph(model, cfg, "step"), *example_inputs(cfg, "step", feature_channels(model, cfg)))
+
+
+# ----------------------------------------------------------------------------- model paths
+def export_forms(checkpoint: Path, out_dir: Path) -> dict[str, Path]:
+    """The window and the step (streaming) ONNX forms of a checkpoint, through rafd-export."""
+    from export.cli import main as export_main
+
+    forms = {}
+    for form in ("window", "step"):
+        path = out_dir / f"{checkpoint.stem}.{form}.onnx"
+        start = time.perf_counter()
+        if export_main([str(checkpoint), str(path), "--form", form, "--no-verify"]) != 0:
+            raise RuntimeError(f"rafd-export failed for {checkpoint} ({form})")
+        log.info("exported %s in %.1f s (%.2f MB)", path.name, time.perf_counter() - start, path.stat().st_size / 1e6)
+        forms[form] = path
+    return forms
+
+
+def stream_fps(runner: Any, inputs: list[np.ndarray], poses: np.ndarray, streams: int, frames: int) -> float:
+    """Aggregate frames/s of `streams` threads, each stepping its own stream `frames` times through `runner`."""
+
+    def client(offset: int) -> None:
+        state = runner.new_state()
+        for k in range(frames):
+            j = (offset + k) % len(inputs)
+            _, state = runner.step(state, inputs[j], poses[j])
+
+    start = time.perf_counter()
+    with ThreadPoolExecutor(max_workers=streams) as pool:
+        list(pool.map(client, range(streams)))  # list(): a client's exception surfaces here
+    return streams * frames / (time.perf_counter() - start)
+
+
+@dataclass
+class ModelBench:
+    """One checkpoint's benchmark, stage by stage (bench_model runs them in order); each stage adds rows to
+    `report` and returns what a later stage or the facts need."""
+
+    name: str
+    model: Any  # the PyTorch RaFD
+    cfg: Any  # its RaFDConfig
+    threads: int
+    repeats: int
+    report: Report
+    inputs: list[np.ndarray] = field(default_factory=list)  # model inputs [S, S] float32, window frames first
+    poses: np.ndarray = field(default_factory=lambda: np.zeros((0, 3)))  # their true world poses [N, 3]
+
+    def __post_init__(self) -> None:
+        images, self.poses = simulated_frames(self.cfg.input_size, max(self.repeats, 8) + self.cfg.num_frames, seed=7)
+        self.inputs = [to_model_input(im) for im in images]
+
+    def window(self) -> tuple[Any, Any]:
+        """The first window as the PyTorch forward takes it: frames [1, T, 1, S, S], poses [1, T, 3]."""
+        import torch
+
+        frames_per_window = self.cfg.num_frames
+        frames = torch.from_numpy(np.stack(self.inputs[:frames_per_window]))[None, :, None]
+        return frames, torch.from_numpy(self.poses[:frames_per_window].astype(np.float32))[None]
+
+    def eager_window(self) -> None:
+        import torch
+
+        frames, poses = self.window()
+        with torch.no_grad():
+            eager = time_calls(lambda _: self.model(frames, poses), self.repeats)
+        self.report.rows.append(
+            Row(self.name, "pytorch eager, full window", *percentiles(eager), 1.0 / np.median(eager))
+        )
+
+    def ort_window(self, window_onnx: Path) -> float:
+        """onnxruntime fp32 on the window graph -> its median seconds."""
+        import onnxruntime as ort
+
+        options = ort.SessionOptions()
+        options.intra_op_num_threads = self.threads
+        options.graph_optimization_level = ort.GraphOptimizationLevel.ORT_ENABLE_ALL
+        session = ort.InferenceSession(str(window_onnx), options, providers=["CPUExecutionProvider"])
+        frames, poses = self.window()
+        feeds = {"frames": frames.numpy(), "poses": poses.numpy()}
+        seconds = time_calls(lambda _: session.run(None, feeds), self.repeats)
+        self.report.rows.append(
+            Row(self.name, "onnxruntime fp32, full window", *percentiles(seconds), 1.0 / np.median(seconds))
+        )
+        return float(np.median(seconds))  # the session is freed on return, before the step graphs load
+
+    def streaming_steps(
+        self, step_onnx: Path, choices: Sequence[tuple[str, str]], peaks: dict[str, float], ort_window_s: float
+    ) -> tuple[dict[str, float], int]:
+        """Every runtime's steady-state step, interleaved -> (achieved TFLOP/s per runtime, a stream state's bytes)."""
+        from rafd.runtime import open_runner
+
+        frames_per_window = self.cfg.num_frames
+        step_flops = count_step_flops(self.model, self.cfg)
+        if ("openvino", "int8") in choices:  # int8 runs its own quantized graph, made as `rafd gate` makes it
+            from export.quantize import quantize_model
+
+            quantize_model(step_onnx)  # within this stage (MODEL_STAGES counts the stages)
+        runners = {f"{r}/{p}": open_runner(step_onnx, r, p, self.threads) for r, p in choices}
+        states = {}
+        for key, runner in runners.items():  # past the warm-up: every timed step is a steady-state frame
+            state = runner.new_state()
+            for i in range(frames_per_window):
+                _, state = runner.step(state, self.inputs[i], self.poses[i])
+            states[key] = state
+
+        def stepper(key: str) -> Callable[[int], None]:
+            runner = runners[key]
+
+            def one_step(i: int) -> None:
+                j = frames_per_window + i % (len(self.inputs) - frames_per_window)
+                _, states[key] = runner.step(states[key], self.inputs[j], self.poses[j])
+
+            return one_step
+
+        samples = time_interleaved({key: stepper(key) for key in runners}, self.repeats)
+        reference = float(np.median(samples["onnxruntime/fp32"]))
+        achieved = {}
+        for key, seconds in samples.items():
+            precision = key.split("/")[1]
+            median = float(np.median(seconds))
+            tflops = step_flops / median / 1e12
+            achieved[key] = round(tflops, 3)
+            note = f"{reference / median:.2f}x the ORT fp32 step; {tflops:.3f} TFLOP/s"
+            if precision in peaks:
+                note += f" = {100 * tflops * 1e3 / peaks[precision]:.0f}% of the {precision} matmul peak"
+            if key == "onnxruntime/fp32":
+                note += f"; {ort_window_s / median:.2f}x faster than the ORT window"
+            self.report.rows.append(Row(self.name, f"streaming step, {key}", *percentiles(seconds), 1.0 / median, note))
+        return achieved, int(states["onnxruntime/fp32"].nbytes)
+
+    def concurrency(
+        self, step_onnx: Path, choices: Sequence[tuple[str, str]], frames: int
+    ) -> dict[str, dict[str, float]]:
+        """1 against 8 streams through one runner, per runtime and per number of concurrent runs."""
+        from rafd.runtime import open_runner
+
+        found = {}
+        for runtime, precision in choices:
+            key = f"{runtime}/{precision}"
+            for runs in sorted({1, self.threads}):
+                runner = open_runner(step_onnx, runtime, precision, self.threads, concurrent_runs=runs)
+                stream_fps(runner, self.inputs, self.poses, 1, self.cfg.num_frames)  # warm both compilations up
+                stream_fps(runner, self.inputs, self.poses, 2, self.cfg.num_frames)
+                one = stream_fps(runner, self.inputs, self.poses, 1, frames)
+                eight = stream_fps(runner, self.inputs, self.poses, 8, frames)
+                found[f"{key}, {runs} concurrent run(s)"] = {
+                    "1_stream_fps": round(one, 1),
+                    "8_streams_fps": round(eight, 1),
+                    "ratio": round(eight / one, 2),
+                }
+                self.report.rows.append(
+                    Row(
+                        self.name,
+                        f"8 streams through one runner, {key}, {self.threads} threads, {runs} concurrent run(s)",
+                        1e3 * 8 / eight,
+                        None,
+                        eight,
+                        f"{eight / one:.2f}x one stream's {one:.1f} frames/s (p50 column: mean ms per frame of a "
+                        "stream)",
+                    )
+                )
+        return found
+
+    def gates(self, step_onnx: Path, choices: Sequence[tuple[str, str]], gate: tuple[int, int]) -> dict[str, Any]:
+        """The accuracy gate of every reduced precision (export.gate) on `gate` = (sequences, frames)."""
+        from export.gate import gate_model
+
+        sample = os.environ.get("RAFD_RADIATE_SAMPLE")
+        radiate = sample if sample and Path(sample, "Navtech_Cartesian").is_dir() else None
+        found = {}
+        for runtime, precision in choices:
+            if precision == "fp32":
+                continue
+            result = gate_model(
+                step_onnx,
+                (runtime, precision),
+                sequences=gate[0],
+                frames=gate[1],
+                radiate=radiate,
+                threads=self.threads,
+            )
+            for line in result.lines():
+                log.info("%s", line)
+            found[f"{runtime}/{precision}"] = {
+                "verdict": "PASS" if result.ok else "FAIL",
+                "failed": [f"{s}: {c}" for s, c, _, _, ok in result.checks() if not ok],
+                "figures": result.figures(),
+            }
+        return found
+
+
+def bench_model(
+    name: str,
+    checkpoint: Path,
+    work: Path,
+    threads: int,
+    repeats: int,
+    concurrency_frames: int,
+    gate: tuple[int, int] | None,
+    peaks: dict[str, float],
+    report: Report,
+    stages: Stages | None = None,
+) -> dict[str, Any]:
+    """PyTorch window, ORT window, the streaming step on every runtime, concurrency and the gate -> rows + facts
+    (MODEL_STAGES stages, the gate's included, on `stages`)."""
+    begin = stages.begin if stages is not None else (lambda _: None)
+    import torch
+
+    from rafd.model.checkpoint import load_checkpoint
+    from rafd.runtime import supported_choices
+
+    torch.set_num_threads(threads)
+    model, cfg, _ = load_checkpoint(checkpoint)
+    bench = ModelBench(name, model, cfg, threads, repeats, report)
+    choices = supported_choices()
+
+    begin(f"{name}: PyTorch eager window x {repeats}")
+    bench.eager_window()
+    begin(f"{name}: export the window and step graphs")
+    forms = export_forms(checkpoint, work)
+    begin(f"{name}: onnxruntime window x {repeats}")
+    ort_window_s = bench.ort_window(forms["window"])
+    begin(f"{name}: streaming steps on every runtime, interleaved, x {repeats}")
+    achieved, state_bytes = bench.streaming_steps(forms["step"], choices, peaks, ort_window_s)
+    begin(f"{name}: 1 against 8 streams through one runner")
+    concurrency = bench.concurrency(forms["step"], choices, concurrency_frames)
+    begin(f"{name}: accuracy gate" + ("" if gate is not None else " (skipped)"))
+    gates = bench.gates(forms["step"], choices, gate) if gate is not None else {}
+
+    report.facts[name] = {
+        "input_size": cfg.input_size,
+        "num_frames": cfg.num_frames,
+        "config_options": {"flow.stride": cfg.flow.stride, "enhance_window_cells": cfg.enhance_window},
+        "parameters": int(sum(p.numel() for p in model.parameters())),
+        "onnx_step_mb": round(forms["step"].stat().st_size / 1e6, 2),
+        "gflop_per_step": round(count_step_flops(model, cfg) / 1e9, 3),
+        "gflop_per_window": round(count_flops(model, *bench.window()) / 1e9, 3),
+        "achieved_tflops_streaming": achieved,
+        "stream_state_bytes": state_bytes,
+        "concurrency": concurrency,
+        "gate": gates,
+    }
+    return {"step_onnx": forms["step"], "cfg": cfg}
+
+
+MODEL_STAGES = 6  # the stages of bench_model
+
+
+def http_stages(concurrency: Sequence[int], full_scans: bool) -> int:
+    """The stages of bench_http: the server's start, each load, the memory fill."""
+    return 1 + len(concurrency) + int(full_scans) + 1
+
+
+def bench_http(
+    name: str,
+    model: Path,
+    size: int,
+    threads: int,
+    frames: int,
+    concurrency: Sequence[int],
+    runtime: str,
+    precision: str,
+    full_scans: bool,
+    report: Report,
+    stages: Stages | None = None,
+) -> None:
+    import httpx
+
+    begin = stages.begin if stages is not None else (lambda _: None)
+    begin(f"{name}: start rafd serve ({runtime}/{precision})")
+    images, poses = simulated_frames(max(FULL_SCAN, size) if full_scans else size, 16, seed=11)
+    inputs = {"model-size": [encode_png(model_crop(image, size)) for image in images]}
+    if full_scans:
+        inputs[f"full {FULL_SCAN} px scans"] = [encode_png(image) for image in images]
+    server = start_server(
+        model,
+        threads,
+        env={
+            "RAFD_MAX_STREAMS": "1000",
+            "RAFD_RUNTIME": runtime,
+            "RAFD_PRECISION": precision,
+            "RAFD_SCORE_THRESHOLD": "0.3",
+        },
+    )
+    url = server.url
+    try:
+        served = httpx.get(f"{url}/model", timeout=10.0).json()["runtime"]
+        label = f"{served['runtime']}/{served['precision']}"
+        for kind, bodies in inputs.items():
+            for streams in concurrency if kind == "model-size" else [1]:
+                begin(f"{name}: HTTP /detect, {label}, {kind}, {streams} stream(s) x {frames} frames")
+                result = load_streams(url, bodies, poses, streams, frames, f"{label}-{kind}")
+                p50, p95 = percentiles(result["latencies"])
+                timing = {
+                    k: statistics.median(a["timing"][k] for a in result["answers"])
+                    for k in ("read_ms", "decode_ms", "model_ms", "post_ms", "total_ms", "wait_ms")
+                }
+                models = {(a["model"]["runtime"], a["model"]["precision"]) for a in result["answers"]}
+                on_top = p50 - timing["model_ms"] - timing["decode_ms"]
+                note = (
+                    f"{kind}; median body read {timing['read_ms']:.1f} ms, PNG decode "
+                    f"{timing['decode_ms']:.1f} ms, model {timing['model_ms']:.1f} ms, post "
+                    f"{timing['post_ms']:.1f} ms; HTTP, decoding and JSON on top of model and PNG decode "
+                    f"{on_top:.1f} ms (client p50)"
+                )
+                if models != {(served["runtime"], served["precision"])}:
+                    raise RuntimeError(f"answers report runtimes {models}, /model says {label}")
+                report.rows.append(
+                    Row(name, f"HTTP /detect, {label}, {streams} stream(s)", p50, p95, result["fps"], note)
+                )
+        begin(f"{name}: memory with 100 streams ({label})")
+        before = rss_bytes(server.pid)
+        bodies = inputs["model-size"]
+        with httpx.Client(base_url=url, timeout=120.0) as http:
+            for index in range(100):  # 100 streams, each with a full buffer
+                for k in range(4):
+                    body = {
+                        "stream_id": f"mem-{index}",
+                        "timestamp": float(k),
+                        "pose": {"x": float(poses[k, 0]), "y": float(poses[k, 1]), "yaw": float(poses[k, 2])},
+                        "image": bodies[k],
+                    }
+                    if http.post("/detect", json=body, params={"flow": "false"}).status_code != 200:
+                        raise RuntimeError("memory fill request failed")
+        after = rss_bytes(server.pid)
+        memory = report.facts[name].setdefault("rss_mb", {})
+        memory[label] = {
+            "before_100_streams": round(before / 1e6, 1),
+            "with_100_streams": round(after / 1e6, 1),
+            "per_stream_kb": round((after - before) / 100 / 1e3, 1),
+        }
+    finally:
+        server.stop()
+
+
+LIVE_VIEW_ROUNDS = 3  # servers started with the live view off and on each, alternating
+
+
+def bench_live_view(
+    name: str,
+    model: Path,
+    size: int,
+    threads: int,
+    frames: int,
+    runtime: str,
+    precision: str,
+    report: Report,
+    stages: Stages | None = None,
+    full_scans: bool = True,
+) -> dict[str, Any]:
+    """HTTP /detect with the Foxglove live view off and on (a viewer subscribed to every channel), one stream, in
+    LIVE_VIEW_ROUNDS rounds of one server each, alternating off / on (and which goes first) so machine noise hits both
+    alike -> two rows
+    (median over the rounds of each round's p50 and frames/s) and facts["live_view"]."""
+    from bench.server import free_port
+
+    begin = stages.begin if stages is not None else (lambda _: None)
+    scan = max(FULL_SCAN, size) if full_scans else size
+    images, poses = simulated_frames(scan, 16, seed=11)
+    bodies = [encode_png(image) for image in images]  # full scans: the largest scan the live view publishes
+    env = {"RAFD_RUNTIME": runtime, "RAFD_PRECISION": precision, "RAFD_SCORE_THRESHOLD": "0.3"}
+    rounds: dict[str, list[dict[str, Any]]] = {"off": [], "on": []}
+    for index in range(LIVE_VIEW_ROUNDS):
+        for mode in (
+            ("off", "on") if index % 2 == 0 else ("on", "off")
+        ):  # each goes first as often (off, on, on, off, ...)
+            begin(f"{name}: live view {mode}, round {index + 1} of {LIVE_VIEW_ROUNDS}")
+            port = free_port()
+            extra = ["--foxglove-port", str(port)] if mode == "on" else []
+            server = start_server(model, threads, env=env, extra=extra)
+            viewer = None
+            try:
+                if mode == "on":
+                    try:
+                        from bench.live_viewer import SubscribeAll
+
+                        viewer = SubscribeAll(port)
+                    except ImportError:
+                        log.warning("no websockets package: the live view runs without a subscribed viewer")
+                tag = f"live-{mode}-{index}"
+                load_streams(server.url, bodies, poses, 1, 4, tag + "-warm")  # first runs, first channels
+                result = load_streams(server.url, bodies, poses, 1, frames, tag)
+                p50, _ = percentiles(result["latencies"])
+                received = viewer.stop() if viewer is not None else None
+                viewer = None
+                rounds[mode].append({"p50_ms": p50, "fps": result["fps"], "viewer_messages": received})
+            finally:
+                if viewer is not None:
+                    viewer.stop()
+                server.stop()
+    summary: dict[str, Any] = {"rounds": rounds}
+    for mode in ("off", "on"):
+        p50 = statistics.median(r["p50_ms"] for r in rounds[mode])
+        fps = statistics.median(r["fps"] for r in rounds[mode])
+        summary[mode] = {"p50_ms": round(p50, 2), "fps": round(fps, 2)}
+        note = f"{'full ' + str(scan) + ' px scans' if full_scans else 'model-size frames'}, 1 stream, median of "
+        note += f"{LIVE_VIEW_ROUNDS} servers' p50 and frames/s"
+        if mode == "on":
+            ratio = summary["on"]["fps"] / summary["off"]["fps"]
+            summary["on_over_off_fps"] = round(ratio, 3)
+            messages = [r["viewer_messages"] for r in rounds["on"]]
+            note += f"; {ratio:.3f}x the frames/s with it off; the viewer received {messages} messages"
+        report.rows.append(Row(name, f"HTTP /detect, {runtime}/{precision}, live view {mode}", p50, None, fps, note))
+    report.facts.setdefault(name, {})["live_view"] = summary
+    return summary
+
+
+# ----------------------------------------------------------------------------- table
+def format_report(report: Report, machine: str) -> str:
+    lines = [
+        f"machine: {machine}",
+        "",
+        "| config | path | p50 ms | p95 ms | frames/s | note |",
+        "|---|---|---|---|---|---|",
+    ]
+    for row in report.rows:
+        p95 = "-" if row.p95_ms is None else f"{row.p95_ms:.1f}"
+        lines.append(f"| {row.config} | {row.path} | {row.p50_ms:.1f} | {p95} | {row.fps:.1f} | {row.note} |")
+    lines.append("")
+    for name, facts in report.facts.items():
+        lines.append(f"{name}: " + json.dumps(facts, sort_keys=False))
+    return "\n".join(lines)
+
+
+def config_checkpoint(work: Path, name: str) -> Path:
+    """The paper config (optionally with the speed options) with random weights (speed does not depend on them)."""
+    import dataclasses
+
+    import torch
+
+    from rafd import RaFDConfig, build_model, save_checkpoint
+
+    torch.manual_seed(0)
+    cfg = RaFDConfig.paper()
+    if name == "paper-options":
+        cfg = cfg.replace(
+            flow=dataclasses.replace(cfg.flow, stride=8), enhance=dataclasses.replace(cfg.enhance, window=16)
+        )
+    path = work / f"{name}_random.pt"
+    save_checkpoint(path, build_model(cfg).eval(), cfg, meta={"note": "random weights for timing"})
+    return path
