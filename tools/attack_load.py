@@ -38,6 +38,7 @@ import numpy as np
 
 from bench.server import cpu_seconds, free_port, serve_command, wait_ready
 from bench.timing import percentile
+from rafd import detect_client
 from service.body.png import png_chunk
 
 if TYPE_CHECKING:  # the classes behind multiprocessing.Event() and multiprocessing.Queue()
@@ -201,16 +202,15 @@ def normal_stream(
     goes on from the run's previous block. `with_pose`: send a (stationary) pose, so no odometry runs."""
     import httpx
 
-    pose = {"pose_x": "0", "pose_y": "0", "pose_yaw": "0"} if with_pose else {}
     with httpx.Client(base_url=url, timeout=60.0) as http:
         next_at = time.perf_counter()
         for _ in range(frames):
             k = len(run.latencies_s)
             start = time.perf_counter()
+            fields = detect_client.FrameFields(k + 1, stream_id, (0.0, 0.0, 0.0) if with_pose else None)
+            body = detect_client.multipart_body(fields, scans[k % len(scans)])
             response = http.post(
-                "/detect?flow=false",
-                data={"stream_id": stream_id, "timestamp": str(k + 1)} | pose,
-                files={"image": ("scan.png", scans[k % len(scans)], "image/png")},
+                detect_client.detect_path(flow=False), content=body.content, headers={"content-type": body.content_type}
             )
             run.latencies_s.append(time.perf_counter() - start)
             if response.status_code != 200:

@@ -44,6 +44,7 @@ import cv2
 import numpy as np
 
 from bench.loopback import LoopbackCluster
+from rafd import detect_client
 from rafd.cli.client import RETRY_STATUSES, RetryableError, ServiceError, post_with_retries
 
 PERIOD = 0.25  # a 4 Hz radar
@@ -100,23 +101,11 @@ class Tally:
 
 def post(url: str, stream_id: str, frame: Frame, png: bytes, previous: float | None, tally: Tally) -> None:
     """One attempt: fills `frame` on a 200; RetryableError on 502/503/504 or a lost connection; ServiceError else."""
-    import base64
-
-    body: dict[str, Any] = {
-        "timestamp": frame.timestamp,
-        "pose": {"x": 0.0, "y": 2.0 * frame.k, "yaw": 0.0},
-        "image": base64.b64encode(png).decode("ascii"),
-    }
-    if previous is not None:
-        body["previous_timestamp"] = previous
-    request = urllib.request.Request(
-        f"{url}/detect",
-        data=json.dumps(body).encode(),
-        headers={"content-type": "application/json", "x-stream-id": stream_id},
-        method="POST",
-    )
+    fields = detect_client.FrameFields(frame.timestamp, None, (0.0, 2.0 * frame.k, 0.0), previous_timestamp=previous)
+    body = detect_client.json_body(fields, detect_client.base64_png(png))
+    request = detect_client.detect_request(body, header_stream_id=stream_id)
     try:
-        with urllib.request.urlopen(request, timeout=30.0) as response:
+        with detect_client.post(url, request, timeout=30.0) as response:
             answer = json.loads(response.read())
             replica = response.headers.get("X-RaFD-Replica")
         tally.attempt(200)

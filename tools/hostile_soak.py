@@ -56,6 +56,7 @@ import numpy as np
 
 from bench.server import free_port, rss_bytes, serve_command, wait_ready
 from bench.timing import percentile
+from rafd import detect_client
 from service.body.png import PNG_SIGNATURE, png_chunk
 from tools.attack_load import multipart_request, padded_png, scans_from
 
@@ -280,11 +281,13 @@ def normal_streams(
             while not stop.is_set():
                 time.sleep(max(0.0, next_at - time.perf_counter()))
                 start, started = time.perf_counter(), time.monotonic()
+                fields = detect_client.FrameFields(k + 1, f"soak-{index}")
+                body = detect_client.multipart_body(fields, scans[k % len(scans)])
                 try:
                     status = http.post(
-                        "/detect?flow=false",
-                        data={"stream_id": f"soak-{index}", "timestamp": str(k + 1)},
-                        files={"image": ("scan.png", scans[k % len(scans)], "image/png")},
+                        detect_client.detect_path(flow=False),
+                        content=body.content,
+                        headers={"content-type": body.content_type},
                     ).status_code
                 except httpx.HTTPError:
                     status = -1

@@ -7,7 +7,6 @@ Real tiny_foggy scans with poses (no odometry: the test is about routing, and st
 
 from __future__ import annotations
 
-import base64
 import json
 import urllib.error
 import urllib.request
@@ -20,6 +19,7 @@ from fastapi.testclient import TestClient
 
 from bench.loopback import LoopbackCluster, nginx_binary
 from bench.server import http_get
+from rafd import detect_client
 from tests.utils.answers_testing import assert_same_answer, in_process_service
 
 pytestmark = pytest.mark.network
@@ -55,11 +55,8 @@ def reference() -> Iterator[TestClient]:
 def frame_body(scans: list[Path], stream_index: int, t: int) -> dict[str, Any]:
     """Frame t of stream k: scan (k + t) of the sample, driving 2 m forward per frame."""
     path = scans[(stream_index + t) % len(scans)]
-    return {
-        "timestamp": 100.0 + t,
-        "pose": {"x": 0.0, "y": 2.0 * t, "yaw": 0.0},
-        "image": base64.b64encode(path.read_bytes()).decode("ascii"),
-    }
+    fields = detect_client.FrameFields(100.0 + t, None, (0.0, 2.0 * t, 0.0))
+    return fields.json_fields(detect_client.base64_png(path.read_bytes()))
 
 
 def via_nginx(url: str, stream: str, body: dict[str, Any], path_form: bool) -> tuple[dict[str, Any], str]:

@@ -69,6 +69,27 @@ def test_a_new_record_replaces_the_old_one_in_place(model_copy):
     assert not list(model_copy.parent.glob(".*.tmp"))  # the atomic write left nothing behind
 
 
+def test_out_takes_the_judged_int8_file_with_its_record(model_copy, tmp_path):
+    """With --out, the int8 model judged (MODEL.int8.onnx beside the input) is copied beside the output, so the
+    record there names a file that is there; a record without an int8 verdict copies nothing."""
+    from rafd.model_files import file_sha256, int8_model_path
+
+    quantized = int8_model_path(model_copy)
+    quantized.write_bytes(b"stand-in for the quantized graph")
+    report = _report(699, 1909, 10)
+    report.judged_sha256 = file_sha256(quantized)
+    out = tmp_path / "served" / "model.onnx"
+    out.parent.mkdir()
+    entries = record_gates(model_copy, {"int8": report}, out)
+    assert entries["gate_int8"] == "pass"
+    assert int8_model_path(out).read_bytes() == quantized.read_bytes()
+    assert json.loads(entries["gate_int8_figures"])["int8_sha256"] == file_sha256(int8_model_path(out))
+    other = tmp_path / "bf16_only" / "model.onnx"
+    other.parent.mkdir()
+    record_gates(model_copy, {"bf16": _report(699, 1909, 10)}, other)
+    assert other.is_file() and not int8_model_path(other).exists()
+
+
 def test_the_command_records_this_cpus_verdicts(model_copy, capsys, monkeypatch):
     """A short gate (5 windows): too little to judge, so FAIL where the CPU has a reduced precision; where it has
     none, nothing is written."""
