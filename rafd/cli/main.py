@@ -51,6 +51,7 @@ COMMANDS = (
     Command("bench-batch", "bench.batch:main", "model cost per frame against batch size and threads (RAFD_MAX_BATCH)"),
     Command("bench-steps", "bench.steps:main", "two exported step graphs' speed side by side"),
     Command("bench-bf16-modules", "bench.bf16_modules:main", "which module bf16 hurts: one at a time in bf16 vs fp32"),
+    Command("bench-precision-marks", "bench.precision_marks:main", "whether OpenVINO keeps fp32-marked nodes in fp32"),
     Command(
         "bench-decode", "bench.decode:main", "decoding each posted form (Cartesian, polar, native, crop) side by side"
     ),

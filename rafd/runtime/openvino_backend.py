@@ -35,6 +35,17 @@ def openvino_supports_bf16() -> bool:
     return "BF16" in ov.Core().get_property("CPU", "OPTIMIZATION_CAPABILITIES")
 
 
+def runtime_precisions(compiled: Any) -> dict[tuple[str, str], int]:
+    """(layer type, precision it runs in) -> how many nodes of the compiled model's runtime graph: what OpenVINO's CPU
+    plugin really computes in (its `runtimePrecision`), which the inference precision hint only asks for."""
+    counts: dict[tuple[str, str], int] = {}
+    for op in compiled.get_runtime_model().get_ops():
+        info = op.get_rt_info()
+        key = (info["layerType"].astype(str), info["runtimePrecision"].astype(str))
+        counts[key] = counts.get(key, 0) + 1
+    return counts
+
+
 def _read(core: Any, path: Path) -> Any:
     try:
         return core.read_model(str(path))
