@@ -58,17 +58,17 @@ from rafd.detect_client import (
     stream_id_from,
 )
 from rafd.geometry import RADIATE_RESOLUTION, RADIATE_SCAN_SIZE
+from rafd.scans.cartesian import png_size
 from rafd.scans.native import NativeSource
 from rafd.scans.polar import RADIATE_AZIMUTHS, RADIATE_RANGE_BINS
 
 
-def _png_size(path: Path) -> tuple[int, int] | None:
-    """(width, height) from a PNG's IHDR, None when the file is not a PNG (then it is posted converted)."""
-    with path.open("rb") as file:
-        head = file.read(24)
-    if head[:8] != b"\x89PNG\r\n\x1a\n" or head[12:16] != b"IHDR":
-        return None
-    return int.from_bytes(head[16:20], "big"), int.from_bytes(head[20:24], "big")
+def _is_radiate_polar_png(path: Path) -> bool:
+    """Whether the file is a PNG of RADIATE's polar shape (posted as it is); any other file is posted converted."""
+    try:
+        return png_size(path) == (RADIATE_AZIMUTHS, RADIATE_RANGE_BINS)
+    except ValueError:  # not a PNG
+        return False
 
 
 @dataclass(frozen=True)
@@ -92,10 +92,7 @@ class ClientFrame:
         source = self.source.polar
         if source is None or source.size != RADIATE_SCAN_SIZE or source.resolution != RADIATE_RESOLUTION:
             return scan_png
-        if isinstance(source, NativeSource) or _png_size(self.source.image_path) == (
-            RADIATE_AZIMUTHS,
-            RADIATE_RANGE_BINS,
-        ):
+        if isinstance(source, NativeSource) or _is_radiate_polar_png(self.source.image_path):
             return self.source.image_path.read_bytes()
         return scan_png
 
