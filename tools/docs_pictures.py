@@ -361,7 +361,7 @@ def with_credit_strip(picture: Path, credit: str) -> np.ndarray:
     with the picture wherever the picture goes."""
     import cv2
 
-    from rafd.viz.plots import FONT, PANEL_COLOUR, TEXT_COLOUR
+    from rafd.viz.drawing import FONT, PANEL_COLOUR, TEXT_COLOUR
 
     image = cv2.imread(str(picture), cv2.IMREAD_COLOR)
     if image is None:

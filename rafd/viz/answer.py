@@ -28,21 +28,19 @@ import numpy as np
 
 from rafd.flow_validity import flow_validity, search_reach_m
 from rafd.geometry import RADIATE_RESOLUTION, relative_pose
-from rafd.viz.plots import (
+from rafd.viz.drawing import (
     FLOW_COLOUR,
     FONT,
     GT_COLOUR,
     PANEL_COLOUR,
     PRED_COLOUR,
     TEXT_COLOUR,
-    Legend,
     draw_arrow,
-    draw_legend,
     draw_polygons,
-    draw_scale_bar,
     draw_scores,
-    valid_cells,
 )
+from rafd.viz.flow_cells import valid_cells
+from rafd.viz.legend import Legend, draw_legend, draw_scale_bar
 
 FLOW_SCALES = (1.0, 2.0, 5.0, 10.0)  # arrow exaggerations tried, smallest first
 MIN_ARROW_PX_PER_M = 24.0  # 1 m of motion must be at least this long on screen

@@ -224,11 +224,11 @@ def frame_from_answer(
     `scan_png` is a square scan centred on the radar, `scan_size` px a side, whose top-left corner is the posted
     scan's pixel (`scan_offset`, `scan_offset`): the posted scan itself (offset 0) or its centre (the live view).
     Flow cells moving less than `min_flow_m` get no arrow; with `meaningful_flow_of` (the scan as uint8 pixels),
-    neither do cells without returns that are not near a box (rafd.viz.plots.meaningful_cells); with `validity`
+    neither do cells without returns that are not near a box (rafd.viz.flow_cells.meaningful_cells); with `validity`
     [Hf, Wf] of the flow grid (rafd.viz.answer.answer_validity) only cells reaching FLOW_VALID_MIN get one, and
     without it only the cells the answer's own flow `validity` marks valid (answer_valid_cells)."""
     from rafd.viz.answer import flow_arrows  # opencv: loaded with the picture code
-    from rafd.viz.plots import NEAR_BOX_M, meaningful_cells, valid_cells
+    from rafd.viz.flow_cells import NEAR_BOX_M, meaningful_cells, valid_cells
 
     offset, model_size = answer["input"]["crop_offset_px"], answer["input"]["model_size"]
     boxes = np.array(

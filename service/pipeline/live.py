@@ -10,7 +10,7 @@ foxglove-sdk's server. A full queue drops the frame (counted in rafd_live_view_d
 busy CPU never slows /detect. The scan published is the centre of the posted scan that odometry reads (512 px of a
 full RADIATE scan, the model's crop in its middle), the boxes drawn on it in its pixels; flow arrows only where the
 flow was measured (the answer's flow `validity` at or above its `validity_min`) and means something (cells with
-returns or near a box, rafd.viz.plots.meaningful_cells).
+returns or near a box, rafd.viz.flow_cells.meaningful_cells).
 
 Who sees what: foxglove-sdk's WebSocket server has no authentication of its own, so whoever reaches its port sees
 every stream published there (ids, scans, poses, boxes). Without API keys that is every stream (one namespace, as

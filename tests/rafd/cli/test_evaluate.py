@@ -173,7 +173,7 @@ def test_plots_draw_the_boxes_the_service_would_answer(
     trained_checkpoint: Path, sim_root: Path, tmp_path: Path
 ) -> None:
     """--plots draws the boxes at or above the operating threshold (--score-threshold changes it), not every box."""
-    from rafd.viz.plots import PRED_COLOUR
+    from rafd.viz.drawing import PRED_COLOUR
 
     red = {}
     for threshold in ("0.0", "1.0"):
