@@ -1,8 +1,8 @@
 """`rafd serve` flags generated from the Settings model: every setting is a flag, so a setting added to
 service/settings.py is a flag at once, with no list to keep in step.
 
-A field `max_streams` becomes `--max-streams`; its help is the field's description, else the comment above it in
-service/settings.py, plus its environment variable and default; its type comes from the annotation (Literal ->
+A field `max_streams` becomes `--max-streams`; its help is the field's description (every Settings field has one:
+a test checks), plus its environment variable and default; its type comes from the annotation (Literal ->
 choices, bool -> --name / --no-name, anything else is passed as text and parsed by the Settings model exactly as
 the environment variable would be, so a bad value is refused with the same message). Flags not given leave the
 setting to its RAFD_* variable, else its default.
@@ -11,15 +11,12 @@ setting to its RAFD_* variable, else its default.
 from __future__ import annotations
 
 import argparse
-import ast
-import inspect
-import types
 import typing
-from functools import lru_cache
 from typing import Any, Literal
 
 from pydantic.fields import FieldInfo
 
+from rafd.cli import flags
 from service.settings import Settings
 
 # Extra spellings of a few flags (the documented `rafd serve --model M.onnx`).
@@ -30,43 +27,6 @@ METAVARS = {"model_path": "MODEL.onnx", "api_keys": "KEYS", "api_keys_file": "FI
 
 def flag_name(field: str) -> str:
     return "--" + field.replace("_", "-")
-
-
-@lru_cache(maxsize=1)
-def field_comments() -> dict[str, str]:
-    """field name -> the comment above its declaration in Settings' source: the comment lines directly above it,
-    else those of the block it belongs to (declarations with no blank line between share the comment above the
-    first, e.g. the three *_queue_limit fields)."""
-    try:
-        lines, _ = inspect.getsourcelines(Settings)
-    except (OSError, TypeError):  # no source (a frozen build): descriptions only
-        return {}
-    source = inspect.cleandoc("".join(lines)) if lines and lines[0][:1].isspace() else "".join(lines)
-    source_lines = source.splitlines()
-    comments: dict[str, str] = {}
-    for node in ast.walk(ast.parse(source)):
-        if isinstance(node, ast.AnnAssign) and isinstance(node.target, ast.Name):
-            above: list[str] = []
-            row = node.lineno - 2  # 0-based index of the line above the declaration
-            while row >= 0 and source_lines[row].strip():
-                line = source_lines[row].strip()
-                if line.startswith("#"):
-                    above.insert(0, line.lstrip("#").strip())
-                elif above:
-                    break  # the comment block above this declaration ended
-                row -= 1
-            if above:
-                comments[node.target.id] = " ".join(above)
-    return comments
-
-
-def _unwrap_optional(annotation: Any) -> Any:
-    """`X | None` / Optional[X] -> X."""
-    if typing.get_origin(annotation) in (typing.Union, types.UnionType):
-        args = [a for a in typing.get_args(annotation) if a is not type(None)]
-        if len(args) == 1:
-            return args[0]
-    return annotation
 
 
 NOTES = {"api_keys": "a key on a command line is visible in the process list: prefer --api-keys-file"}
@@ -85,7 +45,7 @@ def _default_text(name: str, field: FieldInfo) -> str:
 
 
 def help_text(name: str, field: FieldInfo) -> str:
-    what = field.description or field_comments().get(name) or name.replace("_", " ")
+    what = field.description or name.replace("_", " ")
     note = f" ({NOTES[name]})" if name in NOTES else ""
     env = f"RAFD_{name.upper()}"
     return f"{what}{note} [env {env}; default: {_default_text(name, field)}]".replace("%", "%%")
@@ -97,7 +57,7 @@ def add_settings_flags(parser: argparse.ArgumentParser) -> None:
         "service settings (each also read from its RAFD_* environment variable; a flag wins over the variable)"
     )
     for name, field in Settings.model_fields.items():
-        annotation = _unwrap_optional(field.annotation)
+        annotation = flags.without_none(field.annotation)
         options: dict[str, Any] = {
             "dest": f"setting_{name}",
             "default": argparse.SUPPRESS,

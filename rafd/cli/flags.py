@@ -20,6 +20,8 @@ from __future__ import annotations
 
 import argparse
 import sys
+import types
+import typing
 from collections.abc import Callable, Iterable, Sequence
 from pathlib import Path
 from typing import Any
@@ -296,6 +298,15 @@ def parse(
 
 
 # ----------------------------------------------------------------------------- value types
+def without_none(annotation: Any) -> Any:
+    """`X | None` / Optional[X] -> X (None is a generated flag not given); any other annotation as it is."""
+    if typing.get_origin(annotation) in (typing.Union, types.UnionType):
+        args = [a for a in typing.get_args(annotation) if a is not type(None)]
+        if len(args) == 1:
+            return args[0]
+    return annotation
+
+
 def positive_int(text: str) -> int:
     value = int(text)
     if value < 1:

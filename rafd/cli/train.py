@@ -14,7 +14,6 @@ import dataclasses
 import json
 import logging
 import sys
-import types
 import typing
 from collections.abc import Callable, Sequence
 from functools import lru_cache
@@ -131,8 +130,7 @@ def field_types() -> dict[str, Any]:
     """Field name -> its type, `X | None` read as X (None is the flag not given)."""
     found = {}
     for name, hint in typing.get_type_hints(TrainRun).items():
-        optional = typing.get_origin(hint) in (typing.Union, types.UnionType)
-        found[name] = next(a for a in typing.get_args(hint) if a is not type(None)) if optional else hint
+        found[name] = flags.without_none(hint)
     return found
 
 
