@@ -146,11 +146,18 @@ class NativeShape:
         bins = width - HEADER_COLUMNS
         return self.min_azimuths <= height <= self.max_azimuths and 2 * height < bins <= self.max_range_bins
 
-    def describe(self) -> str:
+    def rows_rule(self) -> str:
+        return f"one per azimuth, {self.min_azimuths}-{self.max_azimuths}"
+
+    def columns_rule(self) -> str:
         return (
-            f"{self.min_azimuths}-{self.max_azimuths} azimuth rows, {HEADER_COLUMNS} header columns + more than twice "
-            f"the rows and at most {self.max_range_bins} range bins"
+            f"{HEADER_COLUMNS} header columns (timestamp, encoder angle, valid flag) + more than twice the rows and at "
+            f"most {self.max_range_bins} range bins"
         )
+
+    def describe(self) -> str:
+        """The rule in one line (error messages); GET /model gives its parts (rows_rule, columns_rule)."""
+        return f"rows {self.rows_rule()}; columns {self.columns_rule()}"
 
 
 SENSOR_SHAPE = NativeShape()  # the documented sensors' sizes

@@ -92,7 +92,7 @@ def _check_size(header: png.PngHeader, input_size: int, resolution: float, nativ
             accepted += (
                 f" (Cartesian), or {azimuths}x{bins} (a polar scan: {azimuths} azimuth columns x {bins} range "
                 "rows, RADIATE's Navtech_Polar layout), or a native scan "
-                f"(Oxford / Boreas: one row per azimuth, {native.describe()})"
+                f"(Oxford / Boreas: {native.describe()})"
             )
         raise ApiError(
             "unsupported_image_size",

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 from fastapi import APIRouter, Depends
 
-from rafd.scans.native import HEADER_COLUMNS, NATIVE_FORMAT_RULE, NATIVE_FORMATS, SENSOR_SHAPE, NativeShape
+from rafd.scans.native import NATIVE_FORMAT_RULE, NATIVE_FORMATS, SENSOR_SHAPE, NativeShape
 from rafd.scans.polar import RADIATE_POLAR_SHAPE, accepts_polar
 from service.dependencies import get_service
 from service.pipeline.detector import DetectService
@@ -16,10 +16,8 @@ router = APIRouter(tags=["model"])
 def native_description(shape: NativeShape = SENSOR_SHAPE) -> dict[str, object]:
     """What GET /model says about native scans (rafd.scans.native): the shape rule and each dataset's range bin."""
     return {
-        "rows": f"one per azimuth, {shape.min_azimuths}-{shape.max_azimuths} (Oxford and Boreas: 400; "
-        "RAFD_NATIVE_MAX_AZIMUTHS)",
-        "columns": f"{HEADER_COLUMNS} header columns (timestamp, encoder angle, valid flag) + the range bins, more "
-        f"than twice the rows and at most {shape.max_range_bins} (RAFD_NATIVE_MAX_RANGE_BINS)",
+        "rows": f"{shape.rows_rule()} (Oxford and Boreas: 400; RAFD_NATIVE_MAX_AZIMUTHS)",
+        "columns": f"{shape.columns_rule()} (RAFD_NATIVE_MAX_RANGE_BINS)",
         "formats": {name: fmt.range_bin_m for name, fmt in NATIVE_FORMATS.items()},
         "format_rule": NATIVE_FORMAT_RULE,
     }

@@ -158,7 +158,7 @@ def test_the_native_bound_is_a_setting_for_other_sensors(settings):
                 assert (
                     client.get("/model")
                     .json()["accepted_native"]["columns"]
-                    .endswith("at most 8000 (RAFD_NATIVE_MAX_RANGE_BINS)")
+                    .endswith("at most 8000 range bins (RAFD_NATIVE_MAX_RANGE_BINS)")
                 )
 
 
