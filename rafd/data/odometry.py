@@ -12,7 +12,7 @@ Method (one pair, ~10 ms on one CPU core for the service's 512 px view; a stream
    wins, sub-step by a parabola. Without a prior (or with the best yaw on the window's edge) the window is centred
    on the best of all +-MAX_YAW_DEG, searched on the coarse level halved.
 3. At the fine level, the sub-pixel shift at that yaw (with refine=False: the yaw searched again, +-0.5 degree).
-4. Refinement: cv2.findTransformECC (MOTION_EUCLIDEAN, one sharp run) from 3 improves the yaw; the
+4. Refinement: ECC (Euclidean, inverse compositional: rafd.data.ecc) from 3 improves the yaw; the
    shift is then re-read from the correlation at that yaw (ECC's least squares is pulled by moving objects,
    the correlation peak is not). ECC results that fail or move far from 3 are rejected (3 stands).
 
@@ -46,6 +46,7 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
+from rafd.data.ecc import EccTemplate, align
 from rafd.geometry import compose_poses
 
 log = logging.getLogger(__name__)
@@ -61,14 +62,10 @@ WHITENING = 0.5  # cross-power spectrum divided by |.|^this: 1 = phase correlati
 MAX_STEP_M = 8.0  # largest ego translation between consecutive scans (32 m/s at 4 Hz): bounds the peak search
 MAX_ECC_SHIFT_PX = 3.0  # ECC refinements further than this (fine pixels) from the search result are rejected
 MAX_ECC_YAW_DEG = 1.0  # ... or turning further than this
-# ECC's Gaussian filter sizes, one run each. One sharp run: a blurred run before it (5, for a wider basin) was measured
-# to buy nothing from the correlation's start (docs/performance.md, "Odometry": the Oxford sample's mean yaw error
-# 0.1074 degrees with the sharp run alone, 0.1083 with both) at twice the cost.
-ECC_BLURS = (1,)
-# ECC's iterations per run (about 0.35 ms each at 256 px): from the correlation's start 5 and 15 give the same poses on
-# the simulated drives and the Oxford sample; 3 move the Oxford sample's mean yaw error to 0.1099 degrees, past the
-# 0.108 kept as the bar.
-ECC_ITERATIONS = 5
+# ECC's iterations (rafd.data.ecc, inverse compositional: one warp and four dot products each): from the
+# correlation's start, 10 keep the Oxford sample's mean yaw error at 0.1079 degrees (20: 0.1078);
+# 5 give 0.1089 and 3 0.1115, past the 0.108 kept as the bar. Measured with `rafd bench odometry`.
+ECC_ITERATIONS = 10
 ECC_EPS = 1e-4
 PRIOR_YAW_WINDOW_DEG = 4.0  # coarse yaw search around the prior's yaw (the yaw rate changes less per scan)
 # A de-skewed pair is registered again with its own motion when it turned or moved this much more than the velocity
@@ -250,19 +247,16 @@ def _shift_to_warp(yaw: float, shift: tuple[float, float], size: int) -> np.ndar
 
 
 def _refine_yaw(previous: np.ndarray, current: np.ndarray, warp: np.ndarray) -> float | None:
-    """ECC (Euclidean) from `warp`, blurred then sharp -> refined yaw, or None when ECC fails or strays."""
+    """ECC (Euclidean, inverse compositional: rafd.data.ecc) from `warp` -> refined yaw, or None when ECC fails or
+    strays."""
     size = previous.shape[0]
     start = warp_to_pose(warp, size, 1.0)  # (x px, y px, yaw)
-    criteria = (cv2.TERM_CRITERIA_EPS | cv2.TERM_CRITERIA_COUNT, ECC_ITERATIONS, ECC_EPS)
-    for blur in ECC_BLURS:
-        try:
-            # OpenCV's stubs want a mask beside gaussFiltSize, but the function takes None (no mask)
-            _, warp = cv2.findTransformECC(  # type: ignore[call-overload]
-                current, previous, warp.copy(), cv2.MOTION_EUCLIDEAN, criteria, None, blur
-            )
-        except cv2.error as error:  # no convergence or a degenerate image: keep the correlation estimate
-            log.debug("ECC refinement failed (%s); keeping the correlation estimate", str(error).strip()[-80:])
-            return None
+    template = EccTemplate.of(current)
+    aligned = None if template is None else align(template, previous, warp, ECC_ITERATIONS, ECC_EPS)
+    if aligned is None:  # no structure, or no convergence from this start: keep the correlation estimate
+        log.debug("ECC refinement failed; keeping the correlation estimate")
+        return None
+    warp = aligned[0]
     moved = warp_to_pose(warp, size, 1.0) - start
     if (
         not np.all(np.isfinite(moved))
