@@ -1,6 +1,7 @@
 """Radar odometry: SE(2) motion between consecutive Cartesian scans by image registration (opencv + numpy FFT).
 
-Method (one pair, ~10 ms on one CPU core for the service's 512 px view; a stream's first pair about twice that):
+Method (one pair of the service's 512 px view: ~6-7 ms of one CPU core, a stream's first pair too; the figures per
+CPU in docs/performance.md, "Odometry"):
 1. Each scan is prepared at two levels (area-downsampled to at most COARSE_SIZE and FINE_SIZE pixels): the
    slowly varying background (noise floor, range attenuation) is removed by subtracting a wide blur, the
    rest is clipped at its 97th percentile and square-rooted so that bright (often moving) vehicles do not
@@ -8,13 +9,14 @@ Method (one pair, ~10 ms on one CPU core for the service's 512 px view; a stream
    and fades the scan border. The window is rotation invariant about the radar: no bias on the yaw search.
 2. Correlative yaw search (coarse): the previous scan is rotated about the radar by every yaw within
    +-PRIOR_YAW_WINDOW_DEG (1 degree steps) of the prior's yaw and cross-correlated with the current one by FFT
-   (opencv's float32 DFT; cross-power spectrum partly whitened); the highest peak within MAX_STEP_M of zero shift
-   wins, sub-step by a parabola. Without a prior (or with the best yaw on the window's edge) the window is centred
-   on the best of all +-MAX_YAW_DEG, searched on the coarse level halved.
-3. At the fine level, the sub-pixel shift at that yaw (with refine=False: the yaw searched again, +-0.5 degree).
-4. Refinement: ECC (Euclidean, inverse compositional: rafd.data.ecc) from 3 improves the yaw; the
-   shift is then re-read from the correlation at that yaw (ECC's least squares is pulled by moving objects,
-   the correlation peak is not). ECC results that fail or move far from 3 are rejected (3 stands).
+   (opencv's packed float32 DFT; each spectrum partly whitened once, the current scan's reused); the highest peak
+   within MAX_STEP_M of zero shift wins, sub-step by a parabola. Without a prior (or with the best yaw on the
+   window's edge) a narrower window is centred on the best of all +-MAX_YAW_DEG (2 degree steps), searched on the
+   coarse level halved.
+3. Refinement: ECC (Euclidean, inverse compositional: rafd.data.ecc) at the fine level from 2 improves the yaw;
+   the shift is then read from the fine level's correlation at that yaw (ECC's least squares is pulled by moving
+   objects, the correlation peak is not). ECC results that fail or move far from 2 are rejected (2's yaw stands).
+   With refine=False the fine level is searched instead (+-0.5 degree).
 
 (Fourier-Mellin yaw from polar magnitude spectra was tried first: its peak drowns in speckle on many
 simulated scans and gave errors of tens of degrees; the correlative search does not.)
@@ -41,7 +43,7 @@ import functools
 import logging
 import math
 from collections.abc import Iterable, Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import cv2
 import numpy as np
@@ -55,6 +57,7 @@ FINE_SIZE = 384  # largest side of the fine level (pixels): sub-pixel registrati
 COARSE_SIZE = 128  # largest side of the coarse rotation search level
 MAX_YAW_DEG = 15.0  # largest yaw change searched between consecutive scans (60 deg/s at 4 Hz)
 COARSE_STEP_DEG = 1.0
+WIDE_STEP_DEG = 3.0  # the wide search's steps (+-MAX_YAW_DEG, a stream's first pair): it only centres the coarse one
 FINE_STEP_DEG = 0.5
 CLIP_PERCENTILE = 97.0  # structure image clipped here before the square root
 CENTRE_MASK_M = 4.0  # metres around the radar hidden (ego vehicle returns, near-range leakage)
@@ -68,6 +71,7 @@ MAX_ECC_YAW_DEG = 1.0  # ... or turning further than this
 ECC_ITERATIONS = 10
 ECC_EPS = 1e-4
 PRIOR_YAW_WINDOW_DEG = 4.0  # coarse yaw search around the prior's yaw (the yaw rate changes less per scan)
+WIDE_YAW_WINDOW_DEG = 2.0  # ... around the wide search's best yaw (WIDE_STEP_DEG steps, sub-stepped)
 # A de-skewed pair is registered again with its own motion when it turned or moved this much more than the velocity
 # it was de-skewed with (the onset of a turn, a hard brake): the sweep's smear then changes visibly.
 REDESKEW_YAW_DEG = 0.5
@@ -93,6 +97,21 @@ def _radial_window(size: int, resolution: float) -> np.ndarray:
     fall = np.clip((outer - radius) / (0.2 * outer), 0.0, 1.0)
     window = (0.5 - 0.5 * np.cos(np.pi * rise)) * (0.5 - 0.5 * np.cos(np.pi * fall))
     return window.astype(np.float32)
+
+
+def _percentile_of_nonnegative(image: np.ndarray, q: float) -> float:
+    """np.percentile(image, q) (linear interpolation) of an image >= 0, partitioning only its positive pixels: after
+    the background is removed most pixels are 0, and this is a tenth of np.percentile's time at 256 px."""
+    flat = image.reshape(-1)
+    positive = flat[flat > 0]
+    zeros = flat.size - positive.size
+    rank = q / 100.0 * (flat.size - 1)
+    low = int(math.floor(rank))
+    ranks = (low, min(low + 1, flat.size - 1))  # in the sorted image; those below `zeros` are 0
+    wanted = sorted({k - zeros for k in ranks if k >= zeros})
+    ordered = np.partition(positive, wanted) if wanted else positive
+    below, above = (float(ordered[k - zeros]) if k >= zeros else 0.0 for k in ranks)
+    return below + (above - below) * (rank - low)
 
 
 class _Level:
@@ -122,16 +141,16 @@ class _Level:
         # Compress the dynamic range (clip at the 97th percentile, square root): bright, often moving,
         # vehicles must not outvote the static scene.
         img = np.maximum(img - background, 0.0)
-        img = np.sqrt(np.minimum(img, np.percentile(img, CLIP_PERCENTILE)))
+        img = np.sqrt(np.minimum(img, _percentile_of_nonnegative(img, CLIP_PERCENTILE)))
         return img * self.window
 
 
 def _rotation_warp(yaw: float, centre: float) -> np.ndarray:
     """2x3 pixel warp W with image_cur(u) = image_prev(W u) for a pure ego rotation `yaw` about the radar."""
     c, s = math.cos(yaw), math.sin(yaw)
-    a = np.array([[c, s], [-s, c]])  # R(-yaw) in pixel coordinates (image v points down)
-    b = np.array([centre, centre]) - a @ np.array([centre, centre])
-    return np.concatenate([a, b[:, None]], 1).astype(np.float32)
+    # [A | b] with A = R(-yaw) in pixel coordinates (image v points down) and b = (centre, centre) - A (centre, centre);
+    # written out: the search builds one per candidate yaw
+    return np.array([[c, s, centre - (c + s) * centre], [-s, c, centre - (c - s) * centre]], np.float32)
 
 
 def pose_to_warp(pose: np.ndarray, size: int, resolution: float) -> np.ndarray:
@@ -186,56 +205,91 @@ def _peak_vertex(left: float, mid: float, right: float) -> float:
     return _vertex(left, mid, right)
 
 
-def _spectrum(image: np.ndarray) -> np.ndarray:
-    """[n, n] real -> [n, n] complex64 2-D DFT. opencv's float32 DFT: about a fifth of numpy's float64 rfft2 time at
-    256 px, and the correlation peak needs no more precision."""
-    return cv2.dft(np.asarray(image, np.float32), flags=cv2.DFT_COMPLEX_OUTPUT).view(np.complex64)[..., 0]
+def _whitened_spectrum(image: np.ndarray) -> np.ndarray:
+    """[n, n] real image -> [n, n] float32 its 2-D DFT in opencv's packed (CCS) form, each coefficient divided by
+    |.|^WHITENING. Whitening each spectrum on its own is the whitening of their product (|a b|^w = |a|^w |b|^w), so a
+    scan's spectrum is whitened once and reused by every search it takes part in, and the packed real DFT costs a
+    third of the complex one (docs/performance.md, "Odometry")."""
+    spectrum = cv2.dft(np.asarray(image, np.float32))  # [n, n] CCS
+    n = spectrum.shape[0]
+    power = cv2.mulSpectrums(spectrum, spectrum, 0, conjB=True)  # |X|^2 in each coefficient's real slot, 0 in its imag
+    scale = np.sqrt(np.sqrt(power)) if WHITENING == 0.5 else power ** (0.5 * WHITENING)  # sqrt: a tenth of pow's time
+    # each imaginary slot takes its coefficient's magnitude from the real slot before it: columns 1.. of every row are
+    # (re, im) pairs, as are rows 1.. of column 0 (and of the last column for even n, whose last slot is real)
+    pairs = n if n % 2 else n - 1
+    scale[:, 2:pairs:2] = scale[:, 1:pairs:2]
+    for column in (0, n - 1) if n % 2 == 0 else (0,):
+        scale[2:pairs:2, column] = scale[1:pairs:2, column]
+    scale += 1e-9
+    return spectrum / scale
 
 
-def _surface(spectrum: np.ndarray) -> np.ndarray:
-    """[n, n] complex64 Hermitian spectrum -> [n, n] float32 real signal (the inverse of _spectrum)."""
-    packed = np.ascontiguousarray(spectrum).view(np.float32).reshape(*spectrum.shape, 2)
-    return cv2.idft(packed, flags=cv2.DFT_REAL_OUTPUT | cv2.DFT_SCALE)
+@dataclass(eq=False)
+class Plane:
+    """One level of one scan: its structure image, with the whitened spectrum and the halved copy the searches take
+    from it made once (a scan is the current one of one pair and the previous one of the next)."""
+
+    image: np.ndarray  # [n, n] float32 structure image (_Level.prepare), never written in place
+
+    @functools.cached_property
+    def spectrum(self) -> np.ndarray:
+        return _whitened_spectrum(self.image)
+
+    @functools.cached_property
+    def halved(self) -> Plane:
+        side = self.image.shape[0] // 2
+        return Plane(cv2.resize(self.image, (side, side), interpolation=cv2.INTER_AREA))
+
+
+@dataclass(eq=False)
+class Levels:
+    """A scan's two registration levels."""
+
+    coarse: Plane
+    fine: Plane
 
 
 def _search_rotation(
-    previous: np.ndarray, current: np.ndarray, yaws: np.ndarray, max_shift_px: float
+    previous: np.ndarray, current: Plane, yaws: np.ndarray, max_shift_px: float
 ) -> tuple[float, tuple[float, float], float]:
     """Correlative search: rotate `previous` by each candidate yaw, cross-correlate with `current` (FFT, partly
     whitened), keep the highest peak within `max_shift_px` of zero shift; sub-step yaw and shift by parabolas
     through the neighbours. -> (yaw, shift (x, y) with current(u) ~ rotated_previous(u - shift), score)."""
-    n = current.shape[0]
-    cur_fft = _spectrum(current)  # [n, n] complex64
-    cross = np.stack([np.conj(_spectrum(_rotated(previous, float(yaw)))) for yaw in yaws]) * cur_fft[None]  # [N, n, n]
-    magnitude = np.abs(cross)
-    cross /= (np.sqrt(magnitude) if WHITENING == 0.5 else magnitude**WHITENING) + 1e-9  # sqrt: a third of pow's time
-    surfaces = np.stack([_surface(spectrum) for spectrum in cross])  # [N, n, n]
+    n = previous.shape[0]
     # The peak is searched only among shifts within max_shift_px: the wrapped surface's four corners, not all n^2.
     offsets, allowed, near = _shift_offsets(n, max_shift_px)
-    region = surfaces[:, near[:, None], near[None, :]]  # [N, m, m]
-    masked = np.where(allowed[None], region, -np.inf).reshape(len(yaws), -1)
-    flat = np.argmax(masked, axis=1)  # [N]
-    scores = masked[np.arange(len(yaws)), flat]
+    scores, peaks, surfaces = [], [], []
+    for yaw in yaws:
+        cross = cv2.mulSpectrums(current.spectrum, _whitened_spectrum(_rotated(previous, float(yaw))), 0, conjB=True)
+        surface = cv2.idft(cross, flags=cv2.DFT_REAL_OUTPUT | cv2.DFT_SCALE)  # [n, n] wrapped correlation
+        masked = np.where(allowed, surface[near[:, None], near[None, :]], -np.inf)  # [m, m]
+        peak = int(np.argmax(masked))
+        scores.append(float(masked.flat[peak]))
+        peaks.append(peak)
+        surfaces.append(surface)
     best = int(np.argmax(scores))
     yaw = float(yaws[best])
     if 0 < best < len(yaws) - 1:
         yaw += _vertex(*scores[best - 1 : best + 2]) * float(yaws[1] - yaws[0])
     surface = surfaces[best]
-    row_in, col_in = divmod(int(flat[best]), len(near))
+    row_in, col_in = divmod(peaks[best], len(near))
     row, col = int(near[row_in]), int(near[col_in])
     dx = _peak_vertex(surface[row, (col - 1) % n], surface[row, col], surface[row, (col + 1) % n])
     dy = _peak_vertex(surface[(row - 1) % n, col], surface[row, col], surface[(row + 1) % n, col])
-    return yaw, (float(offsets[col] + dx), float(offsets[row] + dy)), float(scores[best])
+    return yaw, (float(offsets[col] + dx), float(offsets[row] + dy)), scores[best]
 
 
-def _wide_yaw(previous: np.ndarray, current: np.ndarray, resolution: float) -> float:
+def _wide_yaw(previous: Plane, current: Plane, resolution: float) -> float:
     """The best yaw in all of +-MAX_YAW_DEG, searched on the coarse level halved (a quarter of its pixels): only the
     centre of the windowed search at the coarse level (a stream's first pair, or a yaw on the prior window's edge)."""
-    side = previous.shape[0] // 2
-    halved = [cv2.resize(image, (side, side), interpolation=cv2.INTER_AREA) for image in (previous, current)]
-    yaws = np.deg2rad(np.arange(-MAX_YAW_DEG, MAX_YAW_DEG + 1e-9, COARSE_STEP_DEG))
-    yaw, _, _ = _search_rotation(halved[0], halved[1], yaws, MAX_STEP_M / (2.0 * resolution))
+    yaws = np.deg2rad(np.arange(-MAX_YAW_DEG, MAX_YAW_DEG + 1e-9, WIDE_STEP_DEG))
+    yaw, _, _ = _search_rotation(previous.halved.image, current.halved, yaws, MAX_STEP_M / (2.0 * resolution))
     return yaw
+
+
+def _window(half_width_deg: float) -> np.ndarray:
+    """[K] yaw offsets (radians) of the coarse search: +-half_width_deg in COARSE_STEP_DEG steps."""
+    return np.deg2rad(np.arange(-half_width_deg, half_width_deg + 1e-9, COARSE_STEP_DEG))
 
 
 def _shift_to_warp(yaw: float, shift: tuple[float, float], size: int) -> np.ndarray:
@@ -284,6 +338,8 @@ class SweepTiming:
     reference_fraction: float = 0.5  # where in the sweep the scan's timestamp (and pose) lies: 0 start, 0.5 middle
     azimuths: np.ndarray | None = None  # [A] radians clockwise from forward, increasing (native scans)
     seconds: np.ndarray | None = None  # [A] seconds from the first azimuth (native scans)
+    # a native scan's per-pixel offsets per level geometry (_SweepGrid.offsets): its scan is de-skewed up to 4 times
+    pixel_offsets: dict[tuple[int, float], np.ndarray] = field(default_factory=dict, compare=False, repr=False)
 
     @classmethod
     def of_native(cls, timestamps_us: np.ndarray, azimuths: np.ndarray) -> SweepTiming:
@@ -306,8 +362,8 @@ class SweepTiming:
 
 
 class _SweepGrid:
-    """Per working pixel of a level: metres (x right, y forward), azimuth clockwise from forward, and the azimuth's
-    time under a uniform sweep (cached per geometry and sweep: the de-skew is a few multiply-adds per pixel)."""
+    """Per working pixel of a level: metres (x right, y forward), azimuth clockwise from forward and its fraction of
+    the sweep (cached per geometry: the de-skew is a few multiply-adds per pixel)."""
 
     _cache: dict[tuple[int, float], _SweepGrid] = {}
 
@@ -316,8 +372,8 @@ class _SweepGrid:
         coords = (np.arange(size, dtype=np.float32) - centre) * resolution
         self.x, self.y = np.meshgrid(coords, -coords, indexing="xy")  # [n, n] metres, float32
         self.theta = np.mod(np.arctan2(self.x, self.y), 2.0 * np.pi)  # [n, n] clockwise from forward
+        self.turn = self.theta / (2.0 * np.pi)  # [n, n] fraction of the sweep
         self.centre, self.resolution = centre, resolution
-        self._uniform: dict[tuple[float, float], np.ndarray] = {}
 
     @classmethod
     def get(cls, size: int, resolution: float) -> _SweepGrid:
@@ -328,12 +384,12 @@ class _SweepGrid:
 
     def offsets(self, timing: SweepTiming) -> np.ndarray:
         """[n, n] seconds after the reference at which each pixel's azimuth was measured."""
-        if timing.azimuths is not None:  # a native scan's own timestamps: per scan
-            return timing.offsets(self.theta).astype(np.float32)
-        key = (timing.period_s, timing.reference_fraction)
-        if key not in self._uniform:
-            self._uniform[key] = timing.offsets(self.theta).astype(np.float32)
-        return self._uniform[key]
+        if timing.azimuths is None:  # uniform: SweepTiming.offsets, one multiply-add (no cache per stream's period)
+            return (self.turn - timing.reference_fraction) * timing.period_s
+        key = (self.theta.shape[0], self.resolution)
+        if key not in timing.pixel_offsets:  # a native scan's own timestamps: kept with the scan's timing
+            timing.pixel_offsets[key] = timing.offsets(self.theta).astype(np.float32)
+        return timing.pixel_offsets[key]
 
 
 def deskew(image: np.ndarray, resolution: float, velocity: np.ndarray, timing: SweepTiming) -> np.ndarray:
@@ -358,15 +414,11 @@ def deskew(image: np.ndarray, resolution: float, velocity: np.ndarray, timing: S
 class PreparedScan:
     """One scan's registration levels, prepared once and reused as the next pair's previous scan."""
 
-    coarse: np.ndarray  # [n_c, n_c] structure image
-    fine: np.ndarray  # [n_f, n_f]
+    raw: Levels  # as scanned
     size: int  # side of the scan it was made from
     timing: SweepTiming | None = None
     velocity: np.ndarray | None = None  # the motion its de-skewed levels undo (m/s, m/s, rad/s)
-    deskewed: tuple[np.ndarray, np.ndarray] | None = None  # (coarse, fine) with `velocity` undone
-
-    def levels(self) -> tuple[np.ndarray, np.ndarray]:
-        return self.deskewed if self.deskewed is not None else (self.coarse, self.fine)
+    deskewed: Levels | None = None  # with `velocity` undone
 
 
 class Odometer:
@@ -376,7 +428,8 @@ class Odometer:
     sweep timings, each scan is de-skewed (rafd.data.odometry.deskew) with its ego velocity before registering: the
     velocity comes from the prior (the previous pair's motion: constant velocity) and is re-estimated from the pair's
     own registration, then the pair is registered again de-skewed, so the pose refers to the scans' reference times
-    and turns no longer smear the scans. Without a prior (a stream's first pair) the raw scans are registered first.
+    and turns no longer smear the scans. Without a prior (a stream's first pair) the raw scans are registered, and
+    that motion de-skews the current scan for the next pair.
     """
 
     def __init__(self, resolution: float, refine: bool = True) -> None:
@@ -394,9 +447,11 @@ class Odometer:
         if image.ndim != 2 or image.shape[0] != image.shape[1]:
             raise ValueError(f"odometry needs a square scan, got shape {image.shape}")
         coarse, fine = self._levels(int(image.shape[0]))
-        return PreparedScan(coarse.prepare(image), fine.prepare(image), int(image.shape[0]), timing)
+        return PreparedScan(
+            Levels(Plane(coarse.prepare(image)), Plane(fine.prepare(image))), int(image.shape[0]), timing
+        )
 
-    def _deskewed(self, scan: PreparedScan, velocity: np.ndarray, keep: bool = False) -> tuple[np.ndarray, np.ndarray]:
+    def _deskewed(self, scan: PreparedScan, velocity: np.ndarray, keep: bool = False) -> Levels:
         """The scan's levels with `velocity` undone; `keep`: a scan already de-skewed keeps its own velocity's."""
         assert scan.timing is not None
         if keep and scan.deskewed is not None:
@@ -404,46 +459,51 @@ class Odometer:
         if scan.deskewed is None or scan.velocity is None or not np.array_equal(scan.velocity, velocity):
             coarse, fine = self._levels(scan.size)
             scan.velocity = np.array(velocity, dtype=np.float64)
-            scan.deskewed = (
-                deskew(scan.coarse, coarse.resolution, velocity, scan.timing),
-                deskew(scan.fine, fine.resolution, velocity, scan.timing),
+            scan.deskewed = Levels(
+                Plane(deskew(scan.raw.coarse.image, coarse.resolution, velocity, scan.timing)),
+                Plane(deskew(scan.raw.fine.image, fine.resolution, velocity, scan.timing)),
             )
         return scan.deskewed
 
     def search(
         self,
-        previous: tuple[np.ndarray, np.ndarray],
-        current: tuple[np.ndarray, np.ndarray],
+        previous: Levels,
+        current: Levels,
         size: int,
         expected_yaw: float | None = None,
     ) -> np.ndarray | None:
         """The correlative search -> [3] pose, None for a blank scan. `expected_yaw` (the prior's) narrows the coarse
-        yaw search to +-PRIOR_YAW_WINDOW_DEG around it; a best yaw on the window's edge falls back to the whole
-        +-MAX_YAW_DEG."""
+        yaw search to +-PRIOR_YAW_WINDOW_DEG around it; without one, or with the best yaw on that window's edge, the
+        wide search over +-MAX_YAW_DEG centres a +-WIDE_YAW_WINDOW_DEG one. With `refine` the coarse level's pose is
+        returned: finish's ECC starts from it (starting it from a fine-level shift at the coarse yaw left every error
+        of `rafd bench odometry` unchanged at 0.3 of this stage's cost); without, the fine level is searched +-0.5
+        degree."""
         coarse, fine = self._levels(size)
-        (prev_coarse, prev_fine), (cur_coarse, cur_fine) = previous, current
-        if not (prev_fine.any() and cur_fine.any()):
+        if not (previous.fine.image.any() and current.fine.image.any()):
             log.warning("odometry: a scan holds no structure (blank image); returning zero motion")
             return None
-        window = np.deg2rad(np.arange(-PRIOR_YAW_WINDOW_DEG, PRIOR_YAW_WINDOW_DEG + 1e-9, COARSE_STEP_DEG))
-        if expected_yaw is None:
-            expected_yaw = _wide_yaw(prev_coarse, cur_coarse, coarse.resolution)
-        yaw, shift, _ = _search_rotation(prev_coarse, cur_coarse, expected_yaw + window, MAX_STEP_M / coarse.resolution)
-        if abs(yaw - expected_yaw) > np.deg2rad(PRIOR_YAW_WINDOW_DEG - COARSE_STEP_DEG):  # on the window's edge
-            expected_yaw = _wide_yaw(prev_coarse, cur_coarse, coarse.resolution)
+        reach = MAX_STEP_M / coarse.resolution
+        on_edge = False
+        if expected_yaw is not None:
             yaw, shift, _ = _search_rotation(
-                prev_coarse, cur_coarse, expected_yaw + window, MAX_STEP_M / coarse.resolution
+                previous.coarse.image, current.coarse, expected_yaw + _window(PRIOR_YAW_WINDOW_DEG), reach
             )
-        # With ECC refining the yaw (finish), the fine level only reads the shift at the coarse yaw: searching 3 fine
-        # yaws first gave the same final accuracy (docs/performance.md, "Odometry") at 3x this stage's cost.
-        steps = np.zeros(1) if self.refine else np.deg2rad(np.arange(-1, 2) * FINE_STEP_DEG)
-        yaw, shift, _ = _search_rotation(prev_fine, cur_fine, yaw + steps, MAX_STEP_M / fine.resolution)
+            on_edge = abs(yaw - expected_yaw) > np.deg2rad(PRIOR_YAW_WINDOW_DEG - COARSE_STEP_DEG)
+        if expected_yaw is None or on_edge:  # no prior, or the best yaw on the window's edge: the wide search
+            expected_yaw = _wide_yaw(previous.coarse, current.coarse, coarse.resolution)
+            yaw, shift, _ = _search_rotation(
+                previous.coarse.image, current.coarse, expected_yaw + _window(WIDE_YAW_WINDOW_DEG), reach
+            )
+        if self.refine:
+            return warp_to_pose(_shift_to_warp(yaw, shift, coarse.work), coarse.work, coarse.resolution)
+        steps = np.deg2rad(np.arange(-1, 2) * FINE_STEP_DEG)
+        yaw, shift, _ = _search_rotation(previous.fine.image, current.fine, yaw + steps, MAX_STEP_M / fine.resolution)
         return warp_to_pose(_shift_to_warp(yaw, shift, fine.work), fine.work, fine.resolution)
 
     def finish(
         self,
-        previous: tuple[np.ndarray, np.ndarray],
-        current: tuple[np.ndarray, np.ndarray],
+        previous: Levels,
+        current: Levels,
         size: int,
         pose: np.ndarray,
     ) -> np.ndarray:
@@ -453,16 +513,16 @@ class Odometer:
             return pose
         _, fine = self._levels(size)
         yaw = float(pose[2])
-        refined = _refine_yaw(previous[1], current[1], pose_to_warp(pose, fine.work, fine.resolution))
+        refined = _refine_yaw(previous.fine.image, current.fine.image, pose_to_warp(pose, fine.work, fine.resolution))
         if refined is not None:
             yaw = refined
-        _, shift, _ = _search_rotation(previous[1], current[1], np.array([yaw]), MAX_STEP_M / fine.resolution)
+        _, shift, _ = _search_rotation(previous.fine.image, current.fine, np.array([yaw]), MAX_STEP_M / fine.resolution)
         return warp_to_pose(_shift_to_warp(yaw, shift, fine.work), fine.work, fine.resolution)
 
     def register(
         self,
-        previous: tuple[np.ndarray, np.ndarray],
-        current: tuple[np.ndarray, np.ndarray],
+        previous: Levels,
+        current: Levels,
         size: int,
         expected_yaw: float | None = None,
     ) -> np.ndarray:
@@ -476,34 +536,38 @@ class Odometer:
         """[3] pose (x m, y m, yaw rad) of the current ego in the previous ego frame. With both scans' timings and the
         time between them `dt`, motion-compensated (the class docstring); `prior`: the previous pair's pose.
 
-        Every registration is finished (ECC), the intermediate ones too (the raw first pair's, the one a re-de-skew
-        replaces): finishing only the last was measured, and the de-skew velocity and the re-de-skew decision taken
-        from the unrefined search moved the Oxford sample's mean yaw error from 0.108 to 0.136 degrees."""
+        Every registration is finished (ECC), the one a re-de-skew replaces too: finishing only the last was measured,
+        and the re-de-skew decision taken from the unrefined search moved the Oxford sample's mean yaw error from 0.108
+        to 0.136 degrees (the first pair's velocity taken unrefined: to 0.119). A re-de-skewed pair starts its ECC from
+        the pose before it instead of searching again: the de-skew moves the scene by a fraction of ECC's reach, and
+        every error of `rafd bench odometry` stayed as it was."""
         if previous.size != current.size:
             raise ValueError(f"odometry needs two scans of the same size, got {previous.size} and {current.size}")
         compensate = previous.timing is not None and current.timing is not None and dt is not None and dt > 0
         if not compensate:
-            return self.register((previous.coarse, previous.fine), (current.coarse, current.fine), current.size)
+            return self.register(previous.raw, current.raw, current.size)
         assert dt is not None
         size = current.size
-        if prior is None:  # no motion known yet: the raw scans give the first estimate
-            prior = self.register((previous.coarse, previous.fine), (current.coarse, current.fine), size)
+        if prior is None:
+            # A stream's first pair: no motion is known to de-skew with. It is registered raw, and its motion de-skews
+            # the current scan, which the next pair registers against (de-skewing both scans and registering them
+            # again, as before, cost 1.4x this pair's CPU for errors within noise: docs/performance.md, "Odometry").
+            pose = self.register(previous.raw, current.raw, size)
+            self._deskewed(current, pose / dt)
+            return pose
         # Each scan is de-skewed once, with its own velocity: the current one with the prior's (constant velocity),
         # the previous one kept as it was de-skewed when it was the current one.
         used = np.asarray(prior, dtype=np.float64)
         previous_levels = self._deskewed(previous, used / dt, keep=True)
         current_levels = self._deskewed(current, used / dt)
-        pose = self.search(previous_levels, current_levels, size, float(used[2]))
-        if pose is None:
+        found = self.search(previous_levels, current_levels, size, float(used[2]))
+        if found is None:
             return np.zeros(3)
-        pose = self.finish(previous_levels, current_levels, size, pose)
+        pose = self.finish(previous_levels, current_levels, size, found)
         change = pose - used
         if abs(np.rad2deg(change[2])) > REDESKEW_YAW_DEG or np.hypot(change[0], change[1]) > REDESKEW_SHIFT_M:
             # the motion changed within the pair (a turn begins, a hard brake): the current scan's own is the pair's
             current_levels = self._deskewed(current, pose / dt)
-            pose = self.search(previous_levels, current_levels, size, float(pose[2]))
-            if pose is None:
-                return np.zeros(3)
             pose = self.finish(previous_levels, current_levels, size, pose)
         return pose
 
