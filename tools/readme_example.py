@@ -5,7 +5,8 @@
 
 The answer block in README.md sits between the EXAMPLE_BEGIN / EXAMPLE_END markers; tests/tools/test_readme_example.py
 checks it against `example_answer` on the shipped model. Regenerate it whenever the
-shipped model changes. Needs the dev extra (FastAPI's TestClient uses httpx); imports no torch.
+shipped model or the odometry changes (the answer carries the odometry's pose of frame 2). Needs the dev extra
+(FastAPI's TestClient uses httpx); imports no torch.
 """
 
 from __future__ import annotations

@@ -230,15 +230,23 @@ class Plane:
     from it made once (a scan is the current one of one pair and the previous one of the next)."""
 
     image: np.ndarray  # [n, n] float32 structure image (_Level.prepare), never written in place
+    # made on first use, without a lock: two threads that race compute the same array, and Python 3.11's
+    # functools.cached_property would hold one lock for every Plane of the process while it computes
+    _spectrum: np.ndarray | None = field(default=None, init=False, repr=False)
+    _halved: Plane | None = field(default=None, init=False, repr=False)
 
-    @functools.cached_property
+    @property
     def spectrum(self) -> np.ndarray:
-        return _whitened_spectrum(self.image)
+        if self._spectrum is None:
+            self._spectrum = _whitened_spectrum(self.image)
+        return self._spectrum
 
-    @functools.cached_property
+    @property
     def halved(self) -> Plane:
-        side = self.image.shape[0] // 2
-        return Plane(cv2.resize(self.image, (side, side), interpolation=cv2.INTER_AREA))
+        if self._halved is None:
+            side = self.image.shape[0] // 2
+            self._halved = Plane(cv2.resize(self.image, (side, side), interpolation=cv2.INTER_AREA))
+        return self._halved
 
 
 @dataclass(eq=False)
