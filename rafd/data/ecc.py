@@ -87,10 +87,11 @@ def align(
     n = template.size
     current = np.vstack([np.asarray(warp, np.float64), [0.0, 0.0, 1.0]])  # [3, 3]
     t, g = template.zero_mean, template.steepest
+    source = np.asarray(image, np.float32)
     rho = -1.0
     for _ in range(iterations):
         warped = cv2.warpAffine(
-            np.asarray(image, np.float32),
+            source,
             current[:2].astype(np.float32),
             (n, n),
             flags=cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP,

@@ -11,8 +11,8 @@ CPU in docs/performance.md, "Odometry"):
    +-PRIOR_YAW_WINDOW_DEG (1 degree steps) of the prior's yaw and cross-correlated with the current one by FFT
    (opencv's packed float32 DFT; each spectrum partly whitened once, the current scan's reused); the highest peak
    within MAX_STEP_M of zero shift wins, sub-step by a parabola. Without a prior (or with the best yaw on the
-   window's edge) a narrower window is centred on the best of all +-MAX_YAW_DEG (2 degree steps), searched on the
-   coarse level halved.
+   window's edge) a narrower window is centred on the best of all +-MAX_YAW_DEG (WIDE_STEP_DEG steps), searched on
+   the coarse level halved.
 3. Refinement: ECC (Euclidean, inverse compositional: rafd.data.ecc) at the fine level from 2 improves the yaw;
    the shift is then read from the fine level's correlation at that yaw (ECC's least squares is pulled by moving
    objects, the correlation peak is not). ECC results that fail or move far from 2 are rejected (2's yaw stands).
@@ -101,7 +101,7 @@ def _radial_window(size: int, resolution: float) -> np.ndarray:
 
 def _percentile_of_nonnegative(image: np.ndarray, q: float) -> float:
     """np.percentile(image, q) (linear interpolation) of an image >= 0, partitioning only its positive pixels: after
-    the background is removed most pixels are 0, and this is a tenth of np.percentile's time at 256 px."""
+    the background is removed most pixels are 0 (63% of an Oxford scan's at 256 px: 0.14 against 0.36 ms)."""
     flat = image.reshape(-1)
     positive = flat[flat > 0]
     zeros = flat.size - positive.size
@@ -208,12 +208,12 @@ def _peak_vertex(left: float, mid: float, right: float) -> float:
 def _whitened_spectrum(image: np.ndarray) -> np.ndarray:
     """[n, n] real image -> [n, n] float32 its 2-D DFT in opencv's packed (CCS) form, each coefficient divided by
     |.|^WHITENING. Whitening each spectrum on its own is the whitening of their product (|a b|^w = |a|^w |b|^w), so a
-    scan's spectrum is whitened once and reused by every search it takes part in, and the packed real DFT costs a
-    third of the complex one (docs/performance.md, "Odometry")."""
+    scan's spectrum is whitened once and reused by every search it takes part in, and the packed real DFT costs less
+    than half of the complex one (0.10 against 0.23 ms at 256 px)."""
     spectrum = cv2.dft(np.asarray(image, np.float32))  # [n, n] CCS
     n = spectrum.shape[0]
     power = cv2.mulSpectrums(spectrum, spectrum, 0, conjB=True)  # |X|^2 in each coefficient's real slot, 0 in its imag
-    scale = np.sqrt(np.sqrt(power)) if WHITENING == 0.5 else power ** (0.5 * WHITENING)  # sqrt: a tenth of pow's time
+    scale = np.sqrt(np.sqrt(power)) if WHITENING == 0.5 else power ** (0.5 * WHITENING)  # a fifth of cv2.pow
     # each imaginary slot takes its coefficient's magnitude from the real slot before it: columns 1.. of every row are
     # (re, im) pairs, as are rows 1.. of column 0 (and of the last column for even n, whose last slot is real)
     pairs = n if n % 2 else n - 1
@@ -266,21 +266,21 @@ def _search_rotation(
     n = previous.shape[0]
     # The peak is searched only among shifts within max_shift_px: the wrapped surface's four corners, not all n^2.
     offsets, allowed, near = _shift_offsets(n, max_shift_px)
-    scores, peaks, surfaces = [], [], []
-    for yaw in yaws:
+    scores: list[float] = []
+    best, peak_best = 0, 0  # the best yaw's index and peak so far, and its surface:
+    surface: np.ndarray = np.zeros((0, 0), np.float32)
+    for index, yaw in enumerate(yaws):
         cross = cv2.mulSpectrums(current.spectrum, _whitened_spectrum(_rotated(previous, float(yaw))), 0, conjB=True)
-        surface = cv2.idft(cross, flags=cv2.DFT_REAL_OUTPUT | cv2.DFT_SCALE)  # [n, n] wrapped correlation
-        masked = np.where(allowed, surface[near[:, None], near[None, :]], -np.inf)  # [m, m]
+        correlation = cv2.idft(cross, flags=cv2.DFT_REAL_OUTPUT | cv2.DFT_SCALE)  # [n, n] wrapped correlation
+        masked = np.where(allowed, correlation[near[:, None], near[None, :]], -np.inf)  # [m, m]
         peak = int(np.argmax(masked))
         scores.append(float(masked.flat[peak]))
-        peaks.append(peak)
-        surfaces.append(surface)
-    best = int(np.argmax(scores))
+        if index == 0 or scores[-1] > scores[best]:
+            best, peak_best, surface = index, peak, correlation
     yaw = float(yaws[best])
     if 0 < best < len(yaws) - 1:
         yaw += _vertex(*scores[best - 1 : best + 2]) * float(yaws[1] - yaws[0])
-    surface = surfaces[best]
-    row_in, col_in = divmod(peaks[best], len(near))
+    row_in, col_in = divmod(peak_best, len(near))
     row, col = int(near[row_in]), int(near[col_in])
     dx = _peak_vertex(surface[row, (col - 1) % n], surface[row, col], surface[row, (col + 1) % n])
     dy = _peak_vertex(surface[(row - 1) % n, col], surface[row, col], surface[(row + 1) % n, col])
