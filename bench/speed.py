@@ -116,6 +116,8 @@ class ModelBench:
     threads: int
     repeats: int
     report: Report
+    # module scopes kept in float32 in an extra bf16 row (export/islands.py; "" none): bf16 with float32 islands
+    islands: tuple[str, ...] = ()
     inputs: list[np.ndarray] = field(default_factory=list)  # model inputs [S, S] float32, window frames first
     poses: np.ndarray = field(default_factory=lambda: np.zeros((0, 3)))  # their true world poses [N, 3]
 
@@ -169,7 +171,14 @@ class ModelBench:
             from export.quantize import quantize_model
 
             quantize_model(step_onnx)  # within this stage (MODEL_STAGES counts the stages)
-        runners = {f"{r}/{p}": open_runner(step_onnx, r, p, self.threads) for r, p in choices}
+        runners = {f"{r}/{p}": open_runner(step_onnx, r, p, self.threads, islands=False) for r, p in choices}
+        if self.islands and ("openvino", "bf16") in choices:
+            from export.islands import write_islands
+            from rafd.runtime import OpenVinoRunner
+
+            folder = write_islands(step_onnx, self.islands)
+            key = f"openvino/bf16, float32 islands {' '.join(self.islands)}"
+            runners[key] = OpenVinoRunner(step_onnx, "bf16", self.threads, islands=folder)
         states = {}
         for key, runner in runners.items():  # past the warm-up: every timed step is a steady-state frame
             state = runner.new_state()
@@ -274,6 +283,7 @@ def bench_model(
     peaks: dict[str, float],
     report: Report,
     stages: Stages | None = None,
+    islands: tuple[str, ...] = (),
 ) -> dict[str, Any]:
     """PyTorch window, ORT window, the streaming step on every runtime, concurrency and the gate -> rows + facts
     (MODEL_STAGES stages, the gate's included, on `stages`)."""
@@ -285,7 +295,7 @@ def bench_model(
 
     torch.set_num_threads(threads)
     model, cfg, _ = load_checkpoint(checkpoint)
-    bench = ModelBench(name, model, cfg, threads, repeats, report)
+    bench = ModelBench(name, model, cfg, threads, repeats, report, islands)
     choices = supported_choices()
 
     begin(f"{name}: PyTorch eager window x {repeats}")

@@ -50,6 +50,13 @@ def build_parser() -> argparse.ArgumentParser:
     )
     parser.add_argument("--repeats", type=int, default=20, help="timed calls per model path (default %(default)s)")
     parser.add_argument(
+        "--islands",
+        default="",
+        metavar="SCOPES",
+        help="also time OpenVINO bf16 with these module scopes kept in float32 (comma list, e.g. "
+        "/propagation/,/head/; export/islands.py), where the CPU runs bf16",
+    )
+    parser.add_argument(
         "--concurrency-frames",
         type=int,
         default=8,
@@ -193,6 +200,7 @@ def main(argv: Sequence[str] | None = None) -> int:
                 peaks,
                 report,
                 stages,
+                tuple(scope for scope in args.islands.split(",") if scope),
             )
             if not args.no_http:
                 for choice in http_runtimes:

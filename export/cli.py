@@ -70,6 +70,13 @@ def build_parser() -> argparse.ArgumentParser:
         help="frames per simulated sequence (default %(default)s)",
     )
     gate.add_argument(
+        "--no-islands",
+        dest="islands",
+        action="store_false",
+        help="where plain bf16 fails its gate, do not search for float32 islands that pass (the search runs short "
+        "gates of each module added to the islands so far, and the full gate where one comes close)",
+    )
+    gate.add_argument(
         "--gate-seed",
         type=int,
         default=None,
@@ -107,7 +114,7 @@ def main(argv: list[str] | None = None) -> int:
     gate = None
     if args.gate:
         seed = DEFAULT_SEED if args.gate_seed is None else args.gate_seed
-        gate = GateOptions(sequences=args.gate_sequences, frames=args.gate_frames, seed=seed)
+        gate = GateOptions(sequences=args.gate_sequences, frames=args.gate_frames, seed=seed, islands=args.islands)
     try:
         result = export_onnx(
             args.checkpoint,

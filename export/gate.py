@@ -35,7 +35,7 @@ import numpy as np
 
 from rafd.config import RaFDConfig
 from rafd.detections import decode_detections
-from rafd.model_files import int8_model_path
+from rafd.model_files import int8_model_path, islands_dir
 from rafd.progress import bar
 from rafd.protocol import (
     DEFAULT_SCORE_THRESHOLD,
@@ -106,6 +106,12 @@ class GateReport:
     sources: dict[str, SourceFigures]
     # int8: the sha256 of the quantized file judged (MODEL.int8.onnx); the service serves that file only
     judged_sha256: str | None = None
+    # bf16 with float32 islands (export/islands_gate.py): the module scopes kept in float32 and the sha256 of the
+    # segments' folder judged (rafd.model_files.islands_sha256); () for plain bf16
+    islands: tuple[str, ...] = ()
+    islands_sha256: str | None = None
+    # the islands search that led here: one entry per gate it ran (islands, gate size, verdict, excess)
+    search: list[dict[str, Any]] = field(default_factory=list)
 
     @property
     def pooled(self) -> SourceFigures:
@@ -212,7 +218,11 @@ class GateReport:
     def lines(self) -> list[str]:
         verdict = "PASS" if self.ok else "FAIL"
         reason = self.too_little()
-        out = [f"accuracy gate {self.candidate} vs {self.reference}: {verdict}" + (f" ({reason})" if reason else "")]
+        islands = f" with float32 islands {', '.join(self.islands)}" if self.islands else ""
+        out = [
+            f"accuracy gate {self.candidate}{islands} vs {self.reference}: {verdict}"
+            + (f" ({reason})" if reason else "")
+        ]
         for name, figures in self.figures().items():
             out.append(f"  {name}: " + ", ".join(f"{k} {v}" for k, v in figures.items()))
         for source, check, value, limit, ok in self.checks():
@@ -386,12 +396,17 @@ def gate_model(
     threads: int | None = None,
     thresholds: GateThresholds = GateThresholds(),
     log: Callable[[str], None] = lambda _: None,
+    islands: str | Path | None = None,
 ) -> GateReport:
-    """The gate of one exported step graph: onnxruntime fp32 vs `candidate` (runtime, precision)."""
-    from rafd.runtime import OnnxRunner, open_runner
+    """The gate of one exported step graph: onnxruntime fp32 vs `candidate` (runtime, precision). bf16 is judged
+    plain, or as the segments of the bf16-islands folder `islands` (export/islands.py) when given."""
+    from rafd.runtime import OnnxRunner, OpenVinoRunner, open_runner
 
     reference = OnnxRunner(onnx_path, threads)
-    other = open_runner(onnx_path, *candidate, threads)
+    if islands is not None:
+        other: StreamRunner = OpenVinoRunner(onnx_path, "bf16", threads, islands=islands)
+    else:
+        other = open_runner(onnx_path, *candidate, threads, islands=False)
     if reference.form != "step":
         raise ValueError(f"the gate streams the step form; {onnx_path} is a {reference.form!r} graph")
     sources: dict[str, Iterator[list[LabelledFrame]]] = {
@@ -416,6 +431,11 @@ class GateOptions:
     seed: int = DEFAULT_SEED
     threads: int | None = None
     thresholds: GateThresholds = GateThresholds()
+    # where plain bf16 fails: search for float32 islands that pass (export/islands_gate.py), trying each module scope
+    # on a short gate of search_sequences x search_frames (other simulated drives than the gate's)
+    islands: bool = True
+    search_sequences: int = 2
+    search_frames: int = 40
 
 
 def run_export_gates(
@@ -458,6 +478,10 @@ def run_export_gates(
             report.judged_sha256 = file_sha256(quantized)
         for line in report.lines():
             log(line)
+        if candidate[1] == "bf16" and not report.ok and report.too_little() is None and options.islands:
+            from export.islands_gate import search_islands
+
+            report = search_islands(onnx_path, report, options, radiate, log)
         reports[candidate[1]] = report
     return reports
 
@@ -480,7 +504,11 @@ def gate_metadata(reports: dict[str, GateReport]) -> dict[str, str]:
     out = {}
     for precision, report in reports.items():
         out[f"gate_{precision}"] = "pass" if report.ok else "fail"
-        judged = {"int8_sha256": report.judged_sha256} if report.judged_sha256 else {}
+        judged: dict[str, Any] = {"int8_sha256": report.judged_sha256} if report.judged_sha256 else {}
+        if report.islands:
+            judged.update(islands=list(report.islands), islands_sha256=report.islands_sha256)
+        if report.search:
+            judged["islands_search"] = report.search
         out[f"gate_{precision}_figures"] = json.dumps(
             {
                 "candidate": report.candidate,
@@ -519,4 +547,19 @@ def record_gates(
     quantized = int8_model_path(source)
     if "int8" in reports and target != source and quantized.is_file():  # the judged int8 model goes with its record
         shutil.copyfile(quantized, int8_model_path(target))
+    if "bf16" in reports and reports["bf16"].islands and target != source:  # and the judged islands with theirs
+        copy_islands(islands_dir(source), islands_dir(target))
     return entries
+
+
+def copy_islands(source: Path, target: Path) -> None:
+    """Put a copy of the islands folder `source` in place of `target` (a temporary copy beside it, then a rename)."""
+    work = target.with_name(f".{target.name}.{os.getpid()}.tmp")
+    shutil.rmtree(work, ignore_errors=True)
+    try:
+        shutil.copytree(source, work)
+        if target.exists():
+            shutil.rmtree(target)
+        os.replace(work, target)
+    finally:
+        shutil.rmtree(work, ignore_errors=True)

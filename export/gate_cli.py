@@ -39,6 +39,13 @@ def build_parser() -> argparse.ArgumentParser:
         help="frames per simulated sequence (default %(default)s)",
     )
     parser.add_argument(
+        "--no-islands",
+        dest="islands",
+        action="store_false",
+        help="where plain bf16 fails its gate, do not search for float32 islands that pass (the search runs short "
+        "gates of each module added to the islands so far, and the full gate where one comes close)",
+    )
+    parser.add_argument(
         "--gate-seed",
         type=int,
         default=None,
@@ -52,7 +59,7 @@ def build_parser() -> argparse.ArgumentParser:
 
 def main(argv: list[str] | None = None) -> int:
     parser, args = flags.parse(build_parser, argv)
-    from rafd.model_files import checkpoint_given_for_onnx
+    from rafd.model_files import checkpoint_given_for_onnx, islands_dir
 
     if not args.model.is_file():
         print(f"{parser.prog}: error: {args.model} is not a file", file=sys.stderr)
@@ -65,7 +72,9 @@ def main(argv: list[str] | None = None) -> int:
     from export.gate import DEFAULT_SEED, GateOptions, record_gates, run_export_gates
 
     seed = DEFAULT_SEED if args.gate_seed is None else args.gate_seed
-    options = GateOptions(sequences=args.gate_sequences, frames=args.gate_frames, seed=seed, threads=args.threads)
+    options = GateOptions(
+        sequences=args.gate_sequences, frames=args.gate_frames, seed=seed, threads=args.threads, islands=args.islands
+    )
     start = time.perf_counter()
     try:
         reports = run_export_gates(args.model, options, lambda message: print(message, flush=True))
@@ -78,7 +87,11 @@ def main(argv: list[str] | None = None) -> int:
         return 0
     target = args.out or args.model
     record_gates(args.model, reports, target)
-    verdicts = ", ".join(f"{precision} gate {'PASS' if r.ok else 'FAIL'}" for precision, r in reports.items())
+    verdicts = ", ".join(
+        f"{precision} gate {'PASS' if r.ok else 'FAIL'}"
+        + (f" with float32 islands {', '.join(r.islands)} ({islands_dir(target).name}/)" if r.islands else "")
+        for precision, r in reports.items()
+    )
     print(f"recorded in {target}: {verdicts} ({seconds:.0f} s)")
     return 0
 

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 import os
+import shutil
 import tempfile
 import time
 import warnings
@@ -22,7 +23,7 @@ from export.step import build_graph, example_inputs, feature_channels
 from export.verify import Report, verify_export
 from rafd.config import RaFDConfig
 from rafd.model.checkpoint import load_checkpoint
-from rafd.model_files import file_sha256
+from rafd.model_files import file_sha256, int8_model_path, islands_dir
 from rafd.protocol import OPERATING_THRESHOLD_KEY, check_score_threshold
 from rafd.runtime import FORMS, graph_inputs, graph_outputs
 
@@ -233,8 +234,18 @@ def export_onnx(
                 del proto
                 size = tmp.stat().st_size
         os.replace(tmp, output)
+        # The judged int8 model and bf16 segments were made beside the temporary file: they go with the output.
+        if int8_model_path(tmp).is_file():
+            os.replace(int8_model_path(tmp), int8_model_path(output))
+        if "bf16" in gates and gates["bf16"].islands:
+            target = islands_dir(output)
+            if target.exists():
+                shutil.rmtree(target)
+            os.replace(islands_dir(tmp), target)
     finally:
         tmp.unlink(missing_ok=True)
+        int8_model_path(tmp).unlink(missing_ok=True)
+        shutil.rmtree(islands_dir(tmp), ignore_errors=True)
     return ExportResult(
         path=output,
         form=form,

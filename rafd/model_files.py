@@ -64,3 +64,27 @@ def file_sha256(path: str | os.PathLike[str]) -> str:
         for block in iter(lambda: file.read(1 << 20), b""):
             digest.update(block)
     return digest.hexdigest()
+
+
+# The manifest of a bf16-with-float32-islands folder (export/islands.py writes it, rafd.runtime chains its segments).
+ISLANDS_MANIFEST = "segments.json"
+
+
+def islands_dir(path: str | os.PathLike[str]) -> Path:
+    """Where the bf16-with-float32-islands form of an ONNX model lives: beside it, MODEL.bf16-islands/ (segment_K.onnx
+    and ISLANDS_MANIFEST; `rafd gate` writes it where plain bf16 fails its gate and an islands set passes)."""
+    model = Path(path)
+    return model.with_name(model.name.removesuffix(".onnx") + ".bf16-islands")
+
+
+def islands_sha256(folder: str | os.PathLike[str]) -> str:
+    """One sha256 over an islands folder's manifest and every segment it names, in the manifest's order: the gate
+    record names the folder it judged by it."""
+    import json
+
+    digest = hashlib.sha256()
+    manifest = Path(folder, ISLANDS_MANIFEST)
+    digest.update(manifest.read_bytes())
+    for entry in json.loads(manifest.read_text())["segments"]:
+        digest.update(file_sha256(Path(folder, entry["file"])).encode())
+    return digest.hexdigest()

@@ -261,6 +261,11 @@ class RuntimeOut(Answer):
     precision_choice: PrecisionChoiceOut | None = Field(
         default=None, description="the precisions this CPU runs, which the model's gate records allow, and why"
     )
+    float32_islands: list[str] = Field(
+        default_factory=list,
+        description="bf16 served with these module scopes kept in float32 (the islands its gate passed with); "
+        "empty for plain bf16 and every other precision",
+    )
 
 
 class ModelInfo(Answer):

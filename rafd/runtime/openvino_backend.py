@@ -59,6 +59,24 @@ def _metadata(model: Any) -> dict[str, str]:
     return {key: value.astype(str) for key, value in framework.items()}
 
 
+def _input_shapes(model: Any) -> dict[str, tuple[int, ...]]:
+    return {
+        i.get_any_name(): tuple(d.get_length() if d.is_static else DYNAMIC for d in i.get_partial_shape())
+        for i in model.inputs
+    }
+
+
+def describe(model_path: str | os.PathLike[str]) -> tuple[dict[str, str], dict[str, tuple[int, ...]], tuple[str, ...]]:
+    """(metadata, input shapes, output names) of an ONNX model, read without compiling it."""
+    import openvino as ov
+
+    path = Path(model_path)
+    if not path.is_file():
+        raise FileNotFoundError(f"ONNX model {path} does not exist")
+    model = _read(ov.Core(), path)
+    return _metadata(model), _input_shapes(model), tuple(o.get_any_name() for o in model.outputs)
+
+
 class OpenVinoBackend:
     """One compiled model with `concurrent_runs` CPU streams; each run takes an idle infer request (thread-safe)."""
 
@@ -89,10 +107,7 @@ class OpenVinoBackend:
                     "writes it on a CPU with int8 units)"
                 )
             model = _read(core, quantized)
-        self.input_shapes = {
-            i.get_any_name(): tuple(d.get_length() if d.is_static else DYNAMIC for d in i.get_partial_shape())
-            for i in model.inputs
-        }
+        self.input_shapes = _input_shapes(model)
         self.output_names = tuple(o.get_any_name() for o in model.outputs)
         # The threads are shared by the streams: each of `concurrent_runs` streams gets threads // streams.
         config = {

@@ -9,11 +9,12 @@ import os
 import statistics
 import time
 from collections.abc import Callable
+from pathlib import Path
 from typing import Any, cast
 
 import numpy as np
 
-from rafd.model_files import checkpoint_given_for_onnx, file_sha256, int8_model_path
+from rafd.model_files import checkpoint_given_for_onnx, file_sha256, int8_model_path, islands_dir, islands_sha256
 from rafd.protocol import GATE_MIN_FRAMES, GATE_MIN_REFERENCE_DETECTIONS
 from rafd.runtime.backend import DYNAMIC, PRECISIONS, RUNTIMES, default_threads
 from rafd.runtime.ort_backend import OrtBackend
@@ -62,6 +63,22 @@ def gate_record(metadata: dict[str, str], precision: str) -> str:
     return "pass" if gate_passed(metadata, precision) else "pass on too little evidence"
 
 
+def _recorded(metadata: dict[str, str], precision: str) -> dict[str, Any]:
+    """A reduced precision's recorded gate figures as a dict ({} when absent or unreadable)."""
+    try:
+        recorded = json.loads(metadata.get(GATE_KEY.format(precision=precision) + "_figures") or "")
+    except ValueError:
+        return {}
+    return recorded if isinstance(recorded, dict) else {}
+
+
+def bf16_islands(metadata: dict[str, str]) -> tuple[str, ...]:
+    """The module scopes the bf16 gate record keeps in float32 (its "islands"; export/islands_gate.py), () for plain
+    bf16: the service serves bf16 as those islands' segments (MODEL.bf16-islands/) when the record names any."""
+    islands = _recorded(metadata, "bf16").get("islands") or []
+    return tuple(str(scope) for scope in islands) if isinstance(islands, list) else ()
+
+
 def gate_origin(metadata: dict[str, str], precision: str) -> str:
     """ " (made on CPU, date)" from a gate record's figures (rafd gate and rafd export --gate write them), else ""."""
     try:
@@ -86,7 +103,7 @@ def precision_choice(
     cpu = sorted({p for _, p in supported}, key=PRECISIONS.index)
     reduced = [p for p in cpu if p != "fp32"]
     records = {p: gate_record(metadata, p) for p in PRECISIONS if p != "fp32"}
-    unusable = {"int8": int8_unusable(model_path, metadata)} if records["int8"] == "pass" else {}
+    unusable = {p: reduced_unusable(model_path, p, metadata) for p in records if records[p] == "pass"}
     allowed = [p for p in cpu if p == "fp32" or (records[p] == "pass" and not unusable.get(p))]
     runtime, precision = served
     serving = f"serving {runtime}/{precision}"
@@ -112,6 +129,9 @@ def precision_choice(
                 parts.append(f"{p} capable, no gate record for this model")
             elif record == "pass" and unusable.get(p):
                 parts.append(f"{p} capable, gate passed{origin} but {unusable[p]}")
+            elif record == "pass" and p == "bf16" and bf16_islands(metadata):
+                islands = ", ".join(bf16_islands(metadata))
+                parts.append(f"{p} capable, gate passed{origin} with float32 islands {islands}")
             elif record == "pass":
                 parts.append(f"{p} capable, gate passed{origin}")
             else:
@@ -153,8 +173,9 @@ class OnnxRunner(StreamRunner):
 
 
 class OpenVinoRunner(StreamRunner):
-    """StreamRunner over OpenVINO's CPU plugin in `precision` ("bf16" or "fp32"); threads and concurrent runs as
-    OnnxRunner (the overlapping runs use one compilation with concurrent_runs CPU streams)."""
+    """StreamRunner over OpenVINO's CPU plugin in `precision` ("bf16", "int8" or "fp32"); threads and concurrent runs
+    as OnnxRunner (the overlapping runs use one compilation with concurrent_runs CPU streams). `islands`: a
+    bf16-islands folder (export/islands.py) to run bf16 as its segments, the islands in float32."""
 
     def __init__(
         self,
@@ -162,15 +183,25 @@ class OpenVinoRunner(StreamRunner):
         precision: str = "bf16",
         threads: int | None = None,
         concurrent_runs: int = 1,
+        islands: str | os.PathLike[str] | None = None,
     ) -> None:
         from rafd.runtime.openvino_backend import OpenVinoBackend
+        from rafd.runtime.openvino_islands import OpenVinoIslandsBackend
 
+        if islands is not None and precision != "bf16":
+            raise ValueError(f"float32 islands are a form of bf16, not of {precision!r}")
         threads = threads or default_threads()
         shared = crowd_threads(threads, concurrent_runs)
+
+        def backend(threads: int, runs: int) -> OpenVinoBackend | OpenVinoIslandsBackend:
+            if islands is not None:
+                return OpenVinoIslandsBackend(model_path, islands, threads, runs)
+            return OpenVinoBackend(model_path, precision, threads, runs)
+
         super().__init__(
-            OpenVinoBackend(model_path, precision, threads, 1 if shared else concurrent_runs),
-            OpenVinoBackend(model_path, precision, shared, concurrent_runs) if shared else None,
+            backend(threads, 1 if shared else concurrent_runs), backend(shared, concurrent_runs) if shared else None
         )
+        self.islands: tuple[str, ...] = getattr(self.backend, "islands", ())
 
 
 def supported_choices() -> list[tuple[str, str]]:
@@ -192,10 +223,15 @@ def supported_choices() -> list[tuple[str, str]]:
     return choices
 
 
-def int8_unusable(model_path: str | os.PathLike[str], metadata: dict[str, str]) -> str | None:
-    """Why the int8 model beside `model_path` may not be served automatically, or None: its gate record in
-    MODEL.onnx names the quantized file it judged by its sha256, so a MODEL.int8.onnx replaced or quantized again
-    after the gate is not taken for the one that passed."""
+def reduced_unusable(model_path: str | os.PathLike[str], precision: str, metadata: dict[str, str]) -> str | None:
+    """Why the files a passed gate judged, beside `model_path`, may not be served as that precision, or None. The
+    record in MODEL.onnx names them by sha256, so a file replaced or made again after the gate is not taken for the
+    one that passed: int8 the quantized MODEL.int8.onnx; bf16 with float32 islands the MODEL.bf16-islands/ folder
+    (plain bf16 runs MODEL.onnx itself and needs nothing beside it)."""
+    if precision == "bf16":
+        return _islands_unusable(model_path, metadata) if bf16_islands(metadata) else None
+    if precision != "int8":
+        return None
     quantized = int8_model_path(model_path)
     if not quantized.is_file():
         return f"no quantized model {quantized.name} beside it"
@@ -208,14 +244,31 @@ def int8_unusable(model_path: str | os.PathLike[str], metadata: dict[str, str]) 
     return None
 
 
+def _islands_unusable(model_path: str | os.PathLike[str], metadata: dict[str, str]) -> str | None:
+    folder = islands_dir(model_path)
+    if not folder.is_dir():
+        return f"the float32 islands it passed with ({folder.name}/) are not beside it"
+    try:
+        digest = islands_sha256(folder)
+    except (OSError, ValueError, KeyError, TypeError) as error:
+        return f"{folder.name}/ is not a readable bf16-islands folder ({error})"
+    if digest != _recorded(metadata, "bf16").get("islands_sha256"):
+        return f"{folder.name}/ is not the folder its bf16 gate judged (sha256 differs)"
+    return None
+
+
 def open_runner(
     model_path: str | os.PathLike[str],
     runtime: str,
     precision: str,
     threads: int | None = None,
     concurrent_runs: int = 1,
+    islands: bool | None = None,
 ) -> StreamRunner:
-    """One explicit (runtime, precision)."""
+    """One explicit (runtime, precision). OpenVINO bf16 runs as float32 islands and bf16 segments where `islands`
+    is True (the folder beside the model must be the one its bf16 gate judged, else a ValueError), plain where it is
+    False, and as the model's bf16 gate record says where None (plain, with a warning, if the recorded islands'
+    folder is missing or changed)."""
     wrong_kind = checkpoint_given_for_onnx(model_path)
     if wrong_kind:
         raise ValueError(wrong_kind)
@@ -228,8 +281,30 @@ def open_runner(
             import openvino  # noqa: F401
         except ImportError as error:
             raise ValueError("runtime openvino needs the `openvino` package (pip install 'rafd[serve]')") from error
-        return OpenVinoRunner(model_path, precision, threads, concurrent_runs)
+        return OpenVinoRunner(
+            model_path, precision, threads, concurrent_runs, _islands_folder(model_path, precision, islands)
+        )
     raise ValueError(f"runtime must be one of {RUNTIMES} or 'auto', got {runtime!r}")
+
+
+def _islands_folder(model_path: str | os.PathLike[str], precision: str, islands: bool | None) -> Path | None:
+    """The bf16-islands folder open_runner runs (None: plain)."""
+    if precision != "bf16" or islands is False:
+        return None
+    from rafd.runtime.openvino_backend import describe
+
+    metadata = describe(model_path)[0]
+    if not bf16_islands(metadata):
+        if islands:
+            raise ValueError(f"{model_path}'s bf16 gate record names no float32 islands (rafd gate {model_path})")
+        return None
+    unusable = _islands_unusable(model_path, metadata)
+    if unusable and islands:
+        raise ValueError(f"{model_path}: {unusable}")
+    if unusable:
+        log.warning("%s: %s; bf16 runs plain, without the islands its gate passed with", model_path, unusable)
+        return None
+    return islands_dir(model_path)
 
 
 def time_runner(runner: StreamRunner, repeats: int = 5, warmup: int = 2, seed: int = 0) -> float:
@@ -289,15 +364,19 @@ def create_runner(
         if precision == "auto" and metadata is not None and not gate_passed(metadata, candidate[1]):
             log.info("%s/%s not considered: no passed accuracy gate for this model in that precision", *candidate)
             continue
-        if candidate[1] == "int8" and metadata is not None and precision == "auto":
-            unusable = int8_unusable(model_path, metadata)
+        if candidate[1] != "fp32" and metadata is not None and precision == "auto":
+            unusable = reduced_unusable(model_path, candidate[1], metadata)
             if unusable:
-                log.info("openvino/int8 not considered: %s", unusable)
+                log.info("%s/%s not considered: %s", *candidate, unusable)
                 continue
         runner = open_runner(model_path, *candidate, threads, concurrent_runs)
         metadata = runner.metadata
         if precision == "auto" and not gate_passed(metadata, runner.precision):
             log.info("%s/%s not considered: no passed accuracy gate for this model in that precision", *candidate)
+            continue
+        unusable = reduced_unusable(model_path, candidate[1], metadata) if precision == "auto" else None
+        if unusable:  # the first candidate opened: its files were not checked before
+            log.info("%s/%s not considered: %s", *candidate, unusable)
             continue
         runners.append(runner)
     if not runners:

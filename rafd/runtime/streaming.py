@@ -210,7 +210,8 @@ class StreamRunner:
         return self.backend.threads
 
     def describe(self) -> dict[str, object]:
-        """How the graph runs: runtime, precision, threads of a lone run, concurrent runs and their threads."""
+        """How the graph runs: runtime, precision (with bf16's float32 islands, if any), threads of a lone run,
+        concurrent runs and their threads."""
         crowd = self.crowd or self.backend
         described: dict[str, object] = {
             "runtime": self.runtime,
@@ -219,6 +220,7 @@ class StreamRunner:
             "concurrent_runs": self.concurrent_runs,
             "threads_per_concurrent_run": crowd.threads,
             "selection_ms_per_run": dict(self.selection),
+            "float32_islands": list(getattr(self.backend, "islands", ())),
         }
         if self.precision_choice is not None:  # a runner create_runner chose (the service's)
             described["precision_choice"] = self.precision_choice

@@ -111,6 +111,29 @@ def test_the_command_records_this_cpus_verdicts(model_copy, capsys, monkeypatch)
     assert f"recorded in {model_copy}: " in out and "bf16 gate FAIL" in out
 
 
+def test_the_command_reports_the_islands_it_recorded_and_no_islands_turns_the_search_off(
+    model_copy, capsys, monkeypatch
+):
+    import export.gate
+    from export.gate_cli import main
+    from export.islands import write_islands
+    from rafd.model_files import islands_sha256
+
+    seen = []
+
+    def gates(onnx_path, options, log):
+        seen.append(options.islands)
+        report = _report(699, 1909, 10)
+        report.islands = ("/head/",)
+        report.islands_sha256 = islands_sha256(write_islands(onnx_path, report.islands))
+        return {"bf16": report}
+
+    monkeypatch.setattr(export.gate, "run_export_gates", gates)
+    assert main([str(model_copy), "--no-islands"]) == 0 and main([str(model_copy)]) == 0
+    assert seen == [False, True]
+    assert "bf16 gate PASS with float32 islands /head/ (model.bf16-islands/)" in capsys.readouterr().out
+
+
 def test_the_command_refuses_a_checkpoint_and_a_missing_file(tmp_path, capsys):
     from export.gate_cli import main
     from rafd.assets import default_checkpoint

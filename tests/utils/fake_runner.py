@@ -81,6 +81,7 @@ class FakeRunner:
             "concurrent_runs": 1,
             "threads_per_concurrent_run": 1,
             "selection_ms_per_run": {},
+            "float32_islands": [],
         }
 
     def step(self, state: FakeState, frame: np.ndarray, pose: np.ndarray) -> tuple[FakeStepResult, FakeState]:

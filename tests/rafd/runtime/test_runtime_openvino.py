@@ -43,6 +43,7 @@ def test_backends_share_the_interface_and_metadata(shipped_onnx):
         "concurrent_runs": 1,
         "threads_per_concurrent_run": 1,
         "selection_ms_per_run": {},
+        "float32_islands": [],
     }
 
 

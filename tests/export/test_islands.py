@@ -1,0 +1,142 @@
+"""bf16's float32 islands as graph segments (export/islands.py): every node in one segment of its precision, the
+segments chained equal to the whole graph, the folder and its digest."""
+
+from __future__ import annotations
+
+import json
+import shutil
+
+import numpy as np
+import pytest
+
+from export.islands import constant_values, module_scopes, segment_models, split, write_islands
+from rafd.model_files import ISLANDS_MANIFEST, islands_dir, islands_sha256
+
+onnx = pytest.importorskip("onnx")
+ort = pytest.importorskip("onnxruntime")
+
+SCOPES = ["/encoder/", "/flow/", "/propagation/", "/head/"]
+
+
+@pytest.fixture(scope="module")
+def shipped(tmp_path_factory):
+    from rafd.assets import default_onnx
+
+    try:
+        path = default_onnx()
+    except FileNotFoundError as error:
+        pytest.skip(f"the shipped model is not built: {error}")
+    return shutil.copy(path, tmp_path_factory.mktemp("islands") / "model.onnx")
+
+
+@pytest.fixture(scope="module")
+def proto(shipped):
+    return onnx.load(str(shipped))
+
+
+def _feeds(session):
+    rng = np.random.default_rng(0)
+    shape = lambda i: [d if isinstance(d, int) else 1 for d in i.shape]  # noqa: E731 (the free batch axis: 1)
+    return {i.name: rng.random(shape(i), dtype=np.float32) for i in session.get_inputs()}
+
+
+def test_the_candidate_islands_are_the_top_level_modules(proto):
+    assert module_scopes(proto) == SCOPES
+
+
+@pytest.mark.parametrize(
+    "islands, precisions",
+    [
+        (("/propagation/", "/head/"), ["bf16", "fp32"]),
+        (("/flow/",), ["bf16", "fp32", "bf16"]),
+        (("/encoder/", "/head/"), ["fp32", "bf16", "fp32"]),
+    ],
+)
+def test_every_node_lies_in_one_segment_of_its_precision(proto, islands, precisions):
+    segments = split(proto, islands)
+    assert [s.precision for s in segments] == precisions
+    placed = [i for s in segments for i in s.nodes]
+    constant = constant_values(proto)
+    not_constant = [i for i, node in enumerate(proto.graph.node) if not set(node.output) <= constant]
+    assert sorted(placed) == not_constant  # each once
+    for segment in segments:
+        for i in segment.nodes:
+            assert proto.graph.node[i].name.startswith(islands) == (segment.precision == "fp32")
+    produced = {name for s in segments for name in s.outputs}
+    assert {o.name for o in proto.graph.output} <= produced
+
+
+@pytest.mark.parametrize("islands", [("/propagation/", "/head/"), ("/flow/",), ("/encoder/", "/head/")])
+def test_the_segments_chained_give_the_whole_graphs_outputs(shipped, proto, islands):
+    whole = ort.InferenceSession(str(shipped), providers=["CPUExecutionProvider"])
+    feeds = _feeds(whole)
+    expected = dict(zip([o.name for o in whole.get_outputs()], whole.run(None, feeds)))
+    segments = split(proto, islands)
+    values = dict(feeds)
+    for segment, model in zip(segments, segment_models(proto, segments)):
+        assert [i.name for i in model.graph.input] == list(segment.inputs)
+        session = ort.InferenceSession(model.SerializeToString(), providers=["CPUExecutionProvider"])
+        values.update(
+            zip([o.name for o in session.get_outputs()], session.run(None, {n: values[n] for n in segment.inputs}))
+        )
+    for name, array in expected.items():
+        np.testing.assert_allclose(values[name], array, rtol=0, atol=1e-5, err_msg=name)
+
+
+def test_an_unknown_scope_is_refused_naming_the_graphs_scopes(proto):
+    with pytest.raises(ValueError, match=r"no module scope \['/neck/'\].*'/encoder/'"):
+        split(proto, ("/neck/",))
+
+
+def test_the_folder_holds_the_segments_and_its_digest_follows_them(shipped):
+    folder = write_islands(shipped, ("/propagation/", "/head/"))
+    assert folder == islands_dir(shipped) and folder.name == "model.bf16-islands"
+    assert folder.stat().st_mode & 0o777 == 0o755  # readable by a service running as another user
+    manifest = json.loads((folder / ISLANDS_MANIFEST).read_text())
+    assert manifest["islands"] == ["/propagation/", "/head/"]
+    assert [(e["file"], e["precision"]) for e in manifest["segments"]] == [
+        ("segment_0.onnx", "bf16"),
+        ("segment_1.onnx", "fp32"),
+    ]
+    assert sorted(p.name for p in folder.iterdir()) == sorted([ISLANDS_MANIFEST, "segment_0.onnx", "segment_1.onnx"])
+    digest = islands_sha256(folder)
+    assert digest == islands_sha256(folder)  # the same bytes, the same digest
+    with open(folder / "segment_1.onnx", "ab") as file:  # a segment changed after the gate
+        file.write(b"\0")
+    assert islands_sha256(folder) != digest
+    again = write_islands(shipped, ("/flow/",))  # a new set replaces the folder whole
+    assert json.loads((again / ISLANDS_MANIFEST).read_text())["islands"] == ["/flow/"]
+    assert sorted(p.name for p in again.iterdir()) == sorted(
+        [ISLANDS_MANIFEST] + [f"segment_{k}.onnx" for k in range(3)]
+    )
+    assert not [p for p in again.parent.iterdir() if p.name.startswith(".")]  # no temporary folder left
+
+
+def test_a_static_batch_graphs_segments_have_every_cut_shape_and_compile_in_openvino(tmp_path):
+    """onnx's shape inference leaves some cut values' dimensions unknown (the paper network's static-batch step);
+    OpenVINO's batch-1 compilation needs them, so the cuts' shapes are measured. Each segment of each single-island
+    split compiles (fp32: any CPU) and the chain equals the whole graph."""
+    pytest.importorskip("torch")
+    pytest.importorskip("openvino", reason="the serve extra installs openvino")
+    from export.onnx_export import export_onnx
+    from rafd.runtime.openvino_backend import OpenVinoBackend
+    from tests.utils.export_testing import make_checkpoint, small_config
+
+    model = tmp_path / "static.onnx"
+    export_onnx(make_checkpoint(tmp_path / "m.pt", small_config(4)), model, verify=False, log=lambda _: None)
+    proto = onnx.load(str(model))
+    whole = ort.InferenceSession(str(model), providers=["CPUExecutionProvider"])
+    feeds = _feeds(whole)
+    expected = dict(zip([o.name for o in whole.get_outputs()], whole.run(None, feeds)))
+    for scope in module_scopes(proto):
+        folder = write_islands(model, (scope,))
+        manifest = json.loads((folder / ISLANDS_MANIFEST).read_text())
+        values = dict(feeds)
+        for entry in manifest["segments"]:
+            segment = onnx.load(str(folder / entry["file"]))
+            for value in segment.graph.input:
+                assert all(d.HasField("dim_value") for d in value.type.tensor_type.shape.dim), (scope, value.name)
+            backend = OpenVinoBackend(folder / entry["file"], "fp32", threads=1)
+            values.update(backend.run({name: values[name] for name in entry["inputs"]}))
+        for name, array in expected.items():
+            np.testing.assert_allclose(values[name], array, rtol=0, atol=1e-4, err_msg=f"{scope} {name}")
