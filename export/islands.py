@@ -56,9 +56,10 @@ def split(proto: Any, islands: Iterable[str]) -> list[Segment]:
     segment that reads one gets its own copy, so a constant never crosses a cut (OpenVINO folds such a node and
     drops its name, so a segment could not return it)."""
     islands = tuple(islands)
-    unknown = sorted(set(islands) - set(module_scopes(proto)))
+    # a top-level scope (module_scopes) or any deeper one ("/encoder/neck/"): a prefix of some node's name
+    unknown = sorted(scope for scope in islands if not any(n.name.startswith(scope) for n in proto.graph.node))
     if unknown:
-        raise ValueError(f"no module scope {unknown} in this graph (its scopes: {module_scopes(proto)})")
+        raise ValueError(f"no module scope {unknown} in this graph (its top-level scopes: {module_scopes(proto)})")
     nodes = list(proto.graph.node)
     constant = constant_values(proto)
     available = {i.name for i in proto.graph.input} | {t.name for t in proto.graph.initializer} | constant | {""}

@@ -107,6 +107,8 @@ def precision_choice(
     allowed = [p for p in cpu if p == "fp32" or (records[p] == "pass" and not unusable.get(p))]
     runtime, precision = served
     serving = f"serving {runtime}/{precision}"
+    if precision == "bf16" and bf16_islands(metadata) and not reduced_unusable(model_path, "bf16", metadata):
+        serving += f" with float32 islands {', '.join(bf16_islands(metadata))}"  # as open_runner runs it
     if len(selection) > 1:
         others = ", ".join(f"{name} {ms:g} ms" for name, ms in selection.items() if name != f"{runtime}/{precision}")
         serving += f", the fastest timed at start-up ({selection[f'{runtime}/{precision}']:g} ms a run; {others})"

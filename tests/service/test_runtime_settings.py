@@ -88,3 +88,31 @@ def test_model_says_which_precisions_the_cpu_runs_and_why_it_serves_what_it_serv
         assert choice["cpu_precisions"] == ["fp32"]
         assert choice["reason"].startswith("this CPU runs no reduced precision")
     assert f"precision: {choice['reason']}" in caplog.text
+
+
+def test_bf16_with_float32_islands_is_served_and_named(tmp_path):
+    """A model whose bf16 gate passed with float32 islands: `auto` may pick them, `bf16` serves them, and GET /model
+    names the islands (where the CPU runs bf16)."""
+    pytest.importorskip("openvino")
+    onnx = pytest.importorskip("onnx")
+    from rafd.assets import default_onnx
+    from rafd.runtime.openvino_backend import openvino_supports_bf16
+    from tests.utils.islands_model import make_islands_model
+
+    if not openvino_supports_bf16():
+        pytest.skip("this CPU has no bf16 (avx512_bf16 or AMX): the islands cannot be served here")
+    proto = onnx.load(str(default_onnx()))
+    kept = [(p.key, p.value) for p in proto.metadata_props if not p.key.startswith("gate_")]
+    del proto.metadata_props[:]
+    for key, value in kept:
+        proto.metadata_props.add(key=key, value=value)
+    onnx.save(proto, str(tmp_path / "ungated.onnx"))
+    model = make_islands_model(tmp_path / "ungated.onnx", tmp_path / "m.onnx", ("/head/",))
+    settings = Settings(threads=1, runtime="openvino", precision="bf16", model_path=model)
+    with TestClient(create_app(settings)) as client:
+        wait_ready(client, timeout=60.0)
+        served = client.get("/model").json()["runtime"]
+        assert (served["precision"], served["float32_islands"]) == ("bf16", ["/head/"])
+        assert served["precision_choice"]["reason"] == (
+            "precision bf16 set by the operator: serving openvino/bf16 with float32 islands /head/"
+        )

@@ -11,40 +11,25 @@ import shutil
 import numpy as np
 import pytest
 
-from rafd.model_files import ISLANDS_MANIFEST, islands_dir, islands_sha256
+from rafd.model_files import ISLANDS_MANIFEST, islands_dir
 from rafd.runtime import OnnxRunner, create_runner, open_runner
 from rafd.runtime.runners import bf16_islands, precision_choice, reduced_unusable
 
 pytest.importorskip("openvino", reason="the serve extra installs openvino")
 onnx = pytest.importorskip("onnx")
-from export.islands import write_islands  # noqa: E402
 from rafd.runtime.openvino_backend import openvino_supports_bf16, runtime_precisions  # noqa: E402
 from rafd.runtime.openvino_islands import OpenVinoIslandsBackend, read_manifest  # noqa: E402
+from tests.utils.islands_model import islands_record, make_islands_model  # noqa: E402
 
 ISLANDS = ("/propagation/", "/head/")
 ALL = [("onnxruntime", "fp32"), ("openvino", "bf16"), ("openvino", "fp32")]
 needs_bf16 = pytest.mark.skipif(not openvino_supports_bf16(), reason="this CPU has no bf16 (avx512_bf16 or AMX)")
 
 
-def _islands_record(islands: tuple[str, ...], digest: str | None) -> dict[str, str]:
-    pooled = {"frames": 699, "reference_detections": 1909, "candidate_detections": 1909}
-    figures = {"candidate": "openvino/bf16", "figures": {"all": pooled}, "islands": list(islands)}
-    if digest is not None:
-        figures["islands_sha256"] = digest
-    return {"gate_bf16": "pass", "gate_bf16_figures": json.dumps(figures)}
-
-
 @pytest.fixture
 def islands_model(ungated_onnx, tmp_path):
     """The shipped model with a passed bf16 record naming islands /propagation/, /head/ and their folder beside it."""
-    model = tmp_path / "model.onnx"
-    shutil.copy(ungated_onnx, model)
-    folder = write_islands(model, ISLANDS)
-    proto = onnx.load(str(model))
-    for key, value in _islands_record(ISLANDS, islands_sha256(folder)).items():
-        proto.metadata_props.add(key=key, value=value)
-    onnx.save(proto, str(model))
-    return model
+    return make_islands_model(ungated_onnx, tmp_path / "model.onnx", ISLANDS)
 
 
 def _metadata(model) -> dict[str, str]:
@@ -52,7 +37,7 @@ def _metadata(model) -> dict[str, str]:
 
 
 def test_the_record_names_the_islands_and_plain_records_name_none():
-    assert bf16_islands(_islands_record(ISLANDS, "0" * 64)) == ISLANDS
+    assert bf16_islands(islands_record(ISLANDS, "0" * 64)) == ISLANDS
     assert bf16_islands({}) == () and bf16_islands({"gate_bf16_figures": "not json"}) == ()
     assert reduced_unusable("m.onnx", "bf16", {"gate_bf16": "pass", "gate_bf16_figures": "{}"}) is None  # plain
 
