@@ -116,7 +116,7 @@ class ModelBench:
     threads: int
     repeats: int
     report: Report
-    # module scopes kept in float32 in an extra bf16 row (export/islands.py; "" none): bf16 with float32 islands
+    # module scopes kept in float32 in an extra row, bf16 with float32 islands (export/islands.py; () for none)
     islands: tuple[str, ...] = ()
     inputs: list[np.ndarray] = field(default_factory=list)  # model inputs [S, S] float32, window frames first
     poses: np.ndarray = field(default_factory=lambda: np.zeros((0, 3)))  # their true world poses [N, 3]

@@ -554,12 +554,12 @@ def record_gates(
 
 def copy_islands(source: Path, target: Path) -> None:
     """Put a copy of the islands folder `source` in place of `target` (a temporary copy beside it, then a rename)."""
+    from export.islands import replace_dir
+
     work = target.with_name(f".{target.name}.{os.getpid()}.tmp")
     shutil.rmtree(work, ignore_errors=True)
     try:
         shutil.copytree(source, work)
-        if target.exists():
-            shutil.rmtree(target)
-        os.replace(work, target)
+        replace_dir(work, target)
     finally:
         shutil.rmtree(work, ignore_errors=True)

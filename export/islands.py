@@ -167,6 +167,13 @@ def cut_value_infos(proto: Any, inferred: Any, names: list[str]) -> dict[str, An
     return out
 
 
+def replace_dir(source: Path, target: Path) -> None:
+    """Move the folder `source` to `target`, in place of any folder there (both on one file system)."""
+    if target.exists():
+        shutil.rmtree(target)
+    os.replace(source, target)
+
+
 def write_islands(onnx_path: str | os.PathLike[str], islands: Iterable[str], folder: Path | None = None) -> Path:
     """Write MODEL.bf16-islands/ (or `folder`): the segments with `islands` in float32, and the manifest. Atomic:
     written into a temporary folder beside it, then put in place of any earlier one. Returns the folder."""
@@ -194,9 +201,7 @@ def write_islands(onnx_path: str | os.PathLike[str], islands: Iterable[str], fol
             )
         manifest = {"islands": list(islands), "segments": entries}
         (work / ISLANDS_MANIFEST).write_text(json.dumps(manifest, indent=1) + "\n")
-        if target.exists():
-            shutil.rmtree(target)
-        os.replace(work, target)
+        replace_dir(work, target)
     finally:
         shutil.rmtree(work, ignore_errors=True)
     return target

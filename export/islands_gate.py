@@ -14,14 +14,13 @@ from __future__ import annotations
 
 import dataclasses
 import math
-import os
 import shutil
 import tempfile
 from collections.abc import Callable
 from pathlib import Path
 
 from export.gate import GateOptions, GateReport, gate_model
-from export.islands import module_scopes, write_islands
+from export.islands import module_scopes, replace_dir, write_islands
 from rafd.model_files import islands_dir, islands_sha256
 
 SEARCH_SEED = 7200  # apart from the gate's (export.gate.DEFAULT_SEED), int8 calibration's and training's
@@ -106,9 +105,7 @@ def search_islands(
             log(f"islands search: {', '.join(chosen)} in float32: full gate {verdict}")
             if report.ok:
                 target = islands_dir(onnx_path)
-                if target.exists():
-                    shutil.rmtree(target)
-                os.replace(folder, target)
+                replace_dir(folder, target)
                 report.islands, report.islands_sha256 = chosen, islands_sha256(target)
                 report.search = trail
                 for line in report.lines():

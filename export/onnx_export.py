@@ -19,6 +19,7 @@ import torch
 import rafd
 from export import MIN_OPSET
 from export.gate import GateOptions, GateReport, gate_metadata, run_export_gates
+from export.islands import replace_dir
 from export.step import build_graph, example_inputs, feature_channels
 from export.verify import Report, verify_export
 from rafd.config import RaFDConfig
@@ -238,10 +239,7 @@ def export_onnx(
         if int8_model_path(tmp).is_file():
             os.replace(int8_model_path(tmp), int8_model_path(output))
         if "bf16" in gates and gates["bf16"].islands:
-            target = islands_dir(output)
-            if target.exists():
-                shutil.rmtree(target)
-            os.replace(islands_dir(tmp), target)
+            replace_dir(islands_dir(tmp), islands_dir(output))
     finally:
         tmp.unlink(missing_ok=True)
         int8_model_path(tmp).unlink(missing_ok=True)

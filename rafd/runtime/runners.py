@@ -107,8 +107,9 @@ def precision_choice(
     allowed = [p for p in cpu if p == "fp32" or (records[p] == "pass" and not unusable.get(p))]
     runtime, precision = served
     serving = f"serving {runtime}/{precision}"
-    if precision == "bf16" and bf16_islands(metadata) and not reduced_unusable(model_path, "bf16", metadata):
-        serving += f" with float32 islands {', '.join(bf16_islands(metadata))}"  # as open_runner runs it
+    islands = ", ".join(bf16_islands(metadata))
+    if precision == "bf16" and islands and records["bf16"] == "pass" and not unusable["bf16"]:
+        serving += f" with float32 islands {islands}"  # as open_runner runs it (a failed record names no islands)
     if len(selection) > 1:
         others = ", ".join(f"{name} {ms:g} ms" for name, ms in selection.items() if name != f"{runtime}/{precision}")
         serving += f", the fastest timed at start-up ({selection[f'{runtime}/{precision}']:g} ms a run; {others})"
@@ -131,8 +132,7 @@ def precision_choice(
                 parts.append(f"{p} capable, no gate record for this model")
             elif record == "pass" and unusable.get(p):
                 parts.append(f"{p} capable, gate passed{origin} but {unusable[p]}")
-            elif record == "pass" and p == "bf16" and bf16_islands(metadata):
-                islands = ", ".join(bf16_islands(metadata))
+            elif record == "pass" and p == "bf16" and islands:
                 parts.append(f"{p} capable, gate passed{origin} with float32 islands {islands}")
             elif record == "pass":
                 parts.append(f"{p} capable, gate passed{origin}")
