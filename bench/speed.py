@@ -116,8 +116,8 @@ class ModelBench:
     threads: int
     repeats: int
     report: Report
-    # module scopes kept in float32 in an extra row, bf16 with float32 islands (export/islands.py; () for none)
-    islands: tuple[str, ...] = ()
+    # sets of module scopes kept in float32, a row each: bf16 with float32 islands (export/islands.py; () for none)
+    islands: tuple[tuple[str, ...], ...] = ()
     inputs: list[np.ndarray] = field(default_factory=list)  # model inputs [S, S] float32, window frames first
     poses: np.ndarray = field(default_factory=lambda: np.zeros((0, 3)))  # their true world poses [N, 3]
 
@@ -172,12 +172,12 @@ class ModelBench:
 
             quantize_model(step_onnx)  # within this stage (MODEL_STAGES counts the stages)
         runners = {f"{r}/{p}": open_runner(step_onnx, r, p, self.threads, islands=False) for r, p in choices}
-        if self.islands and ("openvino", "bf16") in choices:
+        for k, islands in enumerate(self.islands if ("openvino", "bf16") in choices else ()):
             from export.islands import write_islands
             from rafd.runtime import OpenVinoRunner
 
-            folder = write_islands(step_onnx, self.islands)
-            key = f"openvino/bf16, float32 islands {' '.join(self.islands)}"
+            folder = write_islands(step_onnx, islands, step_onnx.with_name(f"{step_onnx.stem}.islands-{k}"))
+            key = f"openvino/bf16, float32 islands {' '.join(islands)}"
             runners[key] = OpenVinoRunner(step_onnx, "bf16", self.threads, islands=folder)
         states = {}
         for key, runner in runners.items():  # past the warm-up: every timed step is a steady-state frame
@@ -283,7 +283,7 @@ def bench_model(
     peaks: dict[str, float],
     report: Report,
     stages: Stages | None = None,
-    islands: tuple[str, ...] = (),
+    islands: tuple[tuple[str, ...], ...] = (),
 ) -> dict[str, Any]:
     """PyTorch window, ORT window, the streaming step on every runtime, concurrency and the gate -> rows + facts
     (MODEL_STAGES stages, the gate's included, on `stages`)."""

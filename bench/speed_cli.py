@@ -51,10 +51,12 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--repeats", type=int, default=20, help="timed calls per model path (default %(default)s)")
     parser.add_argument(
         "--islands",
-        default="",
+        action="append",
+        default=[],
         metavar="SCOPES",
         help="also time OpenVINO bf16 with these module scopes kept in float32 (comma list, e.g. "
-        "/propagation/,/head/; export/islands.py), where the CPU runs bf16",
+        "/propagation/,/head/ or '/flow/*,/head/heatmap/'; export/islands.py), where the CPU runs bf16; "
+        "repeatable, a row per set",
     )
     parser.add_argument(
         "--concurrency-frames",
@@ -200,7 +202,7 @@ def main(argv: Sequence[str] | None = None) -> int:
                 peaks,
                 report,
                 stages,
-                tuple(scope for scope in args.islands.split(",") if scope),
+                tuple(tuple(scope for scope in scopes.split(",") if scope) for scopes in args.islands),
             )
             if not args.no_http:
                 for choice in http_runtimes:

@@ -10,6 +10,7 @@ import argparse
 import sys
 
 from export import MIN_OPSET
+from export.gate_cli import add_gate_flags
 from rafd.cli import flags
 
 
@@ -60,39 +61,12 @@ def build_parser() -> argparse.ArgumentParser:
         "ONNX metadata (the service picks bf16 automatically only after a pass)",
     )
     gate.add_argument("--gate", action="store_true", help="run the accuracy gate (step form)")
-    gate.add_argument("--gate-sequences", type=_positive, default=12, help="simulated sequences (default %(default)s)")
-    gate.add_argument(
-        "--gate-sequence-frames",
-        dest="gate_frames",
-        type=_positive,
-        default=60,
-        metavar="N",
-        help="frames per simulated sequence (default %(default)s)",
-    )
-    gate.add_argument(
-        "--no-islands",
-        dest="islands",
-        action="store_false",
-        help="where plain bf16 fails its gate, do not search for float32 islands that pass (the search runs short "
-        "gates of each module added to the islands so far, and the full gate where one comes close)",
-    )
-    gate.add_argument(
-        "--gate-seed",
-        type=int,
-        default=None,
-        help="simulation seed; must be one the model was never trained or tested on "
-        "(default: export.gate.DEFAULT_SEED)",
-    )
+    add_gate_flags(gate)
     flags.add_quiet(parser)
-    flags.deprecated(parser, "--gate-frames", "--gate-sequence-frames", "gate_frames", type=_positive, metavar="N")
+    flags.deprecated(
+        parser, "--gate-frames", "--gate-sequence-frames", "gate_frames", type=flags.positive_int, metavar="N"
+    )
     return parser
-
-
-def _positive(text: str) -> int:
-    value = int(text)
-    if value < 1:
-        raise argparse.ArgumentTypeError(f"must be >= 1, got {value}")
-    return value
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -102,6 +76,7 @@ def main(argv: list[str] | None = None) -> int:
         parser.error("give the ONNX file to write once: OUTPUT.onnx or --out MODEL.onnx")
     output = args.output or args.out
     flags.apply_quiet(args)
+    flags.exit_on_sigterm()  # a killed export removes its temporary files beside the output
     # Heavy imports (torch, onnx) after argument parsing: --help stays fast.
     from export.gate import DEFAULT_SEED, GateOptions
     from export.onnx_export import ExportError, export_onnx

@@ -15,18 +15,8 @@ from pathlib import Path
 from rafd.cli import flags
 
 
-def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(
-        prog=flags.prog("gate"),
-        description="Run the accuracy gate of every reduced precision this CPU runs (OpenVINO bf16 where the CPU has "
-        "avx512_bf16 or AMX; OpenVINO int8 where it has VNNI or AMX, on MODEL.int8.onnx, which this command "
-        "quantizes first, calibrated on other simulated sequences) against onnxruntime fp32 on held-out "
-        "simulated sequences and, with RAFD_RADIATE_SAMPLE, the real sample's frames; record each verdict and "
-        "its figures in the ONNX model's metadata (in place unless --out). The service picks a reduced "
-        "precision automatically only after a recorded pass.",
-    )
-    parser.add_argument("model", metavar="MODEL.onnx", type=Path, help="the exported ONNX model (step form)")
-    flags.add_out(parser, "MODEL.onnx", "write the gated model here instead of replacing MODEL.onnx", type=Path)
+def add_gate_flags(parser: argparse.ArgumentParser | argparse._ArgumentGroup) -> None:
+    """The gate's flags, shared by `rafd gate` and `rafd export --gate`."""
     parser.add_argument(
         "--gate-sequences", type=flags.positive_int, default=12, help="simulated sequences (default %(default)s)"
     )
@@ -42,8 +32,9 @@ def build_parser() -> argparse.ArgumentParser:
         "--no-islands",
         dest="islands",
         action="store_false",
-        help="where plain bf16 fails its gate, do not search for float32 islands that pass (the search runs short "
-        "gates of each module added to the islands so far, and the full gate where one comes close)",
+        help="where plain bf16 fails its gate, do not search for float32 islands that pass (the search keeps the "
+        "graph's matrix-free units in float32, runs short gates of each matrix unit added to the islands so far, "
+        "and the full gate where one comes close: export/islands_gate.py)",
     )
     parser.add_argument(
         "--gate-seed",
@@ -52,6 +43,21 @@ def build_parser() -> argparse.ArgumentParser:
         help="simulation seed; must be one the model was never trained or tested on "
         "(default: export.gate.DEFAULT_SEED)",
     )
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(
+        prog=flags.prog("gate"),
+        description="Run the accuracy gate of every reduced precision this CPU runs (OpenVINO bf16 where the CPU has "
+        "avx512_bf16 or AMX; OpenVINO int8 where it has VNNI or AMX, on MODEL.int8.onnx, which this command "
+        "quantizes first, calibrated on other simulated sequences) against onnxruntime fp32 on held-out "
+        "simulated sequences and, with RAFD_RADIATE_SAMPLE, the real sample's frames; record each verdict and "
+        "its figures in the ONNX model's metadata (in place unless --out). The service picks a reduced "
+        "precision automatically only after a recorded pass.",
+    )
+    parser.add_argument("model", metavar="MODEL.onnx", type=Path, help="the exported ONNX model (step form)")
+    flags.add_out(parser, "MODEL.onnx", "write the gated model here instead of replacing MODEL.onnx", type=Path)
+    add_gate_flags(parser)
     flags.add_threads(parser, None, "onnxruntime's and OpenVINO's threads per run (default: every usable core)")
     flags.add_quiet(parser)
     return parser
@@ -59,6 +65,7 @@ def build_parser() -> argparse.ArgumentParser:
 
 def main(argv: list[str] | None = None) -> int:
     parser, args = flags.parse(build_parser, argv)
+    flags.exit_on_sigterm()  # a killed gate removes its temporary models and islands folders
     from rafd.model_files import checkpoint_given_for_onnx, islands_dir
 
     if not args.model.is_file():

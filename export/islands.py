@@ -3,8 +3,9 @@ OpenVINO can compile the islands in float32 and the rest in bf16 (issue 41 item 
 
 Why segments and not per-node marks: OpenVINO 2026.4's CPU plugin does not honour the `precise_0` rt_info mark under
 bf16 (`rafd bench precision-marks`, docs/performance.md), so the only way to keep a node in float32 is to compile it in
-a float32 model. An island is a top-level module scope of the export's node names ("/propagation/", "/head/", ...):
-the units the gate can judge one by one (export/islands_gate.py chooses them by measurement).
+a float32 model. An island is a module scope of the export's node names: "/head/heatmap/" is every node under it,
+"/propagation/*" the nodes directly in it (the module's own arithmetic, not its layers'), "/*" those at the top. The
+search (export/islands_gate.py) judges the graph's units (search_units) by measurement.
 
 Written beside the model as MODEL.bf16-islands/ (rafd.model_files.islands_dir): segment_K.onnx per segment and
 segments.json, the manifest the runtime chains them by (rafd.runtime.openvino_islands).
@@ -45,8 +46,41 @@ def module_scopes(proto: Any) -> list[str]:
     return scopes
 
 
+# what bf16 speeds up (AMX tiles, avx512_bf16 dot products)
+MATRIX_OPS = frozenset({"Conv", "ConvTranspose", "MatMul", "Gemm"})
+
+
+def in_scope(name: str, island: str) -> bool:
+    """Whether the node `name` lies in the island: under "/a/b/", or directly in "/a/*" (the rest has no "/")."""
+    if island.endswith("/*"):
+        return name.startswith(island[:-1]) and "/" not in name[len(island) - 1 :]
+    return name.startswith(island)
+
+
+def unit_of(name: str) -> str | None:
+    """The search unit of a node name: the module two levels down it lies under ("/flow/match/"), or the scope it lies
+    directly in ("/flow/*", "/*"); None for an unnamed node (the exporter's constants and weight Identities)."""
+    if not name.startswith("/"):
+        return None
+    parts = name.split("/")[1:-1]  # the scopes, the op's own name dropped
+    return "/" + "/".join(parts[:2]) + "/" if len(parts) >= 2 else "/" + "".join(f"{p}/" for p in parts) + "*"
+
+
+def search_units(proto: Any) -> tuple[list[str], list[str]]:
+    """(matrix_free, matrix): the graph's units (unit_of) in graph order, parted by whether a unit holds a matrix
+    operation. bf16 gains nothing in the matrix-free ones, and they hold the poses, the sampling positions,
+    GridSample and the decode's top-k, where its rounding moves things most."""
+    constant = constant_values(proto)
+    units: dict[str, bool] = {}
+    for node in proto.graph.node:
+        unit = unit_of(node.name)
+        if unit is not None and not set(node.output) <= constant:
+            units[unit] = units.get(unit, False) or node.op_type in MATRIX_OPS
+    return [u for u, matrix in units.items() if not matrix], [u for u, matrix in units.items() if matrix]
+
+
 def _precision(node: Any, islands: tuple[str, ...]) -> str:
-    return "fp32" if node.name.startswith(islands) else "bf16"
+    return "fp32" if any(in_scope(node.name, island) for island in islands) else "bf16"
 
 
 def split(proto: Any, islands: Iterable[str]) -> list[Segment]:
@@ -56,10 +90,9 @@ def split(proto: Any, islands: Iterable[str]) -> list[Segment]:
     segment that reads one gets its own copy, so a constant never crosses a cut (OpenVINO folds such a node and
     drops its name, so a segment could not return it)."""
     islands = tuple(islands)
-    # a top-level scope (module_scopes) or any deeper one ("/encoder/neck/"): a prefix of some node's name
-    unknown = sorted(scope for scope in islands if not any(n.name.startswith(scope) for n in proto.graph.node))
+    unknown = sorted(scope for scope in islands if not any(in_scope(n.name, scope) for n in proto.graph.node))
     if unknown:
-        raise ValueError(f"no module scope {unknown} in this graph (its top-level scopes: {module_scopes(proto)})")
+        raise ValueError(f"no node in {unknown} in this graph (its top-level scopes: {module_scopes(proto)})")
     nodes = list(proto.graph.node)
     constant = constant_values(proto)
     available = {i.name for i in proto.graph.input} | {t.name for t in proto.graph.initializer} | constant | {""}

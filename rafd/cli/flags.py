@@ -19,6 +19,7 @@ group; using one prints a warning on stderr naming the new spelling, then acts l
 from __future__ import annotations
 
 import argparse
+import signal
 import sys
 import types
 import typing
@@ -295,6 +296,18 @@ def parse(
     args = parser.parse_args(argv)
     apply_quiet(args)
     return parser, args
+
+
+def exit_on_sigterm() -> None:
+    """SIGTERM (a `kill`, a container's stop) ends the command as SystemExit(143), so its `finally` blocks remove
+    the temporary files it writes beside models (Python's default for SIGTERM ends the process where it stands and
+    leaves them). For the commands that write such files (rafd export, rafd gate); the service keeps uvicorn's
+    graceful shutdown."""
+
+    def stop(signum: int, _frame: object) -> None:
+        raise SystemExit(128 + signum)
+
+    signal.signal(signal.SIGTERM, stop)
 
 
 # ----------------------------------------------------------------------------- value types

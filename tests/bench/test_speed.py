@@ -37,6 +37,8 @@ def test_bench_reports_every_runtime_side_by_side_and_writes_json(
                 "6",
                 "--islands",
                 "/head/",
+                "--islands",
+                "/flow/*,/head/heatmap/",
                 "--json",
                 str(out),
             ]
@@ -49,8 +51,9 @@ def test_bench_reports_every_runtime_side_by_side_and_writes_json(
         f"streaming step, {c}" for c in choices
     ]:
         assert f"| default | {path} |" in table
-    # bf16 with the head in float32 (export/islands.py), where the CPU runs bf16
-    islands = {"openvino/bf16, float32 islands /head/"} if "openvino/bf16" in choices else set()
+    # bf16 with float32 islands (export/islands.py), a row per set, where the CPU runs bf16
+    sets = ["/head/", "/flow/* /head/heatmap/"]
+    islands = {f"openvino/bf16, float32 islands {s}" for s in sets} if "openvino/bf16" in choices else set()
     for path in islands:
         assert f"| default | streaming step, {path} |" in table
     figures = json.loads(out.read_text())

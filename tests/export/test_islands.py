@@ -1,5 +1,5 @@
-"""bf16's float32 islands as graph segments (export/islands.py): every node in one segment of its precision, the
-segments chained equal to the whole graph, the folder and its digest."""
+"""bf16's float32 islands as graph segments (export/islands.py): the search's units, every node in one segment of its
+precision, the segments chained equal to the whole graph, the folder and its digest."""
 
 from __future__ import annotations
 
@@ -9,7 +9,17 @@ import shutil
 import numpy as np
 import pytest
 
-from export.islands import constant_values, module_scopes, segment_models, split, write_islands
+from export.islands import (
+    MATRIX_OPS,
+    constant_values,
+    in_scope,
+    module_scopes,
+    search_units,
+    segment_models,
+    split,
+    unit_of,
+    write_islands,
+)
 from rafd.model_files import ISLANDS_MANIFEST, islands_dir, islands_sha256
 
 onnx = pytest.importorskip("onnx")
@@ -40,8 +50,35 @@ def _feeds(session):
     return {i.name: rng.random(shape(i), dtype=np.float32) for i in session.get_inputs()}
 
 
-def test_the_candidate_islands_are_the_top_level_modules(proto):
+UNITS = ["/flow/*", "/head/heatmap/"]  # a scope's own nodes and a module under a scope
+
+
+def test_an_island_is_a_subtree_or_a_scopes_own_nodes():
+    assert in_scope("/flow/match/MatMul", "/flow/") and in_scope("/flow/Mul_3", "/flow/")
+    assert in_scope("/flow/Mul_3", "/flow/*") and not in_scope("/flow/match/MatMul", "/flow/*")
+    assert in_scope("/Gather_2", "/*") and not in_scope("/flow/Mul_3", "/*")
+    assert not in_scope("/flow_1/Mul", "/flow/") and not in_scope("Constant_7", "/*")
+    assert [unit_of(n) for n in ("/encoder/backbone/layer1/conv/Conv", "/flow/Mul", "/Gather_2", "Identity_3")] == [
+        "/encoder/backbone/",
+        "/flow/*",
+        "/*",
+        None,
+    ]
+
+
+def test_the_search_units_part_the_graph_by_matrix_work(proto):
     assert module_scopes(proto) == SCOPES
+    matrix_free, matrix = search_units(proto)
+    assert matrix_free == ["/encoder/normalise/", "/flow/*", "/*", "/propagation/*", "/head/*"]
+    assert matrix[:3] == ["/encoder/backbone/", "/encoder/neck/", "/encoder/enhancement/"]
+    assert matrix[3:5] == ["/flow/encode/", "/flow/match/"]
+    constant = constant_values(proto)
+    for node in proto.graph.node:
+        if set(node.output) <= constant:
+            continue
+        (unit,) = [u for u in matrix_free + matrix if in_scope(node.name, u)]  # every node in exactly one unit
+        assert unit in matrix or node.op_type not in MATRIX_OPS
+    assert all(any(in_scope(n.name, u) and n.op_type in MATRIX_OPS for n in proto.graph.node) for u in matrix)
 
 
 @pytest.mark.parametrize(
@@ -50,6 +87,7 @@ def test_the_candidate_islands_are_the_top_level_modules(proto):
         (("/propagation/", "/head/"), ["bf16", "fp32"]),
         (("/flow/",), ["bf16", "fp32", "bf16"]),
         (("/encoder/", "/head/"), ["fp32", "bf16", "fp32"]),
+        (tuple(UNITS), ["bf16", "fp32", "bf16", "fp32", "bf16"]),
     ],
 )
 def test_every_node_lies_in_one_segment_of_its_precision(proto, islands, precisions):
@@ -61,12 +99,13 @@ def test_every_node_lies_in_one_segment_of_its_precision(proto, islands, precisi
     assert sorted(placed) == not_constant  # each once
     for segment in segments:
         for i in segment.nodes:
-            assert proto.graph.node[i].name.startswith(islands) == (segment.precision == "fp32")
+            inside = any(in_scope(proto.graph.node[i].name, island) for island in islands)
+            assert inside == (segment.precision == "fp32")
     produced = {name for s in segments for name in s.outputs}
     assert {o.name for o in proto.graph.output} <= produced
 
 
-@pytest.mark.parametrize("islands", [("/propagation/", "/head/"), ("/flow/",), ("/encoder/", "/head/")])
+@pytest.mark.parametrize("islands", [("/propagation/", "/head/"), ("/flow/",), ("/encoder/", "/head/"), tuple(UNITS)])
 def test_the_segments_chained_give_the_whole_graphs_outputs(shipped, proto, islands):
     whole = ort.InferenceSession(str(shipped), providers=["CPUExecutionProvider"])
     feeds = _feeds(whole)
@@ -84,8 +123,10 @@ def test_the_segments_chained_give_the_whole_graphs_outputs(shipped, proto, isla
 
 
 def test_an_unknown_scope_is_refused_naming_the_graphs_scopes(proto):
-    with pytest.raises(ValueError, match=r"no module scope \['/neck/'\].*'/encoder/'"):
+    with pytest.raises(ValueError, match=r"no node in \['/neck/'\].*'/encoder/'"):
         split(proto, ("/neck/",))
+    with pytest.raises(ValueError, match=r"no node in \['/encoder/\*'\]"):  # the encoder has no nodes of its own
+        split(proto, ("/encoder/*",))
     deeper = sorted({"/".join(n.name.split("/")[:3]) + "/" for n in proto.graph.node if n.name.startswith("/encoder/")})
     segments = split(proto, (deeper[0],))  # a deeper scope is an island too
     assert "fp32" in [s.precision for s in segments]

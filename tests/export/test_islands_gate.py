@@ -1,6 +1,7 @@
-"""Choosing bf16's float32 islands by measurement (export/islands_gate.py): the ranking, the growing sets, the first
-that passes kept beside the model with its record, none kept when none passes; the search runs only where plain
-bf16 failed on enough evidence; the folder travels with the record (rafd gate --out, rafd export --gate)."""
+"""Choosing bf16's float32 islands by measurement (export/islands_gate.py): the ranking, the matrix-free units first,
+the growing sets of matrix units, the first that passes kept beside the model with its record, none kept when none
+passes; the search runs only where plain bf16 failed on enough evidence; the folder travels with the record (rafd
+gate --out, rafd export --gate)."""
 
 from __future__ import annotations
 
@@ -11,7 +12,8 @@ import pytest
 
 from export import gate as gate_module
 from export.gate import GateOptions, GateReport, GateThresholds, SourceFigures, gate_metadata, record_gates
-from export.islands_gate import SEARCH_SEED, excess, search_islands
+from export.islands import search_units
+from export.islands_gate import SEARCH_SEED, excess, perturbation, rank, search_islands
 from rafd.model_files import ISLANDS_MANIFEST, int8_model_path, islands_dir, islands_sha256
 from rafd.runtime.runners import bf16_islands, reduced_unusable
 
@@ -30,19 +32,27 @@ def model(tmp_path):
         pytest.skip(f"the shipped model is not built: {error}")
 
 
-def _report(changed: int, frames: int = 699, detections: int = 1909) -> GateReport:
+def _report(changed: int, frames: int = 699, detections: int = 1909, score: float | None = None) -> GateReport:
+    """A report with `changed` detections changed; the matched scores move by `score` (by default, as the flips
+    follow them, 1e-5 per changed detection over 0.001)."""
     figures = SourceFigures(frames=frames, reference_detections=detections, candidate_detections=detections)
     figures.changed = changed
-    figures.centre_shifts, figures.score_differences = [0.01] * (detections - changed), [0.001] * detections
+    score = 0.001 + 1e-5 * changed if score is None else score
+    figures.centre_shifts, figures.score_differences = [0.01] * (detections - changed), [score] * detections
     return GateReport("onnxruntime/fp32", "openvino/bf16", GateThresholds(), {"simulated": figures})
 
 
-class FakeGate:
-    """Changed detections by the islands a folder keeps in float32: the head matters most, then the propagation; the
-    full gate sees 30 more changes than the short one (other drives), so a set can pass short and fail full (2% of
-    1909 detections is the limit)."""
+MATRIX_FREE = ("/encoder/normalise/", "/flow/*", "/*", "/propagation/*", "/head/*")  # the shipped model's units
+HEATMAP, MATCH = "/head/heatmap/", "/flow/match/"
 
-    HELP = {"/head/": 300, "/propagation/": 200, "/flow/": 20, "/encoder/": 10}
+
+class FakeGate:
+    """Changed detections by the islands a folder keeps in float32: the matrix-free units together 200 fewer, the
+    heatmap 290, the matching 60, any other unit 1; the full gate sees 30 more changes than the short one (other
+    drives), so a set can pass short and fail full (2% of 1909 detections is the limit)."""
+
+    HELP = {HEATMAP: 290, MATCH: 60}
+    FREE_HELP = 200
 
     def __init__(self) -> None:
         self.calls: list[tuple[tuple[str, ...], int, int, int]] = []
@@ -50,7 +60,22 @@ class FakeGate:
     def __call__(self, onnx_path, folder, sequences, frames, seed, radiate):
         islands = tuple(json.loads((folder / ISLANDS_MANIFEST).read_text())["islands"])
         self.calls.append((islands, sequences, frames, seed))
-        return _report(max(0, 520 - sum(self.HELP[s] for s in islands)) + (30 if sequences == 12 else 0))
+        helped = sum(self.HELP.get(u, 1) for u in islands if u not in MATRIX_FREE) + self.FREE_HELP
+        return _report(max(0, 520 - helped) + (30 if sequences == 12 else 0))
+
+
+@pytest.fixture
+def manifests_only(monkeypatch):
+    """The search's folders as their manifests alone (export/islands.py's own tests write and check segments): a
+    search writes a folder per gate."""
+    import export.islands_gate
+
+    def write(onnx_path, islands, folder):
+        folder.mkdir(exist_ok=True)
+        (folder / ISLANDS_MANIFEST).write_text(json.dumps({"islands": list(islands), "segments": []}))
+        return folder
+
+    monkeypatch.setattr(export.islands_gate, "write_islands", write)
 
 
 def test_excess_sums_the_checks_over_their_limits_and_counts_broken_arithmetic_heavily():
@@ -60,26 +85,55 @@ def test_excess_sums_the_checks_over_their_limits_and_counts_broken_arithmetic_h
     assert excess(broken) >= 1e6
 
 
-def test_the_islands_grow_by_forward_selection_and_the_first_set_the_full_gate_passes_is_kept(model):
+def test_passing_short_gates_rank_first_by_movement_failing_ones_by_how_far_over():
+    passing_moved, passing_still = _report(30, score=0.004), _report(35, score=0.002)
+    far, farther = _report(300, score=0.001), _report(1400, score=0.001)  # 16% and 73% changed: fail
+    ranked = sorted([farther, passing_moved, far, passing_still], key=rank)
+    assert ranked == [passing_still, passing_moved, far, farther]
+
+
+def test_the_short_gates_rank_by_how_far_the_matched_detections_move(model, manifests_only):
+    """A short gate's flip counts are a handful of events; the matched quantiles over hundreds of detections are what
+    the search ranks by: the neck with 2 flips but scores moved 0.004 loses to the backbone with 6 flips and 0.002."""
+    assert perturbation(_report(6, score=0.002)) < perturbation(_report(2, score=0.004))
+    assert excess(_report(6, score=0.002)) > excess(_report(2, score=0.004))
+    movement = {"/encoder/backbone/": (6, 0.002), "/encoder/neck/": (2, 0.004)}
+    calls = []
+
+    def gate(onnx_path, folder, sequences, frames, seed, radiate):
+        islands = json.loads((folder / ISLANDS_MANIFEST).read_text())["islands"]
+        calls.append((islands, sequences))
+        added = [u for u in islands if u in movement]
+        changed, score = movement[added[0]] if added else (400, 0.01)
+        return _report(changed if sequences == 2 else 0, score=score)
+
+    report = search_islands(model, _report(520), OPTIONS, None, log=lambda _: None, gate=gate)
+    assert report.ok and "/encoder/backbone/" in report.islands and "/encoder/neck/" not in report.islands
+    assert [e["perturbation"] for e in report.search[:3]][1:] == [
+        round(perturbation(_report(400, score=0.01)), 3),
+        round(perturbation(_report(6, score=0.002)), 3),
+    ]
+
+
+def test_the_matrix_units_grow_by_forward_selection_and_the_first_set_the_full_gate_passes_is_kept(
+    model, manifests_only
+):
+    matrix_free, matrix = search_units(onnx.load(str(model), load_external_data=False))
+    assert tuple(matrix_free) == MATRIX_FREE and HEATMAP in matrix and MATCH in matrix
+    ordered = lambda *units: tuple(u for u in matrix_free + matrix if u in units)  # noqa: E731 (graph order)
     fake = FakeGate()
     report = search_islands(model, _report(520), OPTIONS, None, log=lambda _: None, gate=fake)
-    E, F, P, H = "/encoder/", "/flow/", "/propagation/", "/head/"
+    short, full = (2, 40, SEARCH_SEED), (12, 60, 7100)  # short gates on other drives than the gate's (its seed)
     assert fake.calls == [
-        ((E,), 2, 40, SEARCH_SEED),  # each scope alone, on other drives than the gate's
-        ((F,), 2, 40, SEARCH_SEED),
-        ((P,), 2, 40, SEARCH_SEED),
-        ((H,), 2, 40, SEARCH_SEED),  # the best, but 11.5% changed: grow without a full gate
-        ((E, H), 2, 40, SEARCH_SEED),
-        ((F, H), 2, 40, SEARCH_SEED),
-        ((P, H), 2, 40, SEARCH_SEED),  # passes its accuracy checks short ...
-        ((P, H), 12, 60, 7100),  # ... but not the full gate (the gate's seed)
-        ((E, P, H), 2, 40, SEARCH_SEED),
-        ((F, P, H), 2, 40, SEARCH_SEED),
-        ((F, P, H), 12, 60, 7100),  # passes
+        (MATRIX_FREE, *short),  # the matrix-free units alone: 320 changed
+        *[(ordered(*MATRIX_FREE, u), *short) for u in matrix],  # each matrix unit added: the heatmap is best
+        (ordered(*MATRIX_FREE, HEATMAP), *full),  # 30 changed short, 60 full: fails
+        *[(ordered(*MATRIX_FREE, HEATMAP, u), *short) for u in matrix if u != HEATMAP],
+        (ordered(*MATRIX_FREE, HEATMAP, MATCH), *full),  # 30 changed: passes
     ]
-    assert report.ok and report.islands == (F, P, H)
+    assert report.ok and report.islands == ordered(*MATRIX_FREE, HEATMAP, MATCH)
     folder = islands_dir(model)
-    assert json.loads((folder / ISLANDS_MANIFEST).read_text())["islands"] == [F, P, H]
+    assert tuple(json.loads((folder / ISLANDS_MANIFEST).read_text())["islands"]) == report.islands
     assert report.islands_sha256 == islands_sha256(folder)
     assert [(e["islands"], e["gate"], e["pass"]) for e in report.search][:1] == [([], "full", False)]
     assert [e["gate"] for e in report.search].count("full") == 3 and report.search[-1]["pass"] is True
@@ -87,14 +141,18 @@ def test_the_islands_grow_by_forward_selection_and_the_first_set_the_full_gate_p
     assert sorted(p.name for p in model.parent.iterdir()) == ["model.bf16-islands", "model.onnx"]  # nothing else left
 
 
-def test_when_no_set_short_of_the_whole_graph_passes_bf16_stays_failed(model):
+def test_when_no_set_short_of_all_the_matrix_work_passes_bf16_stays_failed(model, manifests_only):
     class Hopeless(FakeGate):
-        HELP = {"/head/": 3, "/propagation/": 2, "/flow/": 1, "/encoder/": 1}
+        HELP = {HEATMAP: 3}
+        FREE_HELP = 2
 
     fake = Hopeless()
     report = search_islands(model, _report(520), OPTIONS, None, log=lambda _: None, gate=fake)
     assert not report.ok and report.islands == () and report.islands_sha256 is None
-    assert len(report.search) == 1 + 4 + 3 + 2 and max(len(call[0]) for call in fake.calls) == 3  # never all four
+    _, matrix = search_units(onnx.load(str(model), load_external_data=False))
+    steps = range(len(matrix), 1, -1)  # the matrix units left to try at each step, never the last alone
+    assert len(report.search) == 1 + 1 + sum(steps) == 1 + len(fake.calls)
+    assert max(len(call[0]) for call in fake.calls) == len(MATRIX_FREE) + len(matrix) - 1  # never all of them
     assert all(call[1] == 2 for call in fake.calls)  # no short gate came close: no full gate ran
     assert not islands_dir(model).exists() and sorted(p.name for p in model.parent.iterdir()) == ["model.onnx"]
 
