@@ -15,9 +15,11 @@ area (outside it the scans are ignore regions), for rafd train / rafd eval.
 from __future__ import annotations
 
 import argparse
+import contextlib
 import json
 import os
 import sys
+from collections.abc import Iterator
 from pathlib import Path
 
 import cv2
@@ -102,29 +104,31 @@ def run_apply(args: argparse.Namespace) -> int:
     return 0
 
 
-def _labelled(sequence_dir: Path, labels: Path) -> RadarSequence:
+@contextlib.contextmanager
+def _labelled(sequence_dir: Path, labels: Path) -> Iterator[RadarSequence]:
     """The sequence read with `labels` as its annotations: a label file (JSON), or a folder of MVDNet label_2d files
-    (through a linked folder in a temporary place)."""
+    (through a linked folder in a temporary place, removed on leaving: the frames read their scans through it)."""
     import tempfile
 
-    work = Path(tempfile.mkdtemp(prefix="rafd-label-")) / sequence_dir.name
-    if labels.is_dir():
-        link_folder(sequence_dir, None, work, None)
-        os.symlink(labels.resolve(), work / MVDNET_LABELS)
-    else:
-        link_folder(sequence_dir, labels, work, None)
-    return read_sequence(work, estimate_poses=False)
+    with tempfile.TemporaryDirectory(prefix="rafd-label-") as tmp:
+        work = Path(tmp) / sequence_dir.name
+        if labels.is_dir():
+            link_folder(sequence_dir, None, work, None)
+            os.symlink(labels.resolve(), work / MVDNET_LABELS)
+        else:
+            link_folder(sequence_dir, labels, work, None)
+        yield read_sequence(work, estimate_poses=False)
 
 
 def run_render(args: argparse.Namespace) -> int:
-    sequence = _labelled(args.sequence, args.labels)
     args.out.mkdir(parents=True, exist_ok=True)
-    for frame in track(sequence.frames, desc="render", unit="scan"):
-        if not frame.objects:
-            continue
-        boxes = np.stack([o.box for o in frame.objects])
-        image = overview(frame.load(), [], boxes, [o.class_name for o in frame.objects], half_m=args.radius)
-        cv2.imwrite(str(args.out / f"{frame.number:06d}_labels.png"), image)
+    with _labelled(args.sequence, args.labels) as sequence:
+        for frame in track(sequence.frames, desc="render", unit="scan"):
+            if not frame.objects:
+                continue
+            boxes = np.stack([o.box for o in frame.objects])
+            image = overview(frame.load(), [], boxes, [o.class_name for o in frame.objects], half_m=args.radius)
+            cv2.imwrite(str(args.out / f"{frame.number:06d}_labels.png"), image)
     print(f"drew the labelled scans into {args.out}")
     return 0
 
@@ -174,16 +178,16 @@ def agreement(
 
 
 def run_compare(args: argparse.Namespace) -> int:
-    reference, candidate = _labelled(args.sequence, args.reference), _labelled(args.sequence, args.candidate)
-
     def boxes(sequence: RadarSequence, keep_ignore: bool) -> list[np.ndarray]:
         return [
             np.array([o.box for o in f.objects if (o.class_name == IGNORE_CLASS) == keep_ignore]).reshape(-1, 5)
             for f in sequence.frames
         ]
 
+    with _labelled(args.sequence, args.reference) as reference, _labelled(args.sequence, args.candidate) as candidate:
+        labelled = {name: (boxes(s, False), boxes(s, True)) for name, s in (("ref", reference), ("cand", candidate))}
     for distance in args.distance:
-        result = agreement(boxes(reference, False), boxes(candidate, False), boxes(candidate, True), distance)
+        result = agreement(labelled["ref"][0], labelled["cand"][0], labelled["cand"][1], distance)
         print(json.dumps(result))
     return 0
 

@@ -34,7 +34,14 @@ def test_propose_writes_an_overview_sheets_and_an_editable_box_list(folder: Path
     assert len(list(out.glob("000002_c*.png"))) == len(lines)
 
 
-def test_apply_compare_and_link(folder: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]):
+def test_apply_compare_and_link(
+    folder: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str], monkeypatch: pytest.MonkeyPatch
+):
+    import tempfile
+
+    scratch = tmp_path / "scratch"  # where compare and render link their labelled folders for a while
+    scratch.mkdir()
+    monkeypatch.setattr(tempfile, "tempdir", str(scratch))
     ours = tmp_path / "ours.txt"
     ours.write_text(
         f"{STAMPS[0]} 1 car 6.0 10.4 2.0 4.5 -30\n{STAMPS[1]} 1 car 6.5 11.3 2.0 4.5 -30\n"
@@ -53,6 +60,9 @@ def test_apply_compare_and_link(folder: Path, tmp_path: Path, capsys: pytest.Cap
     # theirs: frame 1 found (0.5 m), frame 2's car lies in our ignore region, frame 3's is missed; our frame-2 car extra
     assert (result["found"], result["in_ignore"], result["missed"], result["extra"]) == (1, 1, 1, 1)
     assert result["centre_distance_mean_m"] == pytest.approx(0.5, abs=0.01) and 0.5 < result["iou_mean"] <= 1.0
+    assert main(["render", str(folder), str(tmp_path / "ours.json"), "--out", str(tmp_path / "drawn"), "--quiet"]) == 0
+    assert len(list((tmp_path / "drawn").glob("*_labels.png"))) == 2
+    assert not list(scratch.iterdir())  # nothing left behind
     linked = tmp_path / "root" / "seq_train"
     assert (
         main(
