@@ -167,18 +167,26 @@ class ModelBench:
 
         frames_per_window = self.cfg.num_frames
         step_flops = count_step_flops(self.model, self.cfg)
+        from export.islands import write_islands
+        from export.quantize import calibrate, quantize_model
+        from rafd.runtime import OpenVinoRunner
+
+        calibration = None
         if ("openvino", "int8") in choices:  # int8 runs its own quantized graph, made as `rafd gate` makes it
-            from export.quantize import quantize_model
-
-            quantize_model(step_onnx)  # within this stage (MODEL_STAGES counts the stages)
+            folder = step_onnx.with_name(f"{step_onnx.stem}.calibration")
+            folder.mkdir(exist_ok=True)
+            calibration = calibrate(step_onnx, folder)  # within this stage (MODEL_STAGES counts the stages)
+            quantize_model(step_onnx, calibration=calibration)
         runners = {f"{r}/{p}": open_runner(step_onnx, r, p, self.threads, islands=False) for r, p in choices}
-        for k, islands in enumerate(self.islands if ("openvino", "bf16") in choices else ()):
-            from export.islands import write_islands
-            from rafd.runtime import OpenVinoRunner
-
-            folder = write_islands(step_onnx, islands, step_onnx.with_name(f"{step_onnx.stem}.islands-{k}"))
-            key = f"openvino/bf16, float32 islands {' '.join(islands)}"
-            runners[key] = OpenVinoRunner(step_onnx, "bf16", self.threads, islands=folder)
+        for k, islands in enumerate(self.islands):  # each set as bf16's islands and as int8's, where the CPU runs them
+            named = f"float32 islands {' '.join(islands)}"
+            if ("openvino", "bf16") in choices:
+                folder = write_islands(step_onnx, islands, step_onnx.with_name(f"{step_onnx.stem}.islands-{k}"))
+                runners[f"openvino/bf16, {named}"] = OpenVinoRunner(step_onnx, "bf16", self.threads, islands=folder)
+            if calibration is not None:
+                out = step_onnx.with_name(f"{step_onnx.stem}.islands-{k}.int8.onnx")
+                quantize_model(step_onnx, out, islands, calibration)
+                runners[f"openvino/int8, {named}"] = OpenVinoRunner(step_onnx, "int8", self.threads, quantized=out)
         states = {}
         for key, runner in runners.items():  # past the warm-up: every timed step is a steady-state frame
             state = runner.new_state()

@@ -54,9 +54,9 @@ def build_parser() -> argparse.ArgumentParser:
         action="append",
         default=[],
         metavar="SCOPES",
-        help="also time OpenVINO bf16 with these module scopes kept in float32 (comma list, e.g. "
-        "/propagation/,/head/ or '/flow/*,/head/heatmap/'; export/islands.py), where the CPU runs bf16; "
-        "repeatable, a row per set",
+        help="also time OpenVINO bf16 and int8 with these module scopes kept in float32 (comma list, e.g. "
+        "/propagation/,/head/ or '/flow/*,/head/heatmap/'; export/islands.py, export/quantize.py), where the CPU "
+        "runs bf16 / int8; repeatable, a row per set and precision",
     )
     parser.add_argument(
         "--concurrency-frames",

@@ -106,8 +106,8 @@ class GateReport:
     sources: dict[str, SourceFigures]
     # int8: the sha256 of the quantized file judged (MODEL.int8.onnx); the service serves that file only
     judged_sha256: str | None = None
-    # bf16 with float32 islands (export/islands_gate.py): the module scopes kept in float32 and the sha256 of the
-    # segments' folder judged (rafd.model_files.islands_sha256); () for plain bf16
+    # float32 islands (export/islands_gate.py): the units kept in float32, () for the plain precision; bf16's also
+    # the sha256 of the segments' folder judged (rafd.model_files.islands_sha256)
     islands: tuple[str, ...] = ()
     islands_sha256: str | None = None
     # the islands search that led here: one entry per gate it ran (islands, gate size, verdict, excess)
@@ -397,21 +397,32 @@ def gate_model(
     thresholds: GateThresholds = GateThresholds(),
     log: Callable[[str], None] = lambda _: None,
     islands: str | Path | None = None,
+    quantized: str | Path | None = None,
+    drives: dict[tuple[int, int, int], list[list[LabelledFrame]]] | None = None,
 ) -> GateReport:
     """The gate of one exported step graph: onnxruntime fp32 vs `candidate` (runtime, precision). bf16 is judged
-    plain, or as the segments of the bf16-islands folder `islands` (export/islands.py) when given."""
+    plain, or as the segments of the bf16-islands folder `islands` (export/islands.py) when given; int8 as
+    MODEL.int8.onnx beside the model, or the quantized model `quantized` when given. `drives`: simulated drives kept
+    by (sequences, frames, seed), read from and added to (a search gating many candidates on the same drives)."""
     from rafd.runtime import OnnxRunner, OpenVinoRunner, open_runner
 
     reference = OnnxRunner(onnx_path, threads)
     if islands is not None:
         other: StreamRunner = OpenVinoRunner(onnx_path, "bf16", threads, islands=islands)
+    elif quantized is not None:
+        other = OpenVinoRunner(onnx_path, "int8", threads, quantized=quantized)
     else:
         other = open_runner(onnx_path, *candidate, threads, islands=False)
     if reference.form != "step":
         raise ValueError(f"the gate streams the step form; {onnx_path} is a {reference.form!r} graph")
-    sources: dict[str, Iterator[list[LabelledFrame]]] = {
-        "simulated": simulated_sequences(reference.config, sequences, frames, seed)
-    }
+    key = (sequences, frames, seed)
+    if drives is None:
+        simulated = simulated_sequences(reference.config, *key)
+    else:
+        if key not in drives:
+            drives[key] = list(simulated_sequences(reference.config, *key))
+        simulated = iter(drives[key])
+    sources: dict[str, Iterator[list[LabelledFrame]]] = {"simulated": simulated}
     expected = {"simulated": sequences * frames}
     if radiate is not None:
         real = radiate_frames(radiate, reference.config)
@@ -431,7 +442,7 @@ class GateOptions:
     seed: int = DEFAULT_SEED
     threads: int | None = None
     thresholds: GateThresholds = GateThresholds()
-    # where plain bf16 fails: search for float32 islands that pass (export/islands_gate.py), trying each module scope
+    # where plain bf16 or int8 fails: search for float32 islands that pass (export/islands_gate.py), trying each unit
     # on a short gate of search_sequences x search_frames (other simulated drives than the gate's)
     islands: bool = True
     search_sequences: int = 2
@@ -455,35 +466,52 @@ def run_export_gates(
     sample = os.environ.get("RAFD_RADIATE_SAMPLE")
     radiate = sample if sample and Path(sample, "Navtech_Cartesian").is_dir() else None
     reports = {}
-    for candidate in reduced:
-        if candidate[1] == "int8":  # its own model: quantized (again) here, then judged
-            from export.quantize import quantize_model
-
-            quantized = quantize_model(onnx_path, log=log)
-            log(f"int8: wrote {quantized}")
-        report = gate_model(
-            onnx_path,
-            candidate,
-            options.sequences,
-            options.frames,
-            options.seed,
-            radiate,
-            options.threads,
-            options.thresholds,
-            log,
-        )
-        if candidate[1] == "int8":
-            from rafd.model_files import file_sha256
-
-            report.judged_sha256 = file_sha256(quantized)
-        for line in report.lines():
-            log(line)
-        if candidate[1] == "bf16" and not report.ok and report.too_little() is None and options.islands:
-            from export.islands_gate import search_islands
-
-            report = search_islands(onnx_path, report, options, radiate, log)
-        reports[candidate[1]] = report
+    with tempfile.TemporaryDirectory(prefix="rafd-calibration-") as scratch:
+        for candidate in reduced:
+            reports[candidate[1]] = _gate_precision(onnx_path, candidate, options, radiate, Path(scratch), log)
     return reports
+
+
+def _gate_precision(
+    onnx_path: str | Path,
+    candidate: tuple[str, str],
+    options: GateOptions,
+    radiate: str | None,
+    scratch: Path,
+    log: Callable[[str], None],
+) -> GateReport:
+    """One reduced precision's gate, with its islands search where the plain precision fails on enough evidence."""
+    calibration = None  # int8's: made once, for the plain model and every islands set
+    if candidate[1] == "int8":  # its own model: quantized (again) here, every matrix operation, then judged
+        from export.quantize import calibrate, quantize_model
+
+        calibration = calibrate(onnx_path, scratch, log=log)
+        quantized = quantize_model(onnx_path, calibration=calibration)
+        log(f"int8: wrote {quantized}")
+    report = gate_model(
+        onnx_path,
+        candidate,
+        options.sequences,
+        options.frames,
+        options.seed,
+        radiate,
+        options.threads,
+        options.thresholds,
+        log,
+    )
+    if candidate[1] == "int8":
+        from rafd.model_files import file_sha256
+
+        report.judged_sha256 = file_sha256(quantized)
+    for line in report.lines():
+        log(line)
+    if not report.ok and report.too_little() is None and options.islands:
+        from export.islands_gate import search_islands
+
+        report = search_islands(
+            onnx_path, report, options, radiate, log, precision=candidate[1], calibration=calibration
+        )
+    return report
 
 
 def gate_metadata(reports: dict[str, GateReport]) -> dict[str, str]:
@@ -506,7 +534,9 @@ def gate_metadata(reports: dict[str, GateReport]) -> dict[str, str]:
         out[f"gate_{precision}"] = "pass" if report.ok else "fail"
         judged: dict[str, Any] = {"int8_sha256": report.judged_sha256} if report.judged_sha256 else {}
         if report.islands:
-            judged.update(islands=list(report.islands), islands_sha256=report.islands_sha256)
+            judged["islands"] = list(report.islands)
+        if report.islands_sha256:
+            judged["islands_sha256"] = report.islands_sha256
         if report.search:
             judged["islands_search"] = report.search
         out[f"gate_{precision}_figures"] = json.dumps(

@@ -32,9 +32,9 @@ def add_gate_flags(parser: argparse.ArgumentParser | argparse._ArgumentGroup) ->
         "--no-islands",
         dest="islands",
         action="store_false",
-        help="where plain bf16 fails its gate, do not search for float32 islands that pass (the search keeps the "
-        "graph's matrix-free units in float32, runs short gates of each matrix unit added to the islands so far, "
-        "and the full gate where one comes close: export/islands_gate.py)",
+        help="where plain bf16 or int8 fails its gate, do not search for float32 islands that pass (the search "
+        "runs short gates of each matrix unit added to the islands so far, and the full gate where one comes close; "
+        "bf16 keeps the graph's matrix-free units in float32 from the start: export/islands_gate.py)",
     )
     parser.add_argument(
         "--gate-seed",
@@ -66,7 +66,7 @@ def build_parser() -> argparse.ArgumentParser:
 def main(argv: list[str] | None = None) -> int:
     parser, args = flags.parse(build_parser, argv)
     flags.exit_on_sigterm()  # a killed gate removes its temporary models and islands folders
-    from rafd.model_files import checkpoint_given_for_onnx, islands_dir
+    from rafd.model_files import checkpoint_given_for_onnx, int8_model_path, islands_dir
 
     if not args.model.is_file():
         print(f"{parser.prog}: error: {args.model} is not a file", file=sys.stderr)
@@ -94,9 +94,10 @@ def main(argv: list[str] | None = None) -> int:
         return 0
     target = args.out or args.model
     record_gates(args.model, reports, target)
+    beside = {"bf16": f"{islands_dir(target).name}/", "int8": int8_model_path(target).name}  # the islands' files
     verdicts = ", ".join(
         f"{precision} gate {'PASS' if r.ok else 'FAIL'}"
-        + (f" with float32 islands {', '.join(r.islands)} ({islands_dir(target).name}/)" if r.islands else "")
+        + (f" with float32 islands {', '.join(r.islands)} ({beside[precision]})" if r.islands else "")
         for precision, r in reports.items()
     )
     print(f"recorded in {target}: {verdicts} ({seconds:.0f} s)")

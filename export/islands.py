@@ -57,23 +57,26 @@ def in_scope(name: str, island: str) -> bool:
     return name.startswith(island)
 
 
-def unit_of(name: str) -> str | None:
-    """The search unit of a node name: the module two levels down it lies under ("/flow/match/"), or the scope it lies
-    directly in ("/flow/*", "/*"); None for an unnamed node (the exporter's constants and weight Identities)."""
+def unit_of(name: str, depth: int = 2) -> str | None:
+    """The search unit of a node name: the module `depth` levels down it lies under ("/flow/match/" at depth 2), or
+    the scope it lies directly in ("/flow/*", "/*"); None for an unnamed node (the exporter's constants and weight
+    Identities)."""
     if not name.startswith("/"):
         return None
     parts = name.split("/")[1:-1]  # the scopes, the op's own name dropped
-    return "/" + "/".join(parts[:2]) + "/" if len(parts) >= 2 else "/" + "".join(f"{p}/" for p in parts) + "*"
+    if len(parts) >= depth:
+        return "/" + "/".join(parts[:depth]) + "/"
+    return "/" + "".join(f"{p}/" for p in parts) + "*"
 
 
-def search_units(proto: Any) -> tuple[list[str], list[str]]:
-    """(matrix_free, matrix): the graph's units (unit_of) in graph order, parted by whether a unit holds a matrix
-    operation. bf16 gains nothing in the matrix-free ones, and they hold the poses, the sampling positions,
-    GridSample and the decode's top-k, where its rounding moves things most."""
+def search_units(proto: Any, depth: int = 2) -> tuple[list[str], list[str]]:
+    """(matrix_free, matrix): the graph's units (unit_of at `depth`) in graph order, parted by whether a unit holds a
+    matrix operation. Reduced precision gains nothing in the matrix-free ones, and they hold the poses, the sampling
+    positions, GridSample and the decode's top-k, where bf16's rounding moves things most."""
     constant = constant_values(proto)
     units: dict[str, bool] = {}
     for node in proto.graph.node:
-        unit = unit_of(node.name)
+        unit = unit_of(node.name, depth)
         if unit is not None and not set(node.output) <= constant:
             units[unit] = units.get(unit, False) or node.op_type in MATRIX_OPS
     return [u for u, matrix in units.items() if not matrix], [u for u, matrix in units.items() if matrix]

@@ -1,38 +1,102 @@
-"""Choosing bf16's float32 islands by measurement, where plain bf16 fails its accuracy gate (issue 41 item 2).
+"""Choosing float32 islands by measurement, where plain reduced precision fails its accuracy gate (issue 41 items 2
+and 3): bf16 with float32 islands (its graph cut into segments, export/islands.py) and int8 with float32 islands (its
+matrix operations in the islands left unquantized, export/quantize.py).
 
-The candidates are the graph's units (export/islands.search_units): each module two levels down ("/flow/match/") and
-each scope's own nodes ("/propagation/*"). The units without a matrix operation are float32 from the start: bf16
-speeds up nothing there, and they hold the poses, the sampling positions, GridSample and the decode's top-k, where
-its rounding moves things most. The matrix units grow by greedy forward selection: at each step every unit not yet
-chosen is tried, added to the islands so far, on a short gate of simulated drives apart from the gate's
-(SEARCH_SEED), and the best by `rank` joins: of those whose accuracy checks pass, the one that moves the matched
-detections least (`perturbation`: there a short gate's flip counts are a handful of events, its matched quantiles are
-not), else the one least over the limits (`excess`). The matrix-free units alone are tried first. When a set's short
-gate passes its accuracy checks, the full gate (the same as plain bf16's) judges it, and the first set the full gate
-passes is kept: as much of the graph's matrix work in bf16 as passes, among the sets the search tries. Every matrix
-unit in float32 is no bf16 at all, so the search stops one short of it. The passing set's segments stay beside the
-model (MODEL.bf16-islands/) and its record names them (GateReport.islands, islands_sha256); every gate the search ran
-is in the record too (GateReport.search).
+The candidates are the graph's units (export/islands.search_units): bf16's are each module two levels down
+("/flow/match/") and each scope's own nodes ("/propagation/*"); int8's one level deeper ("/encoder/backbone/stem/"),
+since its error gathers in single layers (on the shipped model the backbone's first convolution, which reads the
+radar image, moved the matched centres more than the rest of the backbone together). bf16's units without a matrix
+operation are float32 from the start: bf16 speeds up nothing there, and they hold the poses, the sampling positions,
+GridSample and the decode's top-k, where its rounding moves things most (int8 quantizes matrix operations only, so
+they are never int8). Every gate is first a short one, on simulated drives apart from the gate's (SEARCH_SEED), and
+its figures rank the candidates (`rank`: those whose accuracy checks pass first, by how far they move the matched
+detections, `perturbation`, since a short gate's flip counts are a handful of events; the rest by how far they are
+over the limits, `excess`); a set whose short gate passes its accuracy checks is judged by the full gate (the same
+as the plain precision's), and the first set the full gate passes is kept.
+
+bf16 grows its islands by greedy forward selection (_by_forward_selection): from the matrix-free units, at each step
+every matrix unit not yet chosen is tried, added to the islands so far, and the best joins. int8 ranks its units by
+sensitivity first (_by_sensitivity): each quantized alone, then quantized in that order, least sensitive first, as
+long as the short gate holds. Either keeps as much of the graph's matrix work in the reduced precision as passes,
+among the sets it tries; every matrix unit in float32 is no reduced precision at all, so neither goes that far. The
+passing set's files stay beside the model (bf16: MODEL.bf16-islands/; int8: MODEL.int8.onnx) and its record names the
+islands and the files' digest (GateReport.islands, islands_sha256 / judged_sha256); every gate the search ran is in
+the record too (GateReport.search).
 """
 
 from __future__ import annotations
 
 import dataclasses
 import math
+import os
 import shutil
 import tempfile
 from collections.abc import Callable
 from pathlib import Path
+from typing import Any
 
-from export.gate import GateOptions, GateReport, gate_model
+from export.gate import GateOptions, GateReport, LabelledFrame, gate_model
 from export.islands import replace_dir, search_units, write_islands
-from rafd.model_files import islands_dir, islands_sha256
+from export.quantize import Calibration
+from rafd.model_files import file_sha256, int8_model_path, islands_dir, islands_sha256
 
 SEARCH_SEED = 7200  # apart from the gate's (export.gate.DEFAULT_SEED), int8 calibration's and training's
 NOT_FINITE = 1e6  # the excess of a check whose figure is not finite (the arithmetic broke)
 
-# (onnx_path, islands folder, sequences, frames, seed, radiate) -> report: the gate of one islands set
+INT8_UNIT_DEPTH = 3  # int8's units: one level below bf16's (the module docstring says why)
+
+# (onnx_path, candidate, sequences, frames, seed, radiate) -> report: the gate of one islands set, its candidate a
+# bf16-islands folder or an int8 model
 IslandsGate = Callable[[Path, Path, int, int, int, "str | Path | None"], GateReport]
+
+
+class Bf16Islands:
+    """bf16's islands: the graph cut into segments (export/islands.py), the matrix-free units float32 from the
+    start."""
+
+    precision = "bf16"
+
+    def __init__(self, onnx_path: Path) -> None:
+        self.onnx_path = onnx_path
+
+    def units(self, proto: Any) -> tuple[list[str], list[str]]:
+        """(float32 from the start, the matrix units the search chooses among)."""
+        return search_units(proto)
+
+    def write(self, islands: tuple[str, ...], where: Path) -> Path:
+        return write_islands(self.onnx_path, islands, where)
+
+    def keep(self, candidate: Path, report: GateReport) -> None:
+        """Put the passing candidate beside the model and name it in the report."""
+        target = islands_dir(self.onnx_path)
+        replace_dir(candidate, target)
+        report.islands_sha256 = islands_sha256(target)
+
+
+class Int8Islands:
+    """int8's islands: the matrix operations in them left unquantized (export/quantize.py), from one calibration for
+    every set the search tries (made in the search's folder unless given)."""
+
+    precision = "int8"
+
+    def __init__(self, onnx_path: Path, calibration: Calibration | None = None) -> None:
+        self.onnx_path = onnx_path
+        self.calibration = calibration
+
+    def units(self, proto: Any) -> tuple[list[str], list[str]]:
+        return [], search_units(proto, INT8_UNIT_DEPTH)[1]
+
+    def write(self, islands: tuple[str, ...], where: Path) -> Path:
+        from export.quantize import calibrate, quantize_model
+
+        if self.calibration is None:
+            self.calibration = calibrate(self.onnx_path, where.parent)
+        return quantize_model(self.onnx_path, where.with_suffix(".int8.onnx"), islands, self.calibration)
+
+    def keep(self, candidate: Path, report: GateReport) -> None:
+        target = int8_model_path(self.onnx_path)
+        os.replace(candidate, target)
+        report.judged_sha256 = file_sha256(target)
 
 
 def excess(report: GateReport) -> float:
@@ -96,6 +160,54 @@ def _trail_entry(report: GateReport, islands: tuple[str, ...], size: str) -> dic
     }
 
 
+class _Search:
+    """One search's gates: the short gate of a set (SEARCH_SEED's drives) and the full one (the gate's), each
+    candidate written into the search's folder, every gate logged and kept in the trail."""
+
+    def __init__(
+        self,
+        onnx_path: Path,
+        form: Bf16Islands | Int8Islands,
+        judge: IslandsGate,
+        options: GateOptions,
+        radiate: str | Path | None,
+        log: Callable[[str], None],
+        work: Path,
+        order: list[str],
+    ) -> None:
+        self.onnx_path, self.form, self.judge, self.options = onnx_path, form, judge, options
+        self.radiate, self.log, self.work, self.order = radiate, log, work, order
+        self.trail: list[dict[str, object]] = []
+
+    def ordered(self, units: set[str] | list[str]) -> tuple[str, ...]:
+        """A set of units in one order (the graph's): every set is written alike."""
+        return tuple(u for u in self.order if u in units)
+
+    def short(self, islands: tuple[str, ...]) -> GateReport:
+        candidate = self.form.write(islands, self.work / "short")
+        sequences, frames = self.options.search_sequences, self.options.search_frames
+        report = self.judge(self.onnx_path, candidate, sequences, frames, SEARCH_SEED, None)
+        self.trail.append(_trail_entry(report, islands, "short"))
+        self.log(
+            f"{self.form.precision} islands search: {', '.join(islands)} in float32: short gate perturbation "
+            f"{perturbation(report):.3g}, excess {excess(report):.3g}"
+        )
+        return report
+
+    def full(self, islands: tuple[str, ...]) -> GateReport:
+        """The full gate of a set; its candidate is kept beside the model when it passes."""
+        candidate = self.form.write(islands, self.work / "full")
+        options = self.options
+        report = self.judge(self.onnx_path, candidate, options.sequences, options.frames, options.seed, self.radiate)
+        self.trail.append(_trail_entry(report, islands, "full"))
+        verdict = "PASS" if report.ok else f"FAIL ({failing(report)})"
+        self.log(f"{self.form.precision} islands search: {', '.join(islands)} in float32: full gate {verdict}")
+        if report.ok:
+            self.form.keep(candidate, report)
+            report.islands = islands
+        return report
+
+
 def search_islands(
     onnx_path: str | Path,
     plain: GateReport,
@@ -103,78 +215,107 @@ def search_islands(
     radiate: str | Path | None,
     log: Callable[[str], None] = print,
     gate: IslandsGate | None = None,
+    precision: str = "bf16",
+    calibration: Calibration | None = None,
 ) -> GateReport:
-    """The report to record for bf16 after plain bf16 failed (`plain`): the first islands set that passes, its
-    folder moved beside the model, or `plain` with the search's trail when none passes."""
+    """The report to record for `precision` ("bf16" or "int8") after its plain form failed (`plain`): the first
+    islands set that passes, its files moved beside the model, or `plain` with the search's trail when none passes.
+    `calibration`: int8's (export.quantize.calibrate), when the caller has made it already."""
     import onnx
 
     onnx_path = Path(onnx_path)
-    judge = gate or _gate_islands(options)
-    matrix_free, matrix = search_units(onnx.load(str(onnx_path), load_external_data=False))
-    order = matrix_free + matrix  # every set written in one order
-
-    def ordered(units: set[str]) -> tuple[str, ...]:
-        return tuple(u for u in order if u in units)
-
-    def short_gate(islands: tuple[str, ...]) -> GateReport:
-        folder = write_islands(onnx_path, islands, work / "short")
-        report = judge(onnx_path, folder, options.search_sequences, options.search_frames, SEARCH_SEED, None)
-        trail.append(_trail_entry(report, islands, "short"))
-        log(
-            f"islands search: {', '.join(islands)} in float32: short gate perturbation {perturbation(report):.3g}, "
-            f"excess {excess(report):.3g}"
-        )
-        return report
-
-    trail = [_trail_entry(plain, (), "full")]
+    form: Bf16Islands | Int8Islands = (
+        Int8Islands(onnx_path, calibration) if precision == "int8" else Bf16Islands(onnx_path)
+    )
+    start, matrix = form.units(onnx.load(str(onnx_path), load_external_data=False))
     work = Path(tempfile.mkdtemp(dir=onnx_path.parent, prefix=f".{onnx_path.name}.islands-"))
+    judge = gate or _gate_islands(options, precision)
+    search = _Search(onnx_path, form, judge, options, radiate, log, work, start + matrix)
+    search.trail.append(_trail_entry(plain, (), "full"))
     try:
-        chosen = ordered(set(matrix_free))
-        short = short_gate(chosen) if matrix_free else None
-        while True:
-            if short is not None and accuracy_ok(short):
-                folder = write_islands(onnx_path, chosen, work / "full")
-                report = judge(onnx_path, folder, options.sequences, options.frames, options.seed, radiate)
-                trail.append(_trail_entry(report, chosen, "full"))
-                verdict = "PASS" if report.ok else f"FAIL ({failing(report)})"
-                log(f"islands search: {', '.join(chosen)} in float32: full gate {verdict}")
-                if report.ok:
-                    target = islands_dir(onnx_path)
-                    replace_dir(folder, target)
-                    report.islands, report.islands_sha256 = chosen, islands_sha256(target)
-                    report.search = trail
-                    for line in report.lines():
-                        log(line)
-                    return report
-            remaining = [u for u in matrix if u not in chosen]
-            if len(remaining) <= 1:
-                break  # the last matrix unit in float32 too would leave no bf16
-            tried = []
-            for k, unit in enumerate(remaining):
-                islands = ordered({*chosen, unit})
-                report = short_gate(islands)
-                tried.append((rank(report), k, islands, report))
-            *_, chosen, short = min(tried, key=lambda t: t[:2])
+        int8 = precision == "int8"
+        passed = _by_sensitivity(search, matrix) if int8 else _by_forward_selection(search, start, matrix)
     finally:
         shutil.rmtree(work, ignore_errors=True)
-    log("islands search: no set of float32 islands short of all the matrix work passed; bf16 stays failed")
-    return dataclasses.replace(plain, search=trail)
+    if passed is None:
+        log(
+            f"{precision} islands search: no set of float32 islands short of all the matrix work passed; "
+            f"{precision} stays failed"
+        )
+        return dataclasses.replace(plain, search=search.trail)
+    passed.search = search.trail
+    for line in passed.lines():
+        log(line)
+    return passed
 
 
-def _gate_islands(options: GateOptions) -> IslandsGate:
+def _by_forward_selection(search: _Search, start: list[str], matrix: list[str]) -> GateReport | None:
+    """bf16's search: the islands grow from `start` by greedy forward selection over the matrix units (the module
+    docstring); the first set the full gate passes, or None."""
+    chosen = search.ordered(start)
+    short = search.short(chosen) if start else None
+    while True:
+        if short is not None and accuracy_ok(short):
+            report = search.full(chosen)
+            if report.ok:
+                return report
+        remaining = [u for u in matrix if u not in chosen]
+        if len(remaining) <= 1:
+            return None  # the last matrix unit in float32 too would leave no reduced precision
+        tried = []
+        for k, unit in enumerate(remaining):
+            islands = search.ordered({*chosen, unit})
+            report = search.short(islands)
+            tried.append((rank(report), k, islands, report))
+        *_, chosen, short = min(tried, key=lambda t: t[:2])
+
+
+def _by_sensitivity(search: _Search, matrix: list[str]) -> GateReport | None:
+    """int8's search, sensitivity first: each matrix unit quantized alone (a short gate each) ranks the units by
+    how far int8 there moves the outputs (`rank`); then, least sensitive first, each unit is quantized on top of
+    those kept while the short gate's accuracy checks still pass; the full gate judges the set, and while it fails
+    the unit quantized last returns to float32. The first set the full gate passes, or None.
+
+    Why not bf16's forward selection: int8's error is spread over many layers, each adding a little, so with every
+    unit quantized no single unit returned to float32 brings a short gate near passing, and the greedy steps
+    wander (measured on the shipped model: five steps of 15-19 short gates each without one passing); the damage
+    of a unit quantized alone separates the units cleanly (the backbone's stem and the heatmap head against the
+    rest)."""
+    alone = {u: search.short(search.ordered([v for v in matrix if v != u])) for u in matrix}
+    order = sorted(matrix, key=lambda u: (rank(alone[u]), matrix.index(u)))
+    quantized: list[str] = []
+    for unit in order:
+        report = alone[unit] if not quantized else search.short(search.ordered(set(matrix) - {*quantized, unit}))
+        if accuracy_ok(report):
+            quantized.append(unit)
+    while quantized:
+        report = search.full(search.ordered(set(matrix) - set(quantized)))
+        if report.ok:
+            return report
+        quantized.pop()  # the most sensitive unit quantized returns to float32
+    return None
+
+
+def _gate_islands(options: GateOptions, precision: str) -> IslandsGate:
+    # The short gates' drives are simulated once and kept for every candidate (a few dozen frames); the full gate's
+    # are many more, simulated each time it runs.
+    short_drives: dict[tuple[int, int, int], list[list[LabelledFrame]]] = {}
+
     def judge(
-        onnx_path: Path, folder: Path, sequences: int, frames: int, seed: int, radiate: str | Path | None
+        onnx_path: Path, candidate: Path, sequences: int, frames: int, seed: int, radiate: str | Path | None
     ) -> GateReport:
         return gate_model(
             onnx_path,
-            ("openvino", "bf16"),
+            ("openvino", precision),
             sequences,
             frames,
             seed,
             radiate,
             options.threads,
             options.thresholds,
-            islands=folder,
+            islands=candidate if precision == "bf16" else None,
+            quantized=candidate if precision == "int8" else None,
+            drives=short_drives if seed == SEARCH_SEED else None,
         )
 
     return judge

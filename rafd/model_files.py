@@ -57,6 +57,10 @@ def int8_model_path(path: str | os.PathLike[str]) -> Path:
     return model.with_name(model.name.removesuffix(".onnx") + ".int8.onnx")
 
 
+# The metadata entry of a quantized model naming the units it keeps in float32 (a JSON list; export/quantize.py).
+FLOAT32_ISLANDS_KEY = "float32_islands"
+
+
 def file_sha256(path: str | os.PathLike[str]) -> str:
     """The hex sha256 of a file's bytes (a checkpoint, a model), read in 1 MiB blocks."""
     digest = hashlib.sha256()

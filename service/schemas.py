@@ -263,8 +263,8 @@ class RuntimeOut(Answer):
     )
     float32_islands: list[str] = Field(
         default_factory=list,
-        description="bf16 served with these module scopes kept in float32 (the islands its gate passed with); "
-        "empty for plain bf16 and every other precision",
+        description="bf16 or int8 served with these units kept in float32 (the islands its gate passed with); "
+        "empty for plain bf16, int8 with every matrix operation quantized, and fp32",
     )
 
 

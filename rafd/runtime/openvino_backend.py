@@ -12,14 +12,16 @@ against.
 
 from __future__ import annotations
 
+import json
 import os
 import queue
+import threading
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
-from rafd.model_files import int8_model_path
+from rafd.model_files import FLOAT32_ISLANDS_KEY, int8_model_path
 from rafd.runtime.backend import DYNAMIC
 
 # The inference precision hint per precision: int8 is in the quantized graph itself, the rest of it runs in float32.
@@ -83,8 +85,15 @@ class OpenVinoBackend:
     runtime = "openvino"
 
     def __init__(
-        self, model_path: str | os.PathLike[str], precision: str, threads: int, concurrent_runs: int = 1
+        self,
+        model_path: str | os.PathLike[str],
+        precision: str,
+        threads: int,
+        concurrent_runs: int = 1,
+        quantized: str | os.PathLike[str] | None = None,
     ) -> None:
+        """`quantized`: the int8 model to run (default MODEL.int8.onnx beside it; the gate's islands search judges
+        candidates kept elsewhere)."""
         import openvino as ov
 
         path = Path(model_path)
@@ -99,14 +108,18 @@ class OpenVinoBackend:
         self.threads, self.concurrent_runs = int(threads), int(concurrent_runs)
         model = _read(core, path)
         self.metadata = _metadata(model)
+        if quantized is not None and precision != "int8":
+            raise ValueError(f"a quantized model is run as precision int8, not {precision!r}")
         if precision == "int8":
-            quantized = int8_model_path(path)
+            quantized = Path(quantized) if quantized is not None else int8_model_path(path)
             if not quantized.is_file():
                 raise FileNotFoundError(
                     f"precision int8 serves the quantized {quantized}, which does not exist (`rafd gate {path}` "
                     "writes it on a CPU with int8 units)"
                 )
             model = _read(core, quantized)
+        # the units the quantized file keeps in float32 (export/quantize.py records them in it); () for the rest
+        self.islands: tuple[str, ...] = tuple(json.loads(_metadata(model).get(FLOAT32_ISLANDS_KEY, "[]")))
         self.input_shapes = _input_shapes(model)
         self.output_names = tuple(o.get_any_name() for o in model.outputs)
         # The threads are shared by the streams: each of `concurrent_runs` streams gets threads // streams.
@@ -116,21 +129,36 @@ class OpenVinoBackend:
             "NUM_STREAMS": self.concurrent_runs,
             "INFERENCE_NUM_THREADS": self.threads * self.concurrent_runs,
         }
-        self.compiled = core.compile_model(model, "CPU", config)
-        # A graph with a free batch axis also gets a batch-1 compilation for single runs: OpenVINO's CPU plugin runs
-        # the static shape 1.3-1.4x faster (the shipped step, one thread, AMD EPYC Zen 4: fp32 15.9 against 22.4 ms,
-        # int8 12.3 against 18.7); batched runs (rafd.runtime.streaming.step_many) take the dynamic one.
-        self.single = self.compiled
+        # A graph with a free batch axis is compiled for batch 1, which single runs take: OpenVINO's CPU plugin runs
+        # the static shape 1.3-1.4x faster than the dynamic one (the shipped step, one thread, AMD EPYC Zen 4: fp32
+        # 15.9 against 22.4 ms, int8 12.3 against 18.7). The dynamic compilation is made by the first batched run
+        # (rafd.runtime.streaming.step_many; only with cross-stream batching on, RAFD_MAX_BATCH > 1), so a service or
+        # gate that never batches pays neither its compile time nor its memory.
+        self._dynamic: tuple[Any, Any, dict[str, Any]] | None = None  # (core, model, config) until compiled
+        self._batched: Any = None
+        self._compiling = threading.Lock()
         if any(DYNAMIC in shape for shape in self.input_shapes.values()):
             single = model.clone()
             single.reshape(
                 {name: [1 if d == DYNAMIC else d for d in shape] for name, shape in self.input_shapes.items()}
             )
             self.single = core.compile_model(single, "CPU", config)
-        compiled = self.compiled.get_property("INFERENCE_PRECISION_HINT").get_type_name()  # "bf16" / "f32"
+            self._dynamic = (core, model, config)
+        else:
+            self.single = self._batched = core.compile_model(model, "CPU", config)
+        compiled = self.single.get_property("INFERENCE_PRECISION_HINT").get_type_name()  # "bf16" / "f32"
         self.precision = "int8" if precision == "int8" else {"f32": "fp32"}.get(compiled, compiled)
         # idle openvino InferRequests (an untyped library), per compilation
         self._idle: dict[bool, queue.SimpleQueue[Any]] = {True: queue.SimpleQueue(), False: queue.SimpleQueue()}
+
+    def batched(self) -> Any:
+        """The compilation batched runs take (the dynamic one, compiled on first use)."""
+        with self._compiling:
+            if self._batched is None and self._dynamic is not None:
+                core, model, config = self._dynamic
+                self._batched = core.compile_model(model, "CPU", config)
+                self._dynamic = None
+            return self._batched
 
     def run(self, feeds: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
         single = all(len(value) == 1 for value in feeds.values())
@@ -138,7 +166,7 @@ class OpenVinoBackend:
         try:
             request = idle.get_nowait()
         except queue.Empty:
-            request = (self.single if single else self.compiled).create_infer_request()
+            request = (self.single if single else self.batched()).create_infer_request()
         try:
             # share_outputs=False (the default): the arrays are copies, not views of the request's buffers
             results = request.infer(feeds)

@@ -72,10 +72,11 @@ def _recorded(metadata: dict[str, str], precision: str) -> dict[str, Any]:
     return recorded if isinstance(recorded, dict) else {}
 
 
-def bf16_islands(metadata: dict[str, str]) -> tuple[str, ...]:
-    """The module scopes the bf16 gate record keeps in float32 (its "islands"; export/islands_gate.py), () for plain
-    bf16: the service serves bf16 as those islands' segments (MODEL.bf16-islands/) when the record names any."""
-    islands = _recorded(metadata, "bf16").get("islands") or []
+def recorded_islands(metadata: dict[str, str], precision: str = "bf16") -> tuple[str, ...]:
+    """The units a reduced precision's gate record keeps in float32 (its "islands"; export/islands_gate.py), () for
+    the plain precision: the service serves bf16 as those islands' segments (MODEL.bf16-islands/) when the record
+    names any; int8's are left unquantized in MODEL.int8.onnx, the file the record judged."""
+    islands = _recorded(metadata, precision).get("islands") or []
     return tuple(str(scope) for scope in islands) if isinstance(islands, list) else ()
 
 
@@ -107,9 +108,10 @@ def precision_choice(
     allowed = [p for p in cpu if p == "fp32" or (records[p] == "pass" and not unusable.get(p))]
     runtime, precision = served
     serving = f"serving {runtime}/{precision}"
-    islands = ", ".join(bf16_islands(metadata))
-    if precision == "bf16" and islands and records["bf16"] == "pass" and not unusable["bf16"]:
-        serving += f" with float32 islands {islands}"  # as open_runner runs it (a failed record names no islands)
+    islands = {p: ", ".join(recorded_islands(metadata, p)) for p in records}
+    if precision in islands and islands[precision] and records[precision] == "pass" and not unusable[precision]:
+        # as open_runner runs it (a failed record names no islands)
+        serving += f" with float32 islands {islands[precision]}"
     if len(selection) > 1:
         others = ", ".join(f"{name} {ms:g} ms" for name, ms in selection.items() if name != f"{runtime}/{precision}")
         serving += f", the fastest timed at start-up ({selection[f'{runtime}/{precision}']:g} ms a run; {others})"
@@ -132,8 +134,8 @@ def precision_choice(
                 parts.append(f"{p} capable, no gate record for this model")
             elif record == "pass" and unusable.get(p):
                 parts.append(f"{p} capable, gate passed{origin} but {unusable[p]}")
-            elif record == "pass" and p == "bf16" and islands:
-                parts.append(f"{p} capable, gate passed{origin} with float32 islands {islands}")
+            elif record == "pass" and islands[p]:
+                parts.append(f"{p} capable, gate passed{origin} with float32 islands {islands[p]}")
             elif record == "pass":
                 parts.append(f"{p} capable, gate passed{origin}")
             else:
@@ -177,7 +179,8 @@ class OnnxRunner(StreamRunner):
 class OpenVinoRunner(StreamRunner):
     """StreamRunner over OpenVINO's CPU plugin in `precision` ("bf16", "int8" or "fp32"); threads and concurrent runs
     as OnnxRunner (the overlapping runs use one compilation with concurrent_runs CPU streams). `islands`: a
-    bf16-islands folder (export/islands.py) to run bf16 as its segments, the islands in float32."""
+    bf16-islands folder (export/islands.py) to run bf16 as its segments, the islands in float32. `quantized`: the
+    int8 model to run instead of MODEL.int8.onnx. `islands` (the attribute): the units kept in float32, by either."""
 
     def __init__(
         self,
@@ -186,6 +189,7 @@ class OpenVinoRunner(StreamRunner):
         threads: int | None = None,
         concurrent_runs: int = 1,
         islands: str | os.PathLike[str] | None = None,
+        quantized: str | os.PathLike[str] | None = None,
     ) -> None:
         from rafd.runtime.openvino_backend import OpenVinoBackend
         from rafd.runtime.openvino_islands import OpenVinoIslandsBackend
@@ -198,7 +202,7 @@ class OpenVinoRunner(StreamRunner):
         def backend(threads: int, runs: int) -> OpenVinoBackend | OpenVinoIslandsBackend:
             if islands is not None:
                 return OpenVinoIslandsBackend(model_path, islands, threads, runs)
-            return OpenVinoBackend(model_path, precision, threads, runs)
+            return OpenVinoBackend(model_path, precision, threads, runs, quantized)
 
         super().__init__(
             backend(threads, 1 if shared else concurrent_runs), backend(shared, concurrent_runs) if shared else None
@@ -231,7 +235,7 @@ def reduced_unusable(model_path: str | os.PathLike[str], precision: str, metadat
     one that passed: int8 the quantized MODEL.int8.onnx; bf16 with float32 islands the MODEL.bf16-islands/ folder
     (plain bf16 runs MODEL.onnx itself and needs nothing beside it)."""
     if precision == "bf16":
-        return _islands_unusable(model_path, metadata) if bf16_islands(metadata) else None
+        return _islands_unusable(model_path, metadata) if recorded_islands(metadata) else None
     if precision != "int8":
         return None
     quantized = int8_model_path(model_path)
@@ -296,7 +300,7 @@ def _islands_folder(model_path: str | os.PathLike[str], precision: str, islands:
     from rafd.runtime.openvino_backend import describe
 
     metadata = describe(model_path)[0]
-    if not bf16_islands(metadata):
+    if not recorded_islands(metadata):
         if islands:
             raise ValueError(f"{model_path}'s bf16 gate record names no float32 islands (rafd gate {model_path})")
         return None

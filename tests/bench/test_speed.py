@@ -51,9 +51,12 @@ def test_bench_reports_every_runtime_side_by_side_and_writes_json(
         f"streaming step, {c}" for c in choices
     ]:
         assert f"| default | {path} |" in table
-    # bf16 with float32 islands (export/islands.py), a row per set, where the CPU runs bf16
+    # bf16 and int8 with float32 islands (export/islands.py, export/quantize.py), a row per set and precision, where
+    # the CPU runs them
     sets = ["/head/", "/flow/* /head/heatmap/"]
-    islands = {f"openvino/bf16, float32 islands {s}" for s in sets} if "openvino/bf16" in choices else set()
+    islands = {
+        f"openvino/{p}, float32 islands {s}" for s in sets for p in ("bf16", "int8") if f"openvino/{p}" in choices
+    }
     for path in islands:
         assert f"| default | streaming step, {path} |" in table
     figures = json.loads(out.read_text())

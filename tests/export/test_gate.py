@@ -98,14 +98,14 @@ def test_gate_runs_on_the_shipped_model_in_every_reduced_precision(shipped_onnx,
     gated on a quantized copy (calibrated briefly: its verdict is not what is tested)."""
     import shutil
 
-    from export.quantize import quantize_model
+    from export.quantize import calibrate, quantize_model
 
     reduced = [c for c in supported_choices() if c[1] != "fp32"]
     if not reduced:
         pytest.skip("this CPU runs no reduced precision (openvino with avx512_bf16 or AMX, or int8 units)")
     model = shutil.copy(shipped_onnx, tmp_path / "shipped.onnx")
     if ("openvino", "int8") in reduced:
-        quantize_model(model, sequences=1, frames=8)
+        quantize_model(model, calibration=calibrate(model, tmp_path, sequences=1, frames=8))
     for candidate in reduced:
         report = gate_model(model, candidate, sequences=1, frames=16, radiate=radiate_sample_or_none, threads=1)
         assert report.candidate == "/".join(candidate) and report.reference == "onnxruntime/fp32"
@@ -211,3 +211,19 @@ def test_gate_refuses_the_window_form(tmp_path):
     checkpoint = make_checkpoint(tmp_path / "model.pt", small_config(2))
     with pytest.raises(ExportError, match="step form"):
         export_onnx(checkpoint, tmp_path / "w.onnx", form="window", verify=False, gate=GateOptions())
+
+
+def test_kept_drives_are_simulated_once_and_judged_alike(shipped_onnx, monkeypatch):
+    """A search gates many candidates on the same short drives: kept in `drives`, they are simulated once."""
+    import export.gate
+
+    simulated = []
+    monkeypatch.setattr(
+        export.gate, "simulated_sequences", lambda *args: simulated.append(args) or simulated_sequences(*args)
+    )
+    drives: dict = {}
+    same = ("onnxruntime", "fp32")
+    first = gate_model(shipped_onnx, same, sequences=1, frames=8, seed=7200, threads=1, drives=drives)
+    second = gate_model(shipped_onnx, same, sequences=1, frames=8, seed=7200, threads=1, drives=drives)
+    assert len(simulated) == 1 and list(drives) == [(1, 8, 7200)] and len(drives[(1, 8, 7200)][0]) == 8
+    assert first.figures() == second.figures() and first.pooled.frames == 8 - 3

@@ -1,7 +1,7 @@
-"""Choosing bf16's float32 islands by measurement (export/islands_gate.py): the ranking, the matrix-free units first,
+"""Choosing float32 islands by measurement (export/islands_gate.py): the ranking, bf16's matrix-free units first,
 the growing sets of matrix units, the first that passes kept beside the model with its record, none kept when none
-passes; the search runs only where plain bf16 failed on enough evidence; the folder travels with the record (rafd
-gate --out, rafd export --gate)."""
+passes; int8's finer units and its quantized file; the search runs only where the plain precision failed on enough
+evidence; the files travel with the record (rafd gate --out, rafd export --gate)."""
 
 from __future__ import annotations
 
@@ -14,8 +14,8 @@ from export import gate as gate_module
 from export.gate import GateOptions, GateReport, GateThresholds, SourceFigures, gate_metadata, record_gates
 from export.islands import search_units
 from export.islands_gate import SEARCH_SEED, excess, perturbation, rank, search_islands
-from rafd.model_files import ISLANDS_MANIFEST, int8_model_path, islands_dir, islands_sha256
-from rafd.runtime.runners import bf16_islands, reduced_unusable
+from rafd.model_files import ISLANDS_MANIFEST, file_sha256, int8_model_path, islands_dir, islands_sha256
+from rafd.runtime.runners import recorded_islands, reduced_unusable
 
 onnx = pytest.importorskip("onnx")
 
@@ -157,20 +157,102 @@ def test_when_no_set_short_of_all_the_matrix_work_passes_bf16_stays_failed(model
     assert not islands_dir(model).exists() and sorted(p.name for p in model.parent.iterdir()) == ["model.onnx"]
 
 
+@pytest.mark.parametrize("precision", ["bf16", "int8"])
 @pytest.mark.parametrize("plain, searched", [(_report(520), True), (_report(0), False), (_report(5, frames=20), False)])
-def test_the_search_runs_only_where_plain_bf16_failed_on_enough_evidence(model, monkeypatch, plain, searched):
+def test_the_search_runs_only_where_the_plain_precision_failed_on_enough_evidence(
+    model, monkeypatch, fake_quantize, precision, plain, searched
+):
     import export.islands_gate
     import rafd.runtime
 
-    monkeypatch.setattr(rafd.runtime, "supported_choices", lambda: [("onnxruntime", "fp32"), ("openvino", "bf16")])
+    monkeypatch.setattr(rafd.runtime, "supported_choices", lambda: [("onnxruntime", "fp32"), ("openvino", precision)])
     monkeypatch.setattr(gate_module, "gate_model", lambda *args, **kwargs: plain)
     searches = []
-    monkeypatch.setattr(export.islands_gate, "search_islands", lambda *args, **kwargs: searches.append(args) or plain)
+    monkeypatch.setattr(export.islands_gate, "search_islands", lambda *args, **kwargs: searches.append(kwargs) or plain)
     gate_module.run_export_gates(model, OPTIONS, log=lambda _: None)
     assert bool(searches) is searched
+    if searched:  # int8's search quantizes with the calibration the plain model was quantized with
+        assert searches[0]["precision"] == precision
+        assert searches[0]["calibration"] == ("the calibration" if precision == "int8" else None)
+        assert fake_quantize == ([1] if precision == "int8" else [])
     searches.clear()
     gate_module.run_export_gates(model, GateOptions(islands=False), log=lambda _: None)  # --no-islands
     assert not searches
+
+
+INT8_STEM, INT8_HEATMAP, MATCH_INT8 = "/encoder/backbone/stem/", "/head/heatmap/net/", "/flow/match/*"
+
+
+@pytest.fixture
+def fake_quantize(monkeypatch):
+    """int8 candidates as JSON files naming their islands (tests/export/test_quantize.py quantizes for real); the
+    calibrations made, counted."""
+    import export.quantize
+
+    made = []
+
+    def quantize(onnx_path, out=None, islands=(), calibration=None, log=None):
+        assert calibration == "the calibration"
+        target = out or int8_model_path(onnx_path)
+        target.write_text(json.dumps(list(islands)))
+        return target
+
+    monkeypatch.setattr(export.quantize, "quantize_model", quantize)
+    monkeypatch.setattr(export.quantize, "calibrate", lambda *a, **k: made.append(1) or "the calibration")
+    return made
+
+
+def test_int8_quantizes_the_least_sensitive_units_first_and_the_passing_file_replaces_the_plain_one(
+    model, fake_quantize
+):
+    """int8's units lie a level below bf16's (the backbone's stem alone); each quantized alone ranks them; least
+    sensitive first, a unit joins the quantized set while the short gate's accuracy holds; the full gate returns the
+    last one joined to float32 while it fails; one calibration serves every set, and the passing set's file becomes
+    MODEL.int8.onnx, named in the record by its sha256."""
+    from export.islands_gate import INT8_UNIT_DEPTH
+
+    _, matrix = search_units(onnx.load(str(model), load_external_data=False), INT8_UNIT_DEPTH)
+    assert INT8_STEM in matrix and INT8_HEATMAP in matrix and "/encoder/backbone/" not in matrix
+    int8_model_path(model).write_text("the plain int8 model")
+    # detections changed per unit quantized (2% of 1909 is 38): the stem and the heatmap fail alone, the matching
+    # passes alone and with the rest on a short gate (17 + 20), not on the full one (5 more)
+    damage = {INT8_STEM: 200, INT8_HEATMAP: 290, MATCH_INT8: 20}
+    calls = []
+
+    def gate(onnx_path, candidate, sequences, frames, seed, radiate):
+        quantized = [u for u in matrix if u not in json.loads(candidate.read_text())]
+        calls.append((tuple(quantized), sequences))
+        return _report(sum(damage.get(u, 1) for u in quantized) + (5 if sequences == 12 else 0))
+
+    report = search_islands(model, _report(520), OPTIONS, None, log=lambda _: None, gate=gate, precision="int8")
+    ordered = lambda *units: tuple(u for u in matrix if u in units)  # noqa: E731 (graph order)
+    light = [u for u in matrix if u not in damage]
+    assert calls[: len(matrix)] == [((u,), 2) for u in matrix]  # each unit quantized alone
+    joined = [(ordered(*light[: k + 1]), 2) for k in range(1, len(light))]  # least sensitive first
+    tried = [(ordered(*light, MATCH_INT8), 2)] + [
+        (ordered(*light, MATCH_INT8, u), 2) for u in (INT8_STEM, INT8_HEATMAP)
+    ]
+    assert calls[len(matrix) :] == joined + tried + [(ordered(*light, MATCH_INT8), 12), (ordered(*light), 12)]
+    assert report.ok and report.islands == ordered(INT8_STEM, MATCH_INT8, INT8_HEATMAP)
+    assert json.loads(int8_model_path(model).read_text()) == list(report.islands)
+    assert report.judged_sha256 == file_sha256(int8_model_path(model)) and report.islands_sha256 is None
+    assert fake_quantize == [1]  # calibrated once
+    assert sorted(p.name for p in model.parent.iterdir()) == ["model.int8.onnx", "model.onnx"]
+    recorded = json.loads(gate_metadata({"int8": report})["gate_int8_figures"])
+    assert recorded["islands"] == list(report.islands) and recorded["int8_sha256"] == report.judged_sha256
+    assert "islands_sha256" not in recorded and [e["gate"] for e in recorded["islands_search"]].count("full") == 3
+
+
+def test_when_no_int8_set_passes_the_plain_int8_file_stays_the_judged_one(model, fake_quantize):
+    int8_model_path(model).write_text("the plain int8 model")
+    plain = _report(520)
+    plain.judged_sha256 = file_sha256(int8_model_path(model))
+    report = search_islands(
+        model, plain, OPTIONS, None, log=lambda _: None, gate=lambda *args: _report(520), precision="int8"
+    )
+    assert not report.ok and report.islands == () and report.judged_sha256 == plain.judged_sha256
+    assert int8_model_path(model).read_text() == "the plain int8 model"
+    assert sorted(p.name for p in model.parent.iterdir()) == ["model.int8.onnx", "model.onnx"]
 
 
 def test_the_record_names_the_islands_and_out_takes_their_folder(model, tmp_path):
@@ -183,7 +265,7 @@ def test_the_record_names_the_islands_and_out_takes_their_folder(model, tmp_path
     entries = gate_metadata({"bf16": report})
     recorded = json.loads(entries["gate_bf16_figures"])
     assert recorded["islands"] == ["/head/"] and recorded["islands_sha256"] == report.islands_sha256
-    assert recorded["islands_search"] == report.search and bf16_islands(entries) == ("/head/",)
+    assert recorded["islands_search"] == report.search and recorded_islands(entries) == ("/head/",)
     out = tmp_path / "elsewhere" / "gated.onnx"
     out.parent.mkdir()
     record_gates(model, {"bf16": report}, out)
@@ -214,7 +296,7 @@ def test_export_gate_puts_the_judged_files_beside_the_output(tmp_path, monkeypat
     output = tmp_path / "gated.onnx"
     assert main([str(checkpoint), str(output), "--no-verify", "--gate"]) == 0
     metadata = {p.key: p.value for p in onnx.load(str(output)).metadata_props}
-    assert bf16_islands(metadata) == ("/head/",) and reduced_unusable(output, "bf16", metadata) is None
+    assert recorded_islands(metadata) == ("/head/",) and reduced_unusable(output, "bf16", metadata) is None
     assert int8_model_path(output).is_file()
     assert sorted(p.name for p in tmp_path.iterdir()) == sorted(
         ["model.pt", "gated.onnx", "gated.int8.onnx", "gated.bf16-islands"]

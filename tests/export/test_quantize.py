@@ -1,10 +1,11 @@
-"""int8 quantization (export/quantize.py): MODEL.int8.onnx beside the model, only the encoder's convolutions and
-matrix products quantized (the sampling-position arithmetic, GridSample and the head stay float32), the model's
-metadata carried over without its gate records; OpenVINO serves it as precision int8 with the float model's
-metadata."""
+"""int8 quantization (export/quantize.py): MODEL.int8.onnx beside the model, every convolution and matrix product
+quantized but those in the float32 islands (the sampling-position arithmetic, GridSample and the decode are never
+quantized), the islands named in the file, the model's metadata carried over without its gate records; OpenVINO
+serves it as precision int8 with the float model's metadata and reports its islands."""
 
 from __future__ import annotations
 
+import json
 from pathlib import Path
 
 import numpy as np
@@ -15,19 +16,23 @@ from tests.utils.export_testing import make_checkpoint, small_config
 onnx = pytest.importorskip("onnx")
 
 
+ISLANDS = ("/head/", "/flow/match/")  # kept float32 in the quantized copy the tests read
+
+
 @pytest.fixture(scope="module")
 def quantized(tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, Path]:
     from export.onnx_export import export_onnx
-    from export.quantize import quantize_model
+    from export.quantize import calibrate, quantize_model
 
     folder = tmp_path_factory.mktemp("int8")
     model = folder / "m.onnx"
     export_onnx(make_checkpoint(folder / "m.pt", small_config(4)), model, verify=False)
-    return model, quantize_model(model, sequences=1, frames=8)
+    calibration = calibrate(model, tmp_path_factory.mktemp("calibration"), sequences=1, frames=8)
+    return model, quantize_model(model, islands=ISLANDS, calibration=calibration)
 
 
 def test_the_quantized_model_lies_beside_it_and_keeps_its_metadata_but_no_gate_record(quantized):
-    from rafd.model_files import int8_model_path
+    from rafd.model_files import FLOAT32_ISLANDS_KEY, int8_model_path
 
     model, path = quantized
     assert path == int8_model_path(model) == model.with_name("m.int8.onnx")
@@ -35,22 +40,53 @@ def test_the_quantized_model_lies_beside_it_and_keeps_its_metadata_but_no_gate_r
     carried = {p.key: p.value for p in onnx.load(str(path)).metadata_props}
     assert {k: v for k, v in original.items() if not k.startswith("gate_")}.items() <= carried.items()
     assert not any(key.startswith("gate_") for key in carried)
+    assert json.loads(carried[FLOAT32_ISLANDS_KEY]) == list(ISLANDS)
 
 
-def test_only_the_encoders_convolutions_and_matrix_products_are_quantized(quantized):
-    _, path = quantized
+def _int8_kernels(path: Path) -> list[str]:
+    """The names of the nodes that run as int8 kernels: their weights are int8 constants, dequantized."""
     graph = onnx.load(str(path)).graph
     producers = {output: node for node in graph.node for output in node.output}
     constants = {tensor.name for tensor in graph.initializer}
 
-    def int8_weights(node) -> bool:  # its weights are int8 constants, dequantized: it runs as an int8 kernel
+    def int8_weights(node) -> bool:
         weights = producers.get(node.input[1]) if len(node.input) > 1 else None
         return weights is not None and weights.op_type == "DequantizeLinear" and weights.input[0] in constants
 
-    quantized_ops = [n.name for n in graph.node if int8_weights(n)]
-    assert quantized_ops and all(name.startswith("/encoder/") for name in quantized_ops), quantized_ops
-    assert {n.op_type for n in graph.node if int8_weights(n)} <= {"Conv", "MatMul"}
-    assert not any(int8_weights(n) for n in graph.node if n.op_type == "GridSample" or n.name.startswith("/head/"))
+    return [n.name for n in graph.node if int8_weights(n)]
+
+
+def test_every_matrix_operation_outside_the_islands_is_quantized_and_nothing_else(quantized):
+    from export.islands import constant_values, in_scope
+
+    model, path = quantized
+    proto = onnx.load(str(model))
+    weights = constant_values(proto) | {t.name for t in proto.graph.initializer}
+    # the matrix operations with constant weights (a product of two activations has none to read as int8 here)
+    weighted = {n.name for n in proto.graph.node if n.op_type in ("Conv", "MatMul") and n.input[1] in weights}
+    outside = {name for name in weighted if not any(in_scope(name, island) for island in ISLANDS)}
+    # onnxruntime's pre-processing fuses a MatMul and its Add into a Gemm named ".../MatMul/MatMulAddFusion"
+    kernels = {name.removesuffix("/MatMulAddFusion") for name in _int8_kernels(path)}
+    assert kernels == outside and weighted - outside, sorted(kernels ^ outside)
+    assert any(name.startswith("/encoder/") for name in kernels) and any(name.startswith("/flow/") for name in kernels)
+
+
+def test_one_calibration_quantizes_any_set_as_a_fresh_one_would_and_only_its_own_model(quantized, tmp_path):
+    """The search quantizes many sets from one calibration (onnxruntime's cached ranges): the same file as one
+    calibrated afresh; a set that leaves nothing to quantize, or another model, is refused."""
+    import shutil
+
+    from export.quantize import calibrate, quantize_model
+
+    model, path = quantized
+    fresh = calibrate(model, tmp_path, sequences=1, frames=8)
+    again = quantize_model(model, tmp_path / "again.int8.onnx", ISLANDS, fresh)
+    assert onnx.load(str(again)) == onnx.load(str(path))
+    with pytest.raises(ValueError, match="nothing left to quantize"):
+        quantize_model(model, tmp_path / "none.int8.onnx", ("/",), fresh)
+    other = shutil.copy(model, tmp_path / "other.onnx")
+    with pytest.raises(ValueError, match="the calibration is .*m.onnx's, not .*other.onnx's"):
+        quantize_model(other, calibration=fresh)
 
 
 def test_openvino_serves_it_as_int8_with_the_float_models_metadata(quantized):
@@ -60,6 +96,7 @@ def test_openvino_serves_it_as_int8_with_the_float_models_metadata(quantized):
     model, _ = quantized
     int8 = open_runner(model, "openvino", "int8", threads=1)
     assert int8.precision == "int8" and int8.config == OnnxRunner(model, 1).config
+    assert int8.islands == ISLANDS and int8.describe()["float32_islands"] == list(ISLANDS)
     size = int8.config.input_size
     result, _ = int8.step(int8.new_state(), np.zeros((size, size), np.float32), np.zeros(3))
     assert result.frames_used == 1

@@ -13,7 +13,7 @@ import pytest
 
 from rafd.model_files import ISLANDS_MANIFEST, islands_dir
 from rafd.runtime import OnnxRunner, create_runner, open_runner
-from rafd.runtime.runners import bf16_islands, precision_choice, reduced_unusable
+from rafd.runtime.runners import precision_choice, recorded_islands, reduced_unusable
 
 pytest.importorskip("openvino", reason="the serve extra installs openvino")
 onnx = pytest.importorskip("onnx")
@@ -37,8 +37,8 @@ def _metadata(model) -> dict[str, str]:
 
 
 def test_the_record_names_the_islands_and_plain_records_name_none():
-    assert bf16_islands(islands_record(ISLANDS, "0" * 64)) == ISLANDS
-    assert bf16_islands({}) == () and bf16_islands({"gate_bf16_figures": "not json"}) == ()
+    assert recorded_islands(islands_record(ISLANDS, "0" * 64)) == ISLANDS
+    assert recorded_islands({}) == () and recorded_islands({"gate_bf16_figures": "not json"}) == ()
     assert reduced_unusable("m.onnx", "bf16", {"gate_bf16": "pass", "gate_bf16_figures": "{}"}) is None  # plain
 
 

@@ -110,9 +110,11 @@ def test_create_runner_reports_a_cpu_without_bf16(gated_onnx, monkeypatch):
 
 
 # ---------------------------------------------------------------- int8 (the quantized MODEL.int8.onnx beside it)
-def _int8_record(sha256: str) -> dict[str, str]:
+def _int8_record(sha256: str, islands: tuple[str, ...] = ()) -> dict[str, str]:
     pooled = {"frames": 699, "reference_detections": 1909, "candidate_detections": 1909}
     figures = {"candidate": "openvino/int8", "figures": {"all": pooled}, "int8_sha256": sha256}
+    if islands:
+        figures["islands"] = list(islands)
     return {"gate_int8": "pass", "gate_int8_figures": json.dumps(figures)}
 
 
@@ -152,3 +154,17 @@ def test_create_runner_does_not_consider_int8_without_its_judged_file(gated_onnx
         runner = create_runner(gated_onnx, "auto", "auto", threads=1, timer=lambda r: 0.01)
     assert (runner.runtime, runner.precision) == ("onnxruntime", "fp32")
     assert "openvino/int8 not considered: no quantized model" in caplog.text
+
+
+def test_int8_passed_with_float32_islands_says_so_where_it_serves_them(tmp_path):
+    model = tmp_path / "m.onnx"
+    quantized = tmp_path / "m.int8.onnx"
+    quantized.write_bytes(b"the judged file, its stem left float32")
+    record = _int8_record(file_sha256(quantized), ("/encoder/backbone/stem/", "/head/heatmap/net/"))
+    with_int8 = ALL + [("openvino", "int8")]
+    served = precision_choice(model, record, ("auto", "auto"), ("openvino", "int8"), {}, with_int8)
+    islands = "float32 islands /encoder/backbone/stem/, /head/heatmap/net/"
+    assert f"int8 capable, gate passed with {islands}" in served["reason"]
+    assert served["reason"].endswith(f"serving openvino/int8 with {islands}")
+    other = precision_choice(model, record, ("auto", "auto"), ("onnxruntime", "fp32"), {}, with_int8)
+    assert ": serving onnxruntime/fp32;" in other["reason"]  # the islands belong to int8 only
