@@ -91,7 +91,16 @@ def main(argv: Sequence[str] | None = None) -> int:
                 import urllib.request
 
                 with urllib.request.urlopen(f"{server.url}/model") as response:
-                    size = int(json.loads(response.read())["input_size"])
+                    described = json.loads(response.read())
+                size = int(described["input_size"])
+                runtime = described["runtime"]  # what the service chose to serve: the figures are that path's
+                served = f"{runtime['runtime']}/{runtime['precision']}"
+                report.setdefault("served", {})[config] = {
+                    "runtime": served,
+                    "float32_islands": runtime.get("float32_islands", []),
+                    "selection_ms_per_run": runtime.get("selection_ms_per_run", {}),
+                }
+                print(f"{config}: served as {served} (ms a run at start-up: {runtime.get('selection_ms_per_run')})")
                 for form in inputs:
                     frames = encode_frames(scans, None if form == "scans" else size)
                     with_poses = poses if form == "crops" else None
