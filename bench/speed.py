@@ -173,9 +173,7 @@ class ModelBench:
 
         calibration = None
         if ("openvino", "int8") in choices:  # int8 runs its own quantized graph, made as `rafd gate` makes it
-            folder = step_onnx.with_name(f"{step_onnx.stem}.calibration")
-            folder.mkdir(exist_ok=True)
-            calibration = calibrate(step_onnx, folder)  # within this stage (MODEL_STAGES counts the stages)
+            calibration = calibrate(step_onnx)  # within this stage (MODEL_STAGES counts the stages)
             quantize_model(step_onnx, calibration=calibration)
         runners = {f"{r}/{p}": open_runner(step_onnx, r, p, self.threads, islands=False) for r, p in choices}
         for k, islands in enumerate(self.islands):  # each set as bf16's islands and as int8's, where the CPU runs them

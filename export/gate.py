@@ -465,11 +465,7 @@ def run_export_gates(
         return {}
     sample = os.environ.get("RAFD_RADIATE_SAMPLE")
     radiate = sample if sample and Path(sample, "Navtech_Cartesian").is_dir() else None
-    reports = {}
-    with tempfile.TemporaryDirectory(prefix="rafd-calibration-") as scratch:
-        for candidate in reduced:
-            reports[candidate[1]] = _gate_precision(onnx_path, candidate, options, radiate, Path(scratch), log)
-    return reports
+    return {candidate[1]: _gate_precision(onnx_path, candidate, options, radiate, log) for candidate in reduced}
 
 
 def _gate_precision(
@@ -477,7 +473,6 @@ def _gate_precision(
     candidate: tuple[str, str],
     options: GateOptions,
     radiate: str | None,
-    scratch: Path,
     log: Callable[[str], None],
 ) -> GateReport:
     """One reduced precision's gate, with its islands search where the plain precision fails on enough evidence."""
@@ -485,7 +480,7 @@ def _gate_precision(
     if candidate[1] == "int8":  # its own model: quantized (again) here, every matrix operation, then judged
         from export.quantize import calibrate, quantize_model
 
-        calibration = calibrate(onnx_path, scratch, log=log)
+        calibration = calibrate(onnx_path, log=log)
         quantized = quantize_model(onnx_path, calibration=calibration)
         log(f"int8: wrote {quantized}")
     report = gate_model(

@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import json
 import os
+import re
 import shutil
 import tempfile
 from collections.abc import Iterable
@@ -55,6 +56,13 @@ def in_scope(name: str, island: str) -> bool:
     if island.endswith("/*"):
         return name.startswith(island[:-1]) and "/" not in name[len(island) - 1 :]
     return name.startswith(island)
+
+
+def scope_pattern(island: str) -> str:
+    """The regular expression matching the node names in_scope(name, island) accepts (NNCF's ignored scopes)."""
+    if island.endswith("/*"):
+        return "^" + re.escape(island[:-1]) + "[^/]*$"
+    return "^" + re.escape(island)
 
 
 def unit_of(name: str, depth: int = 2) -> str | None:

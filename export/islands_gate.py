@@ -75,7 +75,7 @@ class Bf16Islands:
 
 class Int8Islands:
     """int8's islands: the matrix operations in them left unquantized (export/quantize.py), from one calibration for
-    every set the search tries (made in the search's folder unless given)."""
+    every set the search tries (made here unless given)."""
 
     precision = "int8"
 
@@ -90,7 +90,7 @@ class Int8Islands:
         from export.quantize import calibrate, quantize_model
 
         if self.calibration is None:
-            self.calibration = calibrate(self.onnx_path, where.parent)
+            self.calibration = calibrate(self.onnx_path)
         return quantize_model(self.onnx_path, where.with_suffix(".int8.onnx"), islands, self.calibration)
 
     def keep(self, candidate: Path, report: GateReport) -> None:

@@ -1,23 +1,28 @@
 """int8 post-training quantization of an exported step graph: MODEL.onnx -> MODEL.int8.onnx, for CPUs with int8
 dot-product units (VNNI, AMX), served by OpenVINO behind its own accuracy gate (export/gate.py).
 
-onnxruntime's static quantization in the QDQ form (QuantizeLinear / DequantizeLinear pairs around each quantized
-operation, which OpenVINO fuses into its int8 kernels): only the convolutions and the matrix products are quantized
-(weights per output channel, int8; activations uint8), so everything else stays float32 - the sampling-position
-arithmetic of the flow-guided propagation (the flow scaled and added to the grid, the ego motion's rotation), the
-GridSample that reads the past features at those positions, the cost volume's softmax and the box decoding. Of the
-matrix operations, those in the float32 islands (units of export.islands.search_units, chosen by the gate's search
-where quantizing every one fails: export/islands_gate.py) stay float32 too; the file names them in its metadata
-(rafd.model_files.FLOAT32_ISLANDS_KEY). The activation ranges are calibrated on simulated sequences streamed through
-the float32 model (the step graph's inputs as the service feeds them, its state included), from a seed apart from
-the gate's: the gate then judges on data the calibration never saw.
+NNCF's static quantization (its ONNX backend: QuantizeLinear / DequantizeLinear pairs on the inputs of each
+quantized operation, placed as OpenVINO fuses them into its int8 kernels; weights per output channel, symmetric):
+only the convolutions and the matrix products are quantized, so everything else stays float32 - the
+sampling-position arithmetic of the flow-guided propagation (the flow scaled and added to the grid, the ego motion's
+rotation), the GridSample that reads the past features at those positions, the softmaxes and the box decoding. Of
+the matrix operations, those in the float32 islands (units of export.islands.search_units, chosen by the gate's
+search where quantizing every one fails: export/islands_gate.py) stay float32 too; the file names them in its
+metadata (rafd.model_files.FLOAT32_ISLANDS_KEY). Why NNCF and not onnxruntime's quantize_static: the same islands
+quantized by onnxruntime ran slower on OpenVINO than float32 (the paper network at 256 px, 2 threads, AMD EPYC Zen 4:
+343 against 312 ms), by NNCF 1.61x faster (205 against 329 ms): docs/performance.md "int8". The activation
+statistics come from simulated sequences streamed through the float32 model (the step graph's inputs as the service
+feeds them, its state included), from a seed apart from the gate's: the gate then judges on data the calibration
+never saw.
 """
 
 from __future__ import annotations
 
+import contextlib
+import io
 import json
-import tempfile
-from collections.abc import Callable
+import logging
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -25,12 +30,11 @@ from typing import Any
 import numpy as np
 
 from rafd.model_files import FLOAT32_ISLANDS_KEY, int8_model_path
+from rafd.progress import stage
 
 CALIBRATION_SEED = 7300  # not the gate's (export.gate.DEFAULT_SEED) nor a training or benchmark seed
 CALIBRATION_SEQUENCES, CALIBRATION_FRAMES = 4, 30  # simulated sequences streamed for the activation ranges
-# the rest of the graph stays float32 (the module docstring says why); Gemm: a MatMul and its Add, as onnxruntime's
-# pre-processing fuses them (the name keeps the MatMul's: ".../MatMul/MatMulAddFusion")
-QUANTIZED_OPS = ("Conv", "MatMul", "Gemm")
+QUANTIZED_OPS = ("Conv", "MatMul", "Gemm")  # the rest of the graph stays float32 (the module docstring says why)
 
 
 class _RecordingBackend:
@@ -83,64 +87,65 @@ def quantized_nodes(proto: Any, islands: tuple[str, ...]) -> list[str]:
 
 @dataclass(frozen=True)
 class Calibration:
-    """What quantizing any set of a model's matrix operations needs, made once (calibrate): the model prepared for
-    quantization (shapes inferred, constants folded) and its activation ranges (onnxruntime's calibration cache,
-    which covers every matrix operation's tensors: the ranges are the float model's, whatever is quantized)."""
+    """What quantizing any set of a model's islands needs, made once for every set a search tries: the model
+    prepared for quantization and its calibration inputs (calibration_feeds; the activation statistics are the float
+    model's, whatever is quantized)."""
 
     source: Path
-    prepared: Path
-    ranges: Path
+    prepared: Any  # onnx.ModelProto (an untyped library)
+    feeds: list[dict[str, np.ndarray]]
 
 
 def calibrate(
     onnx_path: str | Path,
-    folder: str | Path,
     sequences: int = CALIBRATION_SEQUENCES,
     frames: int = CALIBRATION_FRAMES,
     seed: int = CALIBRATION_SEED,
     log: Callable[[str], None] = lambda _: None,
 ) -> Calibration:
-    """Prepare `onnx_path` for quantization and calibrate its activation ranges on simulated sequences, into
-    `folder` (which the caller owns)."""
-    from onnxruntime.quantization.shape_inference import quant_pre_process
+    """Prepare `onnx_path` for quantization and stream it over simulated sequences, keeping its inputs."""
+    import onnx
 
-    folder = Path(folder)
     feeds = calibration_feeds(onnx_path, sequences, frames, seed)
-    calibration = Calibration(Path(onnx_path), folder / "prepared.onnx", folder / "ranges.json")
-    quant_pre_process(str(onnx_path), str(calibration.prepared))
-    # onnxruntime calibrates inside quantize_static and keeps the ranges in its cache file: one quantization of every
-    # matrix operation makes them, and every later quantization reads them instead of calibrating again
-    _quantize(calibration, folder / "every.int8.onnx", None, feeds)
     log(f"int8 calibration: {len(feeds)} steps of {sequences} simulated sequences (seed {seed})")
-    return calibration
+    return Calibration(Path(onnx_path), prepared_for_quantization(onnx.load(str(onnx_path))), feeds)
 
 
-def _quantize(
-    calibration: Calibration, out: Path, nodes: list[str] | None, feeds: list[dict[str, np.ndarray]] | None = None
-) -> None:
-    """onnxruntime's static QDQ quantization of the prepared model's `nodes` (None: every matrix operation) into
-    `out`, from the cached ranges (calibrating on `feeds` first when given)."""
-    from onnxruntime.quantization import CalibrationDataReader, QuantFormat, QuantType, quantize_static
+@contextlib.contextmanager
+def _quiet_nncf() -> Iterator[None]:
+    """NNCF's per-node notes and its progress bars (rich, on stdout) held back while it runs: the stage line and the
+    gate say what runs. Only its logger's level is changed, and back (nncf.set_log_level would also set the level of
+    every handler on that logger, which may be another's: pytest's capture handlers were)."""
+    nncf_log = logging.getLogger("nncf")
+    level = nncf_log.level
+    nncf_log.setLevel(logging.ERROR)
+    try:
+        with contextlib.redirect_stdout(io.StringIO()):
+            yield
+    finally:
+        nncf_log.setLevel(level)
 
-    class Feeds(CalibrationDataReader):  # type: ignore[misc]  # onnxruntime's quantization is untyped
-        def __init__(self, feeds: list[dict[str, np.ndarray]]) -> None:
-            self.remaining = iter(feeds)
 
-        def get_next(self) -> dict[str, np.ndarray] | None:
-            return next(self.remaining, None)
+def prepared_for_quantization(proto: Any) -> Any:
+    """The graph without its no-op nodes, every other node keeping its name (the islands match names by prefix):
+    the exporter routes a weight shared by several calls (the propagation's layers over the past frames) through
+    Identity nodes, and NNCF quantizes only a convolution whose weights are a constant; and it writes Casts to the
+    type a value already has, which NNCF 3.4 removes itself, but not where one yields a graph output (the step's
+    flow_features: its pass fails). onnx-ir's IdentityEliminationPass removes both, keeping the output names."""
+    import onnx
+    import onnx_ir as ir
+    from onnx_ir.passes.common import IdentityEliminationPass
 
-    quantize_static(
-        str(calibration.prepared),
-        str(out),
-        Feeds(feeds) if feeds is not None else None,
-        quant_format=QuantFormat.QDQ,
-        op_types_to_quantize=list(QUANTIZED_OPS),
-        nodes_to_quantize=nodes,
-        per_channel=True,
-        activation_type=QuantType.QUInt8,
-        weight_type=QuantType.QInt8,
-        calibration_cache_path=str(calibration.ranges),
-    )
+    inferred = onnx.shape_inference.infer_shapes(proto)
+    graph = inferred.graph
+    types = {v.name: v.type.tensor_type.elem_type for v in (*graph.value_info, *graph.input, *graph.output)}
+    types.update({t.name: t.data_type for t in graph.initializer})
+    for node in graph.node:
+        to = next((a.i for a in node.attribute if a.name == "to"), None)
+        if node.op_type == "Cast" and to is not None and types.get(node.input[0]) == to:
+            node.op_type = "Identity"
+            del node.attribute[:]
+    return ir.serde.serialize_model(IdentityEliminationPass()(ir.serde.deserialize_model(inferred)).model)
 
 
 def quantize_model(
@@ -153,29 +158,44 @@ def quantize_model(
     """Write the int8 model (default: beside the model, rafd.model_files.int8_model_path) -> its path, every matrix
     operation quantized but those in `islands` (units of export.islands.search_units, kept float32). The ONNX
     metadata (config, graph contract) is carried over, so it reads as the same model. `calibration`: the model's
-    (calibrate), so that a search quantizing many sets calibrates once; without it, calibrated here."""
+    (calibrate), so that a search quantizing many sets streams the simulation once; without it, calibrated here."""
+    import nncf
     import onnx
+
+    from export.islands import scope_pattern
 
     source = Path(onnx_path)
     target = Path(out) if out is not None else int8_model_path(source)
-    with tempfile.TemporaryDirectory(prefix="rafd-quantize-") as tmp:
-        if calibration is None:
-            calibration = calibrate(source, tmp, log=log)
-        elif calibration.source.resolve() != source.resolve():
-            raise ValueError(f"the calibration is {calibration.source}'s, not {source}'s")
-        nodes = quantized_nodes(onnx.load(str(calibration.prepared), load_external_data=False), islands)
-        if not nodes:  # onnxruntime reads an empty list as "every node"
-            raise ValueError(f"nothing left to quantize: every matrix operation lies in the islands {islands}")
-        quantized = Path(tmp, "int8.onnx")
-        _quantize(calibration, quantized, nodes)
-        model = onnx.load(str(quantized))
-        original = {p.key: p.value for p in onnx.load(str(source), load_external_data=False).metadata_props}
-        original[FLOAT32_ISLANDS_KEY] = json.dumps(list(islands))
-        kept = {p.key for p in model.metadata_props}
-        for key, value in original.items():
-            if key not in kept and not key.startswith("gate_"):  # the gate records are the float model's
-                model.metadata_props.add(key=key, value=value)
-        tmp_target = target.with_name(f".{target.name}.tmp")
-        onnx.save(model, str(tmp_target))
-        tmp_target.replace(target)
+    if calibration is None:
+        calibration = calibrate(source, log=log)
+    elif calibration.source.resolve() != source.resolve():
+        raise ValueError(f"the calibration is {calibration.source}'s, not {source}'s")
+    proto = calibration.prepared
+    if not quantized_nodes(proto, islands):
+        raise ValueError(f"nothing left to quantize: every matrix operation lies in the islands {islands}")
+    # Every operation but the matrix ones is left alone (by type), and the islands' matrix operations too (by name):
+    # NNCF quantizes the inputs of what remains, weights per channel, both symmetric (its performance preset).
+    ignored = nncf.IgnoredScope(
+        types=sorted({n.op_type for n in proto.graph.node} - set(QUANTIZED_OPS)),
+        patterns=[scope_pattern(island) for island in islands],
+        validate=False,  # a graph need not hold every type or island named
+    )
+    stage(f"int8: quantizing {source.name} with NNCF ({len(islands)} float32 islands)")
+    with _quiet_nncf():
+        model = nncf.quantize(
+            proto,
+            nncf.Dataset(calibration.feeds),
+            preset=nncf.QuantizationPreset.PERFORMANCE,
+            subset_size=len(calibration.feeds),
+            ignored_scope=ignored,
+        )
+    original = {p.key: p.value for p in onnx.load(str(source), load_external_data=False).metadata_props}
+    original[FLOAT32_ISLANDS_KEY] = json.dumps(list(islands))
+    del model.metadata_props[:]
+    for key, value in original.items():
+        if not key.startswith("gate_"):  # the gate records are the float model's
+            model.metadata_props.add(key=key, value=value)
+    tmp_target = target.with_name(f".{target.name}.tmp")
+    onnx.save(model, str(tmp_target))
+    tmp_target.replace(target)
     return target

@@ -313,7 +313,7 @@ def _islands_folder(model_path: str | os.PathLike[str], precision: str, islands:
     return islands_dir(model_path)
 
 
-def time_runner(runner: StreamRunner, repeats: int = 5, warmup: int = 2, seed: int = 0) -> float:
+def time_runner(runner: StreamRunner, repeats: int = 3, warmup: int = 1, seed: int = 0) -> float:
     """Median seconds of one graph run on random inputs of the graph's shapes (frames in [0, 1])."""
     rng = np.random.default_rng(seed)
     feeds = {
@@ -330,6 +330,21 @@ def time_runner(runner: StreamRunner, repeats: int = 5, warmup: int = 2, seed: i
     return statistics.median(samples)
 
 
+def _name(runner: StreamRunner) -> str:
+    return f"{runner.runtime}/{runner.precision}"
+
+
+def _interleaved_medians(
+    runners: list[StreamRunner], timer: Callable[[StreamRunner], float], rounds: int
+) -> dict[str, float]:
+    """Median of `rounds` timings per runner, taken round-robin (each round times every runner once)."""
+    samples: dict[str, list[float]] = {_name(r): [] for r in runners}
+    for _ in range(rounds):
+        for runner in runners:
+            samples[_name(runner)].append(timer(runner))
+    return {name: statistics.median(values) for name, values in samples.items()}
+
+
 def create_runner(
     model_path: str | os.PathLike[str],
     runtime: str = "auto",
@@ -337,13 +352,16 @@ def create_runner(
     threads: int | None = None,
     concurrent_runs: int = 1,
     timer: Callable[[StreamRunner], float] = time_runner,
+    rounds: int = 3,
 ) -> StreamRunner:
     """Open the model on the given runtime and precision; "auto" (either) times every supported candidate on this
     model and keeps the fastest. With precision "auto" a reduced precision is a candidate only when the model's
     accuracy gate passed for it (metadata GATE_KEY); an explicit precision is the operator's choice (logged
     when ungated).
 
-    The chosen runner's `selection` maps "runtime/precision" to the measured median ms of one run.
+    The chosen runner's `selection` maps "runtime/precision" to the measured median ms of one run: the median of
+    `rounds` calls of `timer`, the candidates interleaved, so that a slow second of a shared machine falls on all of
+    them rather than on whichever was timed then.
     """
     if runtime not in RUNTIMES + ("auto",):
         raise ValueError(f"runtime must be one of {RUNTIMES} or 'auto', got {runtime!r}")
@@ -390,8 +408,8 @@ def create_runner(
             f"no runtime for runtime={runtime!r}, precision={precision!r}: {model_path} has no passed "
             "accuracy gate for a reduced precision (rafd gate MODEL), and fp32 was excluded"
         )
-    selection = {f"{r.runtime}/{r.precision}": (timer(r) if len(runners) > 1 else 0.0) for r in runners}
-    best = min(runners, key=lambda r: selection[f"{r.runtime}/{r.precision}"])
+    selection = _interleaved_medians(runners, timer, rounds) if len(runners) > 1 else {_name(runners[0]): 0.0}
+    best = min(runners, key=lambda r: selection[_name(r)])
     selection = {name: round(seconds * 1e3, 3) for name, seconds in selection.items()}
     log.info("runtime %s/%s (median ms per run: %s)", best.runtime, best.precision, selection)
     best.selection = selection

@@ -105,7 +105,7 @@ def test_gate_runs_on_the_shipped_model_in_every_reduced_precision(shipped_onnx,
         pytest.skip("this CPU runs no reduced precision (openvino with avx512_bf16 or AMX, or int8 units)")
     model = shutil.copy(shipped_onnx, tmp_path / "shipped.onnx")
     if ("openvino", "int8") in reduced:
-        quantize_model(model, calibration=calibrate(model, tmp_path, sequences=1, frames=8))
+        quantize_model(model, calibration=calibrate(model, sequences=1, frames=8))
     for candidate in reduced:
         report = gate_model(model, candidate, sequences=1, frames=16, radiate=radiate_sample_or_none, threads=1)
         assert report.candidate == "/".join(candidate) and report.reference == "onnxruntime/fp32"

@@ -82,3 +82,20 @@ def test_without_openvino_auto_falls_back_to_onnxruntime(shipped_onnx, monkeypat
     assert (runner.runtime, runner.precision) == ("onnxruntime", "fp32")
     with pytest.raises(ValueError, match="needs the `openvino` package"):
         open_runner(shipped_onnx, "openvino", "fp32", threads=1)
+
+
+def test_auto_times_the_candidates_interleaved_and_keeps_each_ones_median(ungated_onnx):
+    """A slow moment of a shared machine must not decide the choice: every round times each candidate once, and a
+    single slow round of the fastest candidate does not lose it the choice."""
+    pytest.importorskip("openvino")
+    seen: list[str] = []
+    slow_once = {"openvino/fp32": [0.010, 0.500, 0.011], "onnxruntime/fp32": [0.020, 0.021, 0.019]}
+
+    def timer(runner) -> float:
+        name = f"{runner.runtime}/{runner.precision}"
+        seen.append(name)
+        return slow_once[name][seen.count(name) - 1]
+
+    runner = create_runner(ungated_onnx, "auto", "fp32", threads=1, timer=timer, rounds=3)
+    assert seen == ["onnxruntime/fp32", "openvino/fp32"] * 3
+    assert (runner.runtime, runner.selection) == ("openvino", {"onnxruntime/fp32": 20.0, "openvino/fp32": 11.0})
