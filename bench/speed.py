@@ -173,7 +173,9 @@ class ModelBench:
 
         calibration = None
         if ("openvino", "int8") in choices:  # int8 runs its own quantized graph, made as `rafd gate` makes it
-            calibration = calibrate(step_onnx)  # within this stage (MODEL_STAGES counts the stages)
+            # within this stage (MODEL_STAGES counts the stages); a short calibration: the kernels' speed does not
+            # depend on the activation ranges, only the accuracy does (which `rafd gate` judges on its own)
+            calibration = calibrate(step_onnx, sequences=1, frames=8)
             quantize_model(step_onnx, calibration=calibration)
         runners = {f"{r}/{p}": open_runner(step_onnx, r, p, self.threads, islands=False) for r, p in choices}
         for k, islands in enumerate(self.islands):  # each set as bf16's islands and as int8's, where the CPU runs them

@@ -10,7 +10,7 @@ import argparse
 import sys
 
 from export import MIN_OPSET
-from export.gate_cli import add_gate_flags
+from export.gate_cli import add_gate_flags, gate_options
 from rafd.cli import flags
 
 
@@ -78,7 +78,6 @@ def main(argv: list[str] | None = None) -> int:
     flags.apply_quiet(args)
     flags.exit_on_sigterm()  # a killed export removes its temporary files beside the output
     # Heavy imports (torch, onnx) after argument parsing: --help stays fast.
-    from export.gate import DEFAULT_SEED, GateOptions
     from export.onnx_export import ExportError, export_onnx
     from export.verify import VerificationError
     from rafd.model.checkpoint import CheckpointError
@@ -88,8 +87,7 @@ def main(argv: list[str] | None = None) -> int:
 
     gate = None
     if args.gate:
-        seed = DEFAULT_SEED if args.gate_seed is None else args.gate_seed
-        gate = GateOptions(sequences=args.gate_sequences, frames=args.gate_frames, seed=seed, islands=args.islands)
+        gate = gate_options(args)
     try:
         result = export_onnx(
             args.checkpoint,

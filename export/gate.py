@@ -33,6 +33,7 @@ from typing import Any
 
 import numpy as np
 
+from export.quantize import CALIBRATION_FRAMES, CALIBRATION_SEQUENCES
 from rafd.config import RaFDConfig
 from rafd.detections import decode_detections
 from rafd.model_files import int8_model_path, islands_dir
@@ -447,6 +448,9 @@ class GateOptions:
     islands: bool = True
     search_sequences: int = 2
     search_frames: int = 40
+    # int8's activation statistics: simulated sequences of their own seed (export.quantize.CALIBRATION_SEED)
+    calibration_sequences: int = CALIBRATION_SEQUENCES
+    calibration_frames: int = CALIBRATION_FRAMES
 
 
 def run_export_gates(
@@ -480,7 +484,7 @@ def _gate_precision(
     if candidate[1] == "int8":  # its own model: quantized (again) here, every matrix operation, then judged
         from export.quantize import calibrate, quantize_model
 
-        calibration = calibrate(onnx_path, log=log)
+        calibration = calibrate(onnx_path, options.calibration_sequences, options.calibration_frames, log=log)
         quantized = quantize_model(onnx_path, calibration=calibration)
         log(f"int8: wrote {quantized}")
     report = gate_model(
@@ -575,6 +579,40 @@ def record_gates(
     if "bf16" in reports and reports["bf16"].islands and target != source:  # and the judged islands with theirs
         copy_islands(islands_dir(source), islands_dir(target))
     return entries
+
+
+def gate_and_record(
+    onnx_path: str | Path, options: GateOptions, out: str | Path | None = None, log: Callable[[str], None] = print
+) -> dict[str, GateReport]:
+    """`rafd gate`: run the gates of an existing model and record them, in place or to `out`. Everything runs on a
+    copy in a folder beside the target, the model's judged files with it (MODEL.int8.onnx, MODEL.bf16-islands/,
+    which a gate quantizes or writes anew): only once every gate has finished do they and the recorded model take
+    their places, the model last, so an interrupted gate leaves what was stored as it was, and with `out` the input
+    and its files are never written."""
+    from export.islands import replace_dir
+
+    source = Path(onnx_path)
+    target = Path(out) if out is not None else source
+    work = Path(tempfile.mkdtemp(dir=target.parent, prefix=f".{target.name}.gate-"))
+    try:
+        model = work / target.name
+        shutil.copyfile(source, model)
+        # the files of the records a gate here does not replace (a precision this CPU lacks) go with them
+        if int8_model_path(source).is_file():
+            shutil.copyfile(int8_model_path(source), int8_model_path(model))
+        if islands_dir(source).is_dir():
+            shutil.copytree(islands_dir(source), islands_dir(model))
+        reports = run_export_gates(model, options, log)
+        if reports:
+            record_gates(model, reports)
+            if int8_model_path(model).is_file():
+                os.replace(int8_model_path(model), int8_model_path(target))
+            if islands_dir(model).is_dir():
+                replace_dir(islands_dir(model), islands_dir(target))
+            os.replace(model, target)
+        return reports
+    finally:
+        shutil.rmtree(work, ignore_errors=True)
 
 
 def copy_islands(source: Path, target: Path) -> None:

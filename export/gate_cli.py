@@ -11,8 +11,13 @@ import argparse
 import sys
 import time
 from pathlib import Path
+from typing import TYPE_CHECKING
 
+from export.quantize import CALIBRATION_FRAMES, CALIBRATION_SEQUENCES
 from rafd.cli import flags
+
+if TYPE_CHECKING:
+    from export.gate import GateOptions
 
 
 def add_gate_flags(parser: argparse.ArgumentParser | argparse._ArgumentGroup) -> None:
@@ -37,11 +42,40 @@ def add_gate_flags(parser: argparse.ArgumentParser | argparse._ArgumentGroup) ->
         "bf16 keeps the graph's matrix-free units in float32 from the start: export/islands_gate.py)",
     )
     parser.add_argument(
+        "--calibration-sequences",
+        type=flags.positive_int,
+        default=CALIBRATION_SEQUENCES,
+        metavar="N",
+        help="simulated sequences whose activations calibrate int8 (default %(default)s)",
+    )
+    parser.add_argument(
+        "--calibration-frames",
+        type=flags.positive_int,
+        default=CALIBRATION_FRAMES,
+        metavar="N",
+        help="frames per calibration sequence (default %(default)s)",
+    )
+    parser.add_argument(
         "--gate-seed",
         type=int,
         default=None,
         help="simulation seed; must be one the model was never trained or tested on "
         "(default: export.gate.DEFAULT_SEED)",
+    )
+
+
+def gate_options(args: argparse.Namespace, threads: int | None = None) -> GateOptions:
+    """The options add_gate_flags parsed."""
+    from export.gate import DEFAULT_SEED, GateOptions
+
+    return GateOptions(
+        sequences=args.gate_sequences,
+        frames=args.gate_frames,
+        seed=DEFAULT_SEED if args.gate_seed is None else args.gate_seed,
+        threads=threads,
+        islands=args.islands,
+        calibration_sequences=args.calibration_sequences,
+        calibration_frames=args.calibration_frames,
     )
 
 
@@ -76,15 +110,13 @@ def main(argv: list[str] | None = None) -> int:
         print(f"{parser.prog}: error: {wrong_kind}", file=sys.stderr)
         return 1
     # Heavy imports (torch for the simulated windows, onnx) after argument parsing: --help stays fast.
-    from export.gate import DEFAULT_SEED, GateOptions, record_gates, run_export_gates
+    from export.gate import gate_and_record
 
-    seed = DEFAULT_SEED if args.gate_seed is None else args.gate_seed
-    options = GateOptions(
-        sequences=args.gate_sequences, frames=args.gate_frames, seed=seed, threads=args.threads, islands=args.islands
-    )
+    options = gate_options(args, args.threads)
+    target = args.out or args.model
     start = time.perf_counter()
     try:
-        reports = run_export_gates(args.model, options, lambda message: print(message, flush=True))
+        reports = gate_and_record(args.model, options, args.out, lambda message: print(message, flush=True))
     except ValueError as error:  # not a RaFD step graph, or not loadable
         print(f"{parser.prog}: error: {error}", file=sys.stderr)
         return 1
@@ -92,8 +124,6 @@ def main(argv: list[str] | None = None) -> int:
     if not reports:
         print(f"nothing recorded: {args.model} is unchanged")
         return 0
-    target = args.out or args.model
-    record_gates(args.model, reports, target)
     beside = {"bf16": f"{islands_dir(target).name}/", "int8": int8_model_path(target).name}  # the islands' files
     verdicts = ", ".join(
         f"{precision} gate {'PASS' if r.ok else 'FAIL'}"

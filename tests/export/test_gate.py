@@ -188,6 +188,10 @@ def test_export_records_the_gate_verdict(tmp_path, capsys, monkeypatch):
                 "1",
                 "--gate-sequence-frames",
                 "8",
+                "--calibration-sequences",
+                "1",
+                "--calibration-frames",
+                "8",
             ]
         )
         == 0

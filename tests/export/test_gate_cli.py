@@ -4,6 +4,7 @@ precision's old record replaced), read back where the service reads them; the co
 from __future__ import annotations
 
 import json
+import re
 import shutil
 
 import pytest
@@ -99,7 +100,8 @@ def test_the_command_records_this_cpus_verdicts(model_copy, capsys, monkeypatch)
     monkeypatch.delenv("RAFD_RADIATE_SAMPLE", raising=False)
     reduced = [p for _, p in supported_choices() if p != "fp32"]
     before = model_copy.read_bytes()
-    assert main([str(model_copy), "--gate-sequences", "1", "--gate-sequence-frames", "8", "--threads", "1"]) == 0
+    short = ["--gate-sequences", "1", "--gate-sequence-frames", "8", "--threads", "1"]
+    assert main([str(model_copy), *short, "--calibration-sequences", "1", "--calibration-frames", "8"]) == 0
     out = capsys.readouterr().out
     if not reduced:
         assert "nothing to gate" in out and "is unchanged" in out and model_copy.read_bytes() == before
@@ -109,6 +111,8 @@ def test_the_command_records_this_cpus_verdicts(model_copy, capsys, monkeypatch)
         assert metadata[f"gate_{precision}"] == "fail" and "too little to judge" in out
         assert json.loads(metadata[f"gate_{precision}_figures"])["figures"]["simulated"]["frames"] == 8 - 3
     assert f"recorded in {model_copy}: " in out and "bf16 gate FAIL" in out
+    if "int8" in reduced:  # calibrated as asked
+        assert re.search(r"int8 calibration: \d+ steps of 1 simulated sequences", out)
 
 
 def test_the_command_reports_the_islands_it_recorded_and_no_islands_turns_the_search_off(
@@ -146,3 +150,56 @@ def test_the_command_refuses_a_checkpoint_and_a_missing_file(tmp_path, capsys):
     assert "is a PyTorch checkpoint, not an ONNX model" in capsys.readouterr().err
     assert main([str(tmp_path / "absent.onnx")]) == 1
     assert "is not a file" in capsys.readouterr().err
+
+
+def _int8_gate(content: bytes, interrupt: bool = False):
+    """A stand-in for run_export_gates: quantizes (writes MODEL.int8.onnx beside the model it is given) and passes,
+    or is interrupted (SIGTERM's SystemExit) after quantizing."""
+    from rafd.model_files import file_sha256, int8_model_path
+
+    def gates(onnx_path, options, log):
+        int8_model_path(onnx_path).write_bytes(content)
+        if interrupt:
+            raise SystemExit(143)
+        report = _report(699, 1909, 10)
+        report.judged_sha256 = file_sha256(int8_model_path(onnx_path))
+        return {"int8": report}
+
+    return gates
+
+
+def test_out_leaves_the_input_and_its_judged_files_untouched(model_copy, tmp_path, monkeypatch):
+    """With --out the input model and the int8 file beside it (which its own record names) are never written: the
+    gate quantizes into its own working copy, whose files go beside the output."""
+    import export.gate
+    from export.gate_cli import main
+    from rafd.model_files import file_sha256, int8_model_path
+
+    int8_model_path(model_copy).write_bytes(b"the input's judged int8 model")
+    before = model_copy.read_bytes()
+    monkeypatch.setattr(export.gate, "run_export_gates", _int8_gate(b"a new quantization"))
+    out = tmp_path / "served" / "model.onnx"
+    out.parent.mkdir()
+    assert main([str(model_copy), "--out", str(out)]) == 0
+    assert model_copy.read_bytes() == before
+    assert int8_model_path(model_copy).read_bytes() == b"the input's judged int8 model"
+    record = json.loads(OnnxRunner(out, threads=1).metadata["gate_int8_figures"])
+    assert int8_model_path(out).read_bytes() == b"a new quantization"
+    assert record["int8_sha256"] == file_sha256(int8_model_path(out))
+    assert sorted(p.name for p in out.parent.iterdir()) == ["model.int8.onnx", "model.onnx"]
+
+
+def test_an_interrupted_gate_leaves_what_was_stored(model_copy, monkeypatch):
+    """Killed after quantizing (SIGTERM), in place: the model and its int8 file are as they were, and the working
+    folder is gone."""
+    import export.gate
+    from export.gate_cli import main
+    from rafd.model_files import int8_model_path
+
+    int8_model_path(model_copy).write_bytes(b"the judged int8 model")
+    before = model_copy.read_bytes()
+    monkeypatch.setattr(export.gate, "run_export_gates", _int8_gate(b"half a gate", interrupt=True))
+    with pytest.raises(SystemExit):
+        main([str(model_copy)])
+    assert model_copy.read_bytes() == before and int8_model_path(model_copy).read_bytes() == b"the judged int8 model"
+    assert sorted(p.name for p in model_copy.parent.iterdir()) == ["model.int8.onnx", "model.onnx"]
