@@ -551,34 +551,38 @@ def gate_metadata(reports: dict[str, GateReport]) -> dict[str, str]:
     return out
 
 
-def record_gates(
-    onnx_path: str | Path, reports: dict[str, GateReport], out: str | Path | None = None
-) -> dict[str, str]:
-    """Write the gate verdicts into an existing ONNX model's metadata (`rafd gate`), in place or to `out`, without
-    re-exporting: the graph and every other metadata entry are kept; a precision's earlier record is replaced, other
-    precisions' records are kept. Atomic (a temporary file beside the target, then a rename). Returns the entries
-    written."""
+def record_gates(onnx_path: str | Path, reports: dict[str, GateReport]) -> dict[str, str]:
+    """Write the gate verdicts into an existing ONNX model's metadata, in place, without re-exporting: the graph and
+    every other metadata entry are kept; a precision's earlier record is replaced, other precisions' records are kept.
+    Atomic (a temporary file beside the model, then a rename). Returns the entries written."""
     import onnx
 
-    source, target = Path(onnx_path), Path(out if out is not None else onnx_path)
+    path = Path(onnx_path)
     entries = gate_metadata(reports)
-    proto = onnx.load(str(source))
+    proto = onnx.load(str(path))
     kept = [(p.key, p.value) for p in proto.metadata_props if p.key not in entries]
     del proto.metadata_props[:]
     for key, value in [*kept, *entries.items()]:
         proto.metadata_props.add(key=key, value=value)
-    tmp = target.with_name(f".{target.name}.{os.getpid()}.tmp")
+    tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
     try:
         onnx.save(proto, str(tmp))
-        os.replace(tmp, target)
+        os.replace(tmp, path)
     finally:
         tmp.unlink(missing_ok=True)
-    quantized = int8_model_path(source)
-    if "int8" in reports and target != source and quantized.is_file():  # the judged int8 model goes with its record
-        shutil.copyfile(quantized, int8_model_path(target))
-    if "bf16" in reports and reports["bf16"].islands and target != source:  # and the judged islands with theirs
-        copy_islands(islands_dir(source), islands_dir(target))
     return entries
+
+
+def put_in_place(model: Path, target: Path) -> None:
+    """Move `model` and the judged files beside it (MODEL.int8.onnx, MODEL.bf16-islands/) to `target`'s names (one
+    file system): the files first, the model, whose records name them, last."""
+    from export.islands import replace_dir
+
+    if int8_model_path(model).is_file():
+        os.replace(int8_model_path(model), int8_model_path(target))
+    if islands_dir(model).is_dir():
+        replace_dir(islands_dir(model), islands_dir(target))
+    os.replace(model, target)
 
 
 def gate_and_record(
@@ -587,10 +591,8 @@ def gate_and_record(
     """`rafd gate`: run the gates of an existing model and record them, in place or to `out`. Everything runs on a
     copy in a folder beside the target, the model's judged files with it (MODEL.int8.onnx, MODEL.bf16-islands/,
     which a gate quantizes or writes anew): only once every gate has finished do they and the recorded model take
-    their places, the model last, so an interrupted gate leaves what was stored as it was, and with `out` the input
-    and its files are never written."""
-    from export.islands import replace_dir
-
+    their places, so an interrupted gate leaves what was stored as it was, and with `out` the input and its files
+    are never written."""
     source = Path(onnx_path)
     target = Path(out) if out is not None else source
     work = Path(tempfile.mkdtemp(dir=target.parent, prefix=f".{target.name}.gate-"))
@@ -605,24 +607,7 @@ def gate_and_record(
         reports = run_export_gates(model, options, log)
         if reports:
             record_gates(model, reports)
-            if int8_model_path(model).is_file():
-                os.replace(int8_model_path(model), int8_model_path(target))
-            if islands_dir(model).is_dir():
-                replace_dir(islands_dir(model), islands_dir(target))
-            os.replace(model, target)
+            put_in_place(model, target)
         return reports
-    finally:
-        shutil.rmtree(work, ignore_errors=True)
-
-
-def copy_islands(source: Path, target: Path) -> None:
-    """Put a copy of the islands folder `source` in place of `target` (a temporary copy beside it, then a rename)."""
-    from export.islands import replace_dir
-
-    work = target.with_name(f".{target.name}.{os.getpid()}.tmp")
-    shutil.rmtree(work, ignore_errors=True)
-    try:
-        shutil.copytree(source, work)
-        replace_dir(work, target)
     finally:
         shutil.rmtree(work, ignore_errors=True)

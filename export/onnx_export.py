@@ -18,8 +18,7 @@ import torch
 
 import rafd
 from export import MIN_OPSET
-from export.gate import GateOptions, GateReport, gate_metadata, run_export_gates
-from export.islands import replace_dir
+from export.gate import GateOptions, GateReport, gate_metadata, put_in_place, run_export_gates
 from export.step import build_graph, example_inputs, feature_channels
 from export.verify import Report, verify_export
 from rafd.config import RaFDConfig
@@ -234,12 +233,8 @@ def export_onnx(
                 onnx.save(proto, str(tmp))
                 del proto
                 size = tmp.stat().st_size
-        os.replace(tmp, output)
-        # The judged int8 model and bf16 segments were made beside the temporary file: they go with the output.
-        if int8_model_path(tmp).is_file():
-            os.replace(int8_model_path(tmp), int8_model_path(output))
-        if "bf16" in gates and gates["bf16"].islands:
-            replace_dir(islands_dir(tmp), islands_dir(output))
+        # the judged int8 model and bf16 segments were made beside the temporary file: they go with the output
+        put_in_place(tmp, output)
     finally:
         tmp.unlink(missing_ok=True)
         int8_model_path(tmp).unlink(missing_ok=True)

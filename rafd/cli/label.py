@@ -185,9 +185,9 @@ def run_compare(args: argparse.Namespace) -> int:
         ]
 
     with _labelled(args.sequence, args.reference) as reference, _labelled(args.sequence, args.candidate) as candidate:
-        labelled = {name: (boxes(s, False), boxes(s, True)) for name, s in (("ref", reference), ("cand", candidate))}
+        expected, found, ignored = boxes(reference, False), boxes(candidate, False), boxes(candidate, True)
     for distance in args.distance:
-        result = agreement(labelled["ref"][0], labelled["cand"][0], labelled["cand"][1], distance)
+        result = agreement(expected, found, ignored, distance)
         print(json.dumps(result))
     return 0
 

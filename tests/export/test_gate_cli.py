@@ -42,21 +42,19 @@ def _report(frames: int, detections: int, changed: int) -> GateReport:
     return GateReport("onnxruntime/fp32", "openvino/bf16", GateThresholds(), {"simulated": figures})
 
 
-def test_a_recorded_pass_is_read_back_by_the_runtime_and_nothing_else_changes(model_copy, tmp_path):
+def test_a_recorded_pass_is_read_back_by_the_runtime_and_nothing_else_changes(model_copy):
     before = onnx.load(str(model_copy))
-    out = tmp_path / "gated.onnx"
-    entries = record_gates(model_copy, {"bf16": _report(699, 1909, 10)}, out)
+    entries = record_gates(model_copy, {"bf16": _report(699, 1909, 10)})
     assert entries["gate_bf16"] == "pass"
-    after = onnx.load(str(out))
+    after = onnx.load(str(model_copy))
     assert after.graph.SerializeToString() == before.graph.SerializeToString()  # not re-exported
     old = {p.key: p.value for p in before.metadata_props}
     new = {p.key: p.value for p in after.metadata_props}
     assert {k: v for k, v in new.items() if not k.startswith("gate_")} == old
-    metadata = OnnxRunner(out, threads=1).metadata
+    metadata = OnnxRunner(model_copy, threads=1).metadata
     assert gate_passed(metadata, "bf16") and gate_record(metadata, "bf16") == "pass"
     made = json.loads(metadata["gate_bf16_figures"])
     assert made["figures"]["simulated"]["frames"] == 699 and made["cpu"] and made["date"]
-    assert onnx.load(str(model_copy)).metadata_props == before.metadata_props  # --out leaves the input alone
 
 
 def test_a_new_record_replaces_the_old_one_in_place(model_copy):
@@ -70,25 +68,26 @@ def test_a_new_record_replaces_the_old_one_in_place(model_copy):
     assert not list(model_copy.parent.glob(".*.tmp"))  # the atomic write left nothing behind
 
 
-def test_out_takes_the_judged_int8_file_with_its_record(model_copy, tmp_path):
-    """With --out, the int8 model judged (MODEL.int8.onnx beside the input) is copied beside the output, so the
-    record there names a file that is there; a record without an int8 verdict copies nothing."""
+def test_out_takes_the_judged_files_of_the_records_it_keeps(model_copy, tmp_path, monkeypatch):
+    """A gate on a CPU without int8 re-gates bf16 only: with --out, the input's int8 record is kept and the int8
+    file it names goes beside the output with it."""
+    import export.gate
+    from export.gate_cli import main
     from rafd.model_files import file_sha256, int8_model_path
 
     quantized = int8_model_path(model_copy)
     quantized.write_bytes(b"stand-in for the quantized graph")
     report = _report(699, 1909, 10)
     report.judged_sha256 = file_sha256(quantized)
+    record_gates(model_copy, {"int8": report})
+    monkeypatch.setattr(export.gate, "run_export_gates", lambda path, options, log: {"bf16": _report(699, 1909, 10)})
     out = tmp_path / "served" / "model.onnx"
     out.parent.mkdir()
-    entries = record_gates(model_copy, {"int8": report}, out)
-    assert entries["gate_int8"] == "pass"
+    assert main([str(model_copy), "--out", str(out)]) == 0
+    metadata = OnnxRunner(out, threads=1).metadata
+    assert gate_passed(metadata, "bf16") and gate_passed(metadata, "int8")
     assert int8_model_path(out).read_bytes() == quantized.read_bytes()
-    assert json.loads(entries["gate_int8_figures"])["int8_sha256"] == file_sha256(int8_model_path(out))
-    other = tmp_path / "bf16_only" / "model.onnx"
-    other.parent.mkdir()
-    record_gates(model_copy, {"bf16": _report(699, 1909, 10)}, other)
-    assert other.is_file() and not int8_model_path(other).exists()
+    assert json.loads(metadata["gate_int8_figures"])["int8_sha256"] == file_sha256(int8_model_path(out))
 
 
 def test_the_command_records_this_cpus_verdicts(model_copy, capsys, monkeypatch):

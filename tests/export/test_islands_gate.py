@@ -11,7 +11,7 @@ import shutil
 import pytest
 
 from export import gate as gate_module
-from export.gate import GateOptions, GateReport, GateThresholds, SourceFigures, gate_metadata, record_gates
+from export.gate import GateOptions, GateReport, GateThresholds, SourceFigures, gate_metadata
 from export.islands import search_units
 from export.islands_gate import SEARCH_SEED, excess, perturbation, rank, search_islands
 from rafd.model_files import ISLANDS_MANIFEST, file_sha256, int8_model_path, islands_dir, islands_sha256
@@ -255,21 +255,28 @@ def test_when_no_int8_set_passes_the_plain_int8_file_stays_the_judged_one(model,
     assert sorted(p.name for p in model.parent.iterdir()) == ["model.int8.onnx", "model.onnx"]
 
 
-def test_the_record_names_the_islands_and_out_takes_their_folder(model, tmp_path):
+def test_the_record_names_the_islands_and_out_takes_their_folder(model, tmp_path, monkeypatch):
+    import export.gate
+    from export.gate import gate_and_record
     from export.islands import write_islands
 
-    folder = write_islands(model, ("/head/",))
     report = _report(0)
-    report.islands, report.islands_sha256 = ("/head/",), islands_sha256(folder)
+    report.islands = ("/head/",)
     report.search = [{"islands": [], "gate": "full", "pass": False}]
+
+    def gates(onnx_path, options, log):  # the search's pass: its folder written beside the model it gates
+        report.islands_sha256 = islands_sha256(write_islands(onnx_path, report.islands))
+        return {"bf16": report}
+
+    monkeypatch.setattr(export.gate, "run_export_gates", gates)
+    out = tmp_path / "elsewhere" / "gated.onnx"
+    out.parent.mkdir()
+    gate_and_record(model, OPTIONS, out, log=lambda _: None)
     entries = gate_metadata({"bf16": report})
     recorded = json.loads(entries["gate_bf16_figures"])
     assert recorded["islands"] == ["/head/"] and recorded["islands_sha256"] == report.islands_sha256
     assert recorded["islands_search"] == report.search and recorded_islands(entries) == ("/head/",)
-    out = tmp_path / "elsewhere" / "gated.onnx"
-    out.parent.mkdir()
-    record_gates(model, {"bf16": report}, out)
-    assert islands_sha256(islands_dir(out)) == report.islands_sha256
+    assert islands_sha256(islands_dir(out)) == report.islands_sha256 and not islands_dir(model).exists()
     metadata = {p.key: p.value for p in onnx.load(str(out)).metadata_props}
     assert reduced_unusable(out, "bf16", metadata) is None
 
