@@ -3,7 +3,7 @@ by side in one run.
 
 For each config (the shipped default model, the paper's network with random weights, and the paper's network with
 the speed options flow.stride 8 and enhance.window 16):
-  - PyTorch eager and onnxruntime on the full window (the references);
+  - PyTorch eager on the full window (the reference);
   - the streaming step (the service's path) on every runtime and precision this CPU runs (onnxruntime fp32,
     OpenVINO fp32, OpenVINO bf16 where the CPU has bf16), timed interleaved, with the achieved TFLOP/s against the
     fp32 and bf16 matmul peaks measured in the same run;
@@ -69,25 +69,23 @@ def simulated_frames(size: int, count: int, seed: int) -> tuple[list[np.ndarray]
 
 def count_step_flops(model: Any, cfg: Any) -> float:
     """FLOPs of one streaming step: the exported StepGraph itself (new frame, newest pair flow, detect)."""
-    from export.step import build_graph, example_inputs, feature_channels
+    from export.step import build_graph
 
-    return count_flops(build_graph(model, cfg, "step"), *example_inputs(cfg, "step", feature_channels(model, cfg)))
+    graph, example = build_graph(model, cfg)
+    return count_flops(graph, *example)
 
 
 # ----------------------------------------------------------------------------- model paths
-def export_forms(checkpoint: Path, out_dir: Path) -> dict[str, Path]:
-    """The window and the step (streaming) ONNX forms of a checkpoint, through rafd-export."""
+def export_step(checkpoint: Path, out_dir: Path) -> Path:
+    """The step graph of a checkpoint, through rafd-export (a batch of one: the benchmark steps one view)."""
     from export.cli import main as export_main
 
-    forms = {}
-    for form in ("window", "step"):
-        path = out_dir / f"{checkpoint.stem}.{form}.onnx"
-        start = time.perf_counter()
-        if export_main([str(checkpoint), str(path), "--form", form, "--no-verify"]) != 0:
-            raise RuntimeError(f"rafd-export failed for {checkpoint} ({form})")
-        log.info("exported %s in %.1f s (%.2f MB)", path.name, time.perf_counter() - start, path.stat().st_size / 1e6)
-        forms[form] = path
-    return forms
+    path = out_dir / f"{checkpoint.stem}.step.onnx"
+    start = time.perf_counter()
+    if export_main([str(checkpoint), str(path), "--batch", "static", "--no-verify"]) != 0:
+        raise RuntimeError(f"rafd-export failed for {checkpoint}")
+    log.info("exported %s in %.1f s (%.2f MB)", path.name, time.perf_counter() - start, path.stat().st_size / 1e6)
+    return path
 
 
 def stream_fps(runner: Any, inputs: list[np.ndarray], poses: np.ndarray, streams: int, frames: int) -> float:
@@ -97,7 +95,7 @@ def stream_fps(runner: Any, inputs: list[np.ndarray], poses: np.ndarray, streams
         state = runner.new_state()
         for k in range(frames):
             j = (offset + k) % len(inputs)
-            _, state = runner.step(state, inputs[j], poses[j])
+            _, state = runner.step(state, inputs[j][None], poses[j][None])
 
     start = time.perf_counter()
     with ThreadPoolExecutor(max_workers=streams) as pool:
@@ -143,24 +141,8 @@ class ModelBench:
             Row(self.name, "pytorch eager, full window", *percentiles(eager), 1.0 / np.median(eager))
         )
 
-    def ort_window(self, window_onnx: Path) -> float:
-        """onnxruntime fp32 on the window graph -> its median seconds."""
-        import onnxruntime as ort
-
-        options = ort.SessionOptions()
-        options.intra_op_num_threads = self.threads
-        options.graph_optimization_level = ort.GraphOptimizationLevel.ORT_ENABLE_ALL
-        session = ort.InferenceSession(str(window_onnx), options, providers=["CPUExecutionProvider"])
-        frames, poses = self.window()
-        feeds = {"frames": frames.numpy(), "poses": poses.numpy()}
-        seconds = time_calls(lambda _: session.run(None, feeds), self.repeats)
-        self.report.rows.append(
-            Row(self.name, "onnxruntime fp32, full window", *percentiles(seconds), 1.0 / np.median(seconds))
-        )
-        return float(np.median(seconds))  # the session is freed on return, before the step graphs load
-
     def streaming_steps(
-        self, step_onnx: Path, choices: Sequence[tuple[str, str]], peaks: dict[str, float], ort_window_s: float
+        self, step_onnx: Path, choices: Sequence[tuple[str, str]], peaks: dict[str, float]
     ) -> tuple[dict[str, float], int]:
         """Every runtime's steady-state step, interleaved -> (achieved TFLOP/s per runtime, a stream state's bytes)."""
         from rafd.runtime import open_runner
@@ -191,7 +173,7 @@ class ModelBench:
         for key, runner in runners.items():  # past the warm-up: every timed step is a steady-state frame
             state = runner.new_state()
             for i in range(frames_per_window):
-                _, state = runner.step(state, self.inputs[i], self.poses[i])
+                _, state = runner.step(state, self.inputs[i][None], self.poses[i][None])
             states[key] = state
 
         def stepper(key: str) -> Callable[[int], None]:
@@ -199,7 +181,7 @@ class ModelBench:
 
             def one_step(i: int) -> None:
                 j = frames_per_window + i % (len(self.inputs) - frames_per_window)
-                _, states[key] = runner.step(states[key], self.inputs[j], self.poses[j])
+                _, states[key] = runner.step(states[key], self.inputs[j][None], self.poses[j][None])
 
             return one_step
 
@@ -214,8 +196,6 @@ class ModelBench:
             note = f"{reference / median:.2f}x the ORT fp32 step; {tflops:.3f} TFLOP/s"
             if precision in peaks:
                 note += f" = {100 * tflops * 1e3 / peaks[precision]:.0f}% of the {precision} matmul peak"
-            if key == "onnxruntime/fp32":
-                note += f"; {ort_window_s / median:.2f}x faster than the ORT window"
             self.report.rows.append(Row(self.name, f"streaming step, {key}", *percentiles(seconds), 1.0 / median, note))
         return achieved, int(states["onnxruntime/fp32"].nbytes)
 
@@ -293,7 +273,7 @@ def bench_model(
     stages: Stages | None = None,
     islands: tuple[tuple[str, ...], ...] = (),
 ) -> dict[str, Any]:
-    """PyTorch window, ORT window, the streaming step on every runtime, concurrency and the gate -> rows + facts
+    """PyTorch window, the streaming step on every runtime, concurrency and the gate -> rows + facts
     (MODEL_STAGES stages, the gate's included, on `stages`)."""
     begin = stages.begin if stages is not None else (lambda _: None)
     import torch
@@ -308,23 +288,21 @@ def bench_model(
 
     begin(f"{name}: PyTorch eager window x {repeats}")
     bench.eager_window()
-    begin(f"{name}: export the window and step graphs")
-    forms = export_forms(checkpoint, work)
-    begin(f"{name}: onnxruntime window x {repeats}")
-    ort_window_s = bench.ort_window(forms["window"])
+    begin(f"{name}: export the step graph")
+    step_onnx = export_step(checkpoint, work)
     begin(f"{name}: streaming steps on every runtime, interleaved, x {repeats}")
-    achieved, state_bytes = bench.streaming_steps(forms["step"], choices, peaks, ort_window_s)
+    achieved, state_bytes = bench.streaming_steps(step_onnx, choices, peaks)
     begin(f"{name}: 1 against 8 streams through one runner")
-    concurrency = bench.concurrency(forms["step"], choices, concurrency_frames)
+    concurrency = bench.concurrency(step_onnx, choices, concurrency_frames)
     begin(f"{name}: accuracy gate" + ("" if gate is not None else " (skipped)"))
-    gates = bench.gates(forms["step"], choices, gate) if gate is not None else {}
+    gates = bench.gates(step_onnx, choices, gate) if gate is not None else {}
 
     report.facts[name] = {
         "input_size": cfg.input_size,
         "num_frames": cfg.num_frames,
         "config_options": {"flow.stride": cfg.flow.stride, "enhance_window_cells": cfg.enhance_window},
         "parameters": int(sum(p.numel() for p in model.parameters())),
-        "onnx_step_mb": round(forms["step"].stat().st_size / 1e6, 2),
+        "onnx_step_mb": round(step_onnx.stat().st_size / 1e6, 2),
         "gflop_per_step": round(count_step_flops(model, cfg) / 1e9, 3),
         "gflop_per_window": round(count_flops(model, *bench.window()) / 1e9, 3),
         "achieved_tflops_streaming": achieved,
@@ -332,10 +310,10 @@ def bench_model(
         "concurrency": concurrency,
         "gate": gates,
     }
-    return {"step_onnx": forms["step"], "cfg": cfg}
+    return {"step_onnx": step_onnx, "cfg": cfg}
 
 
-MODEL_STAGES = 6  # the stages of bench_model
+MODEL_STAGES = 5  # the stages of bench_model
 
 
 def http_stages(concurrency: Sequence[int], full_scans: bool) -> int:

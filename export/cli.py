@@ -40,18 +40,11 @@ def build_parser() -> argparse.ArgumentParser:
         "--opset", type=_opset, default=MIN_OPSET, help=f"ONNX opset, >= {MIN_OPSET} (default %(default)s)"
     )
     parser.add_argument(
-        "--form",
-        choices=("step", "window"),
-        default="step",
-        help="step: streaming step graph with feature/flow caches (the service's form); "
-        "window: model.forward on a full window (default %(default)s)",
-    )
-    parser.add_argument(
         "--batch",
         choices=("static", "dynamic"),
-        default="static",
-        help="static: a batch of one; dynamic (step form): a free first axis, so the service runs several streams' "
-        "steps as one batch (verified batched too) (default %(default)s)",
+        default="dynamic",
+        help="dynamic: a free first axis, so the tiles of a whole scan step as one batch (verified batched too); "
+        "static: a batch of one (a whole scan then steps tile by tile) (default %(default)s)",
     )
     parser.add_argument("--no-verify", action="store_true", help="skip the onnxruntime vs PyTorch parity check")
     gate = parser.add_argument_group(
@@ -60,7 +53,7 @@ def build_parser() -> argparse.ArgumentParser:
         "simulated sequences and, with RAFD_RADIATE_SAMPLE, the real sample's frames; the verdict is recorded in the "
         "ONNX metadata (the service picks bf16 automatically only after a pass)",
     )
-    gate.add_argument("--gate", action="store_true", help="run the accuracy gate (step form)")
+    gate.add_argument("--gate", action="store_true", help="run the accuracy gate")
     add_gate_flags(gate)
     flags.add_quiet(parser)
     flags.deprecated(
@@ -93,7 +86,6 @@ def main(argv: list[str] | None = None) -> int:
             args.checkpoint,
             output,
             opset=args.opset,
-            form=args.form,
             verify=not args.no_verify,
             log=log,
             gate=gate,
@@ -111,7 +103,7 @@ def main(argv: list[str] | None = None) -> int:
     )
     batch = ", dynamic batch" if result.metadata.get("batch") == "dynamic" else ""
     print(
-        f"wrote {result.path} ({result.size_bytes / 1e6:.2f} MB, {result.form} form{batch}, opset {result.opset}, "
+        f"wrote {result.path} ({result.size_bytes / 1e6:.2f} MB, step graph{batch}, opset {result.opset}, "
         f"{result.exporter} exporter, {verified}{gated})"
     )
     return 0

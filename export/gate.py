@@ -254,7 +254,7 @@ def compare_frame(
         figures.score_differences.append(float(abs(ref.scores[i] - cand.scores[j])))
     figures.changed += int((~used).sum())
     if reference.flow is not None and candidate.flow is not None:
-        newest = np.linalg.norm(reference.flow[-1] - candidate.flow[-1], axis=0)  # [Hf, Wf] metres
+        newest = np.linalg.norm(reference.flow - candidate.flow, axis=0)  # [Hf, Wf] metres
         figures.flow_differences.append(newest.ravel())
 
 
@@ -329,8 +329,9 @@ def run_sequence(
 
     states = [reference.new_state(), candidate.new_state()]
     for item in frames:
-        ref, states[0] = reference.step(states[0], item.frame, item.pose)
-        cand, states[1] = candidate.step(states[1], item.frame, item.pose)
+        ref, states[0] = reference.step(states[0], item.frame[None], item.pose[None])
+        cand, states[1] = candidate.step(states[1], item.frame[None], item.pose[None])
+        ref, cand = ref.view(0), cand.view(0)
         advance()
         if warming_up(ref.frames_used, reference.config.num_frames):
             continue  # the window is padded
@@ -341,7 +342,7 @@ def run_sequence(
                 labelled[name].append(decode_detections(result.boxes, result.scores, 0.0).as_array())
                 if item.gt_flow is not None and item.flow_valid is not None and result.flow is not None:
                     labelled[f"{name}_epe"].append(
-                        end_point_error_terms(result.flow[-1], item.gt_flow, item.flow_valid[None])
+                        end_point_error_terms(result.flow, item.gt_flow, item.flow_valid[None])
                     )
 
 
@@ -414,8 +415,6 @@ def gate_model(
         other = OpenVinoRunner(onnx_path, "int8", threads, quantized=quantized)
     else:
         other = open_runner(onnx_path, *candidate, threads, islands=False)
-    if reference.form != "step":
-        raise ValueError(f"the gate streams the step form; {onnx_path} is a {reference.form!r} graph")
     key = (sequences, frames, seed)
     if drives is None:
         simulated = simulated_sequences(reference.config, *key)

@@ -1,4 +1,5 @@
-"""Checkpoint -> ONNX (step or window form) with metadata, onnx.checker and onnxruntime parity verification."""
+"""Checkpoint -> ONNX (the model's streaming step, export.step) with metadata, onnx.checker and onnxruntime parity
+verification."""
 
 from __future__ import annotations
 
@@ -19,13 +20,12 @@ import torch
 import rafd
 from export import MIN_OPSET
 from export.gate import GateOptions, GateReport, gate_metadata, put_in_place, run_export_gates
-from export.step import build_graph, example_inputs, feature_channels
+from export.step import StepGraph, build_graph
 from export.verify import Report, verify_export
 from rafd.config import RaFDConfig
 from rafd.model.checkpoint import load_checkpoint
 from rafd.model_files import file_sha256, int8_model_path, islands_dir
 from rafd.protocol import OPERATING_THRESHOLD_KEY, check_score_threshold
-from rafd.runtime import FORMS, graph_inputs, graph_outputs
 
 BATCH_MODES = ("static", "dynamic")
 
@@ -37,7 +37,6 @@ class ExportError(RuntimeError):
 @dataclass
 class ExportResult:
     path: Path
-    form: str
     opset: int
     exporter: str  # "torchscript" (torch.onnx.export dynamo=False) or "dynamo"
     export_seconds: float  # torch.onnx.export + metadata + onnx.checker
@@ -65,8 +64,6 @@ def check_output_path(output: Path) -> None:
 def build_metadata(
     cfg: RaFDConfig,
     checkpoint_sha256: str,
-    form: str,
-    channels: int,
     opset: int,
     exporter: str,
     operating_threshold: float | None = None,
@@ -91,8 +88,6 @@ def build_metadata(
         "class_names": json.dumps(list(cfg.class_names)),
         "checkpoint_sha256": checkpoint_sha256,
         "version": rafd.__version__,
-        "form": form,
-        "feature_channels": str(channels),
         "opset": str(opset),
         "exporter": exporter,
         "batch": batch,
@@ -100,18 +95,16 @@ def build_metadata(
 
 
 def _torch_export(
-    graph: torch.nn.Module,
+    graph: StepGraph,
     inputs: tuple[torch.Tensor, ...],
     path: Path,
-    cfg: RaFDConfig,
-    form: str,
     opset: int,
     log: Callable[[str], None],
     batch: str = "static",
 ) -> str:
     """torch.onnx.export with static shapes (batch "dynamic": a free first axis on every input and output, the rest
     static): the TorchScript exporter first (robust with grid_sample), then dynamo."""
-    input_names, output_names = list(graph_inputs(form, cfg.num_frames)), list(graph_outputs(form, cfg.num_frames))
+    input_names, output_names = list(graph.input_names), list(graph.output_names)
     names: dict[str, Any] = dict(  # keyword arguments of both exporters
         input_names=input_names, output_names=output_names, opset_version=opset
     )
@@ -136,7 +129,7 @@ def _torch_export(
 def _restore_unused_inputs(
     proto: onnx.ModelProto, names: tuple[str, ...], example: tuple[torch.Tensor, ...], batch: str
 ) -> None:
-    """The exporters drop inputs the graph does not use (poses for T = 1); the contract keeps them."""
+    """The exporters drop inputs the graph does not use (pose for T = 1); the contract keeps them."""
     present = {value.name: onnx.ValueInfoProto.FromString(value.SerializeToString()) for value in proto.graph.input}
 
     def shape(tensor: torch.Tensor) -> list[int | str]:
@@ -150,38 +143,48 @@ def _restore_unused_inputs(
     proto.graph.input.extend(inputs)
 
 
+def _declare_output_shapes(proto: onnx.ModelProto, names: tuple[str, ...], example: tuple[torch.Tensor, ...]) -> None:
+    """Every output's static shape as PyTorch computes it (the exporters leave some symbolic after a Reshape on a
+    free batch axis), the batch axis as the inputs have it: a runtime can then check that new_cache.NAME fits
+    cache.NAME, and OpenVINO compiles static shapes."""
+    batch = proto.graph.input[0].type.tensor_type.shape.dim[0]
+    for value, tensor in zip(proto.graph.output, example):
+        assert value.name in names
+        dims = value.type.tensor_type.shape.dim
+        del dims[:]
+        for axis, size in enumerate(tensor.shape):
+            dim = dims.add()
+            if axis == 0:
+                dim.CopyFrom(batch)
+            else:
+                dim.dim_value = size
+
+
 def export_onnx(
     checkpoint: str | os.PathLike[str],
     output: str | os.PathLike[str],
     opset: int = MIN_OPSET,
-    form: str = "step",
     verify: bool = True,
     log: Callable[[str], None] = print,
     gate: GateOptions | None = None,
-    batch: str = "static",
+    batch: str = "dynamic",
 ) -> ExportResult:
     """Export a checkpoint; the output appears (atomically) only when checker and verification passed.
 
-    gate: also run the accuracy gate of every reduced precision this CPU runs (step form only) and record
+    gate: also run the accuracy gate of every reduced precision this CPU runs and record
     "gate_<precision>" = pass / fail (+ "gate_<precision>_figures", JSON) in the metadata, which is what lets
     rafd.runtime.create_runner pick that precision automatically.
 
-    batch: "static" (batch of one, the smallest graph) or "dynamic" (step form: a free first axis, so the service
-    can run several streams' steps as one batch, rafd.runtime.StreamRunner.step_many; verified batched as well).
+    batch: "static" (batch of one, the smallest graph) or "dynamic" (a free first axis, so the views of one stream,
+    the tiles of a whole scan, step as one batch; verified batched as well).
 
     Raises rafd.model.checkpoint.CheckpointError (bad checkpoint), ExportError, export.verify.VerificationError.
     """
     checkpoint, output = Path(checkpoint), Path(output)
     if opset < MIN_OPSET:
         raise ExportError(f"opset {opset} is too old: RaFD needs opset >= {MIN_OPSET}")
-    if form not in FORMS:
-        raise ExportError(f"form must be one of {FORMS}, got {form!r}")
     if batch not in BATCH_MODES:
         raise ExportError(f"batch must be one of {BATCH_MODES}, got {batch!r}")
-    if batch == "dynamic" and form != "step":
-        raise ExportError("a dynamic batch is for the step form (the service batches streams' steps)")
-    if gate is not None and form != "step":
-        raise ExportError("the accuracy gate streams the step form; export --form step to gate it")
     check_output_path(output)
     model, cfg, meta = load_checkpoint(checkpoint)
     model = model.eval()
@@ -189,18 +192,18 @@ def export_onnx(
     operating_threshold = meta.get(OPERATING_THRESHOLD_KEY) if isinstance(meta, dict) else None
 
     start = time.perf_counter()
-    channels = feature_channels(model, cfg)
-    graph = build_graph(model, cfg, form)
+    graph, example = build_graph(model, cfg)
     tmp = output.with_name(f".{output.name}.{os.getpid()}.tmp")
     try:
         with tempfile.TemporaryDirectory(dir=output.parent, prefix=f".{output.name}.") as workdir:
             raw = Path(workdir, "raw.onnx")
             with torch.no_grad():
-                example = example_inputs(cfg, form, channels)
-                exporter = _torch_export(graph, example, raw, cfg, form, opset, log, batch)
+                exporter = _torch_export(graph, example, raw, opset, log, batch)
             proto = onnx.load(str(raw))  # also pulls in external data, if the exporter wrote any
-        _restore_unused_inputs(proto, graph_inputs(form, cfg.num_frames), example, batch)
-        metadata = build_metadata(cfg, sha, form, channels, opset, exporter, operating_threshold, batch)
+        _restore_unused_inputs(proto, graph.input_names, example, batch)
+        with torch.no_grad():
+            _declare_output_shapes(proto, graph.output_names, graph(*example))
+        metadata = build_metadata(cfg, sha, opset, exporter, operating_threshold, batch)
         del proto.metadata_props[:]
         for key, value in metadata.items():
             proto.metadata_props.add(key=key, value=value)
@@ -212,15 +215,12 @@ def export_onnx(
         del proto
         export_seconds = time.perf_counter() - start
         size = tmp.stat().st_size
-        log(
-            f"exported {form} graph with the {exporter} exporter, opset {opset}: {size / 1e6:.2f} MB "
-            f"in {export_seconds:.1f} s"
-        )
+        log(f"exported the step graph with the {exporter} exporter, opset {opset}: {size / 1e6:.2f} MB in {export_seconds:.1f} s")
 
         report, verify_seconds = None, 0.0
         if verify:
             start = time.perf_counter()
-            report = verify_export(tmp, model, cfg, form, log=log)
+            report = verify_export(tmp, model, cfg, log=log)
             verify_seconds = time.perf_counter() - start
         gates: dict[str, GateReport] = {}
         if gate is not None:
@@ -241,7 +241,6 @@ def export_onnx(
         shutil.rmtree(islands_dir(tmp), ignore_errors=True)
     return ExportResult(
         path=output,
-        form=form,
         opset=opset,
         exporter=exporter,
         export_seconds=export_seconds,

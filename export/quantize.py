@@ -69,7 +69,7 @@ def calibration_feeds(
     for sequence in simulated_sequences(runner.config, sequences, frames, seed):
         state = runner.new_state()
         for item in sequence:
-            _, state = runner.step(state, item.frame, item.pose)
+            _, state = runner.step(state, item.frame[None], item.pose[None])
     return recording.feeds
 
 

@@ -1,122 +1,54 @@
-"""The torch modules that are exported: the streaming step graph and the full-window graph.
+"""The exported graph: the model's streaming step (RaFD.step) with its cache as named inputs and outputs.
 
-Both are thin wrappers over the model's own streaming decomposition (encode_frame / pair_flow / detect), so the
-step graph computes exactly what model.forward computes for the window whose caches it is given.
-Input and output names and shapes are the contract of rafd.runtime (see its docstring).
+    inputs   frame [B, 1, S, S], pose [B, 3], cache.NAME ... (the names and shapes of RaFD.empty_cache)
+    outputs  heatmap [B, 1, Hf, Wf], scores [B, K], boxes [B, K, 5], flow [B, 2, Hf, Wf] (T > 1), frames_used [B],
+             new_cache.NAME ... (each the shape of its cache.NAME)
+
+The contract the runtime reads (rafd.runtime.contract): it feeds new_cache.NAME back as cache.NAME and never looks
+inside.
 """
 
 from __future__ import annotations
-
-from collections.abc import Callable
 
 import torch
 from torch import Tensor, nn
 
 from rafd.config import RaFDConfig
-from rafd.model import RaFD, relative_pose_torch
-from rafd.runtime import FORMS
-
-
-class Method(nn.Module):
-    """A bound method of the model called as a module, so that the ONNX exporter names its nodes after this module.
-
-    The TorchScript exporter scopes a node by the modules whose __call__ is on the stack: a model method called
-    directly (model.flow_features, model.pair_flow_encoded) gets its caller's scope, and its operations would land
-    outside any module in a by-module profile (rafd bench speed --profile). The method is kept as a plain attribute,
-    not a submodule: the graph's parameters and state dict are the model's, unchanged."""
-
-    def __init__(self, method: Callable[..., Tensor]) -> None:
-        super().__init__()
-        self.method = method
-
-    def forward(self, *args: Tensor) -> Tensor:
-        return self.method(*args)
-
-
-class FlowStep(nn.Module):
-    """The step's flow branch as one module (nodes /flow/encode/..., /flow/match/...): the new frame's features
-    [1,C,Hf,Wf], the previous frame's phi [1,C/2,Hm,Wm], poses [1,T,3] -> the new phi, the newest pair's flow."""
-
-    def __init__(self, model: RaFD) -> None:
-        super().__init__()
-        self.encode = Method(model.flow_features)  # phi once per frame; the previous one is cached
-        self.match = Method(model.pair_flow_encoded)
-
-    def forward(self, features: Tensor, past_flow_features: Tensor, poses: Tensor) -> tuple[Tensor, Tensor]:
-        flow_features = self.encode(features)
-        relative = relative_pose_torch(poses[:, -2], poses[:, -1])
-        return flow_features, self.match(past_flow_features, flow_features, relative)
+from rafd.model import RaFD
+from rafd.runtime.contract import CACHE_PREFIX, NEW_CACHE_PREFIX, STEP_OUTPUTS
 
 
 class StepGraph(nn.Module):
-    """One new frame + the previous window's caches -> detections of the new window, its flows, the new features.
+    """RaFD.step with its cache flattened into positional tensors, in the order of `cache_names`."""
 
-    inputs:  frame [1,1,S,S], poses [1,T,3], past_features [1,T-1,C,Hf,Wf], past_flows [1,T-2,2,Hf,Wf] (T = 4),
-             past_flow_features [1,C/2,Hm,Wm] (phi of the previous frame, computed by the previous step)
-    outputs: heatmap, scores, boxes, flow [1,T-1,2,Hf,Wf], features [1,C,Hf,Wf], flow_features [1,C/2,Hm,Wm]
-    For T = 1 it is the single-frame model: inputs frame, poses [1,1,3]; outputs heatmap, scores, boxes.
-    """
-
-    def __init__(self, model: RaFD, num_frames: int) -> None:
+    def __init__(self, model: RaFD, cache_names: tuple[str, ...]) -> None:
         super().__init__()
         self.model = model
-        self.num_frames = num_frames
-        self.flow = FlowStep(model) if num_frames > 1 else None
+        self.cache_names = cache_names
+        self.outputs = STEP_OUTPUTS if model.num_frames > 1 else tuple(n for n in STEP_OUTPUTS if n != "flow")
 
-    def forward(self, frame: Tensor, poses: Tensor, *caches: Tensor) -> tuple[Tensor, ...]:
-        if self.num_frames == 1:
-            out = self.model(frame[:, None], poses)
-            return out["heatmap"], out["scores"], out["boxes"]
-        # caches in contract order: past_features, [past_flows (T = 4)], past_flow_features
-        past_features, past_flow_features = caches[0], caches[-1]
-        past_flows = caches[1] if self.num_frames > 2 else None
-        features = self.model.encode_frame(frame)
-        assert self.flow is not None  # built for num_frames > 1
-        flow_features, flow = self.flow(features, past_flow_features, poses)
-        flows = flow[:, None] if past_flows is None else torch.cat([past_flows, flow[:, None]], 1)
-        out = self.model.detect_newest(past_features, features, flows, poses)
-        return out["heatmap"], out["scores"], out["boxes"], flows, features, flow_features
+    def forward(self, frame: Tensor, pose: Tensor, *cache: Tensor) -> tuple[Tensor, ...]:
+        outputs, new_cache = self.model.step(frame, pose, dict(zip(self.cache_names, cache)))
+        return tuple(outputs[name] for name in self.outputs) + tuple(new_cache[name] for name in self.cache_names)
+
+    @property
+    def input_names(self) -> tuple[str, ...]:
+        return ("frame", "pose") + tuple(CACHE_PREFIX + name for name in self.cache_names)
+
+    @property
+    def output_names(self) -> tuple[str, ...]:
+        return self.outputs + tuple(NEW_CACHE_PREFIX + name for name in self.cache_names)
 
 
-class WindowGraph(nn.Module):
-    """model.forward on a full window: frames [1,T,1,S,S], poses [1,T,3] -> heatmap, scores, boxes(, flow)."""
-
-    def __init__(self, model: RaFD, num_frames: int) -> None:
-        super().__init__()
-        self.model = model
-        self.num_frames = num_frames
-
-    def forward(self, frames: Tensor, poses: Tensor) -> tuple[Tensor, ...]:
-        out = self.model(frames, poses)
-        if self.num_frames == 1:
-            return out["heatmap"], out["scores"], out["boxes"]
-        return out["heatmap"], out["scores"], out["boxes"], out["flow"]
-
-
-@torch.no_grad()
-def feature_channels(model: RaFD, cfg: RaFDConfig) -> int:
-    """C of model.encode_frame (the step graph's cached feature maps)."""
-    return int(model.encode_frame(torch.zeros(1, 1, cfg.input_size, cfg.input_size)).shape[1])
-
-
-def build_graph(model: RaFD, cfg: RaFDConfig, form: str) -> nn.Module:
-    if form not in FORMS:
-        raise ValueError(f"form must be one of {FORMS}, got {form!r}")
-    return (StepGraph if form == "step" else WindowGraph)(model, cfg.num_frames).eval()
-
-
-def example_inputs(cfg: RaFDConfig, form: str, channels: int, seed: int = 0) -> tuple[Tensor, ...]:
-    """Random inputs of the graph's static shapes (frames in [0, 1], small ego motion), in contract order."""
-    generator = torch.Generator().manual_seed(seed)
-    T, S, F = cfg.num_frames, cfg.input_size, cfg.feature_size
-    poses = torch.cumsum(torch.randn(1, T, 3, generator=generator) * torch.tensor([1.0, 1.0, 0.05]), 1)
-    if form == "window":
-        return torch.rand(1, T, 1, S, S, generator=generator), poses
-    inputs: tuple[Tensor, ...] = (torch.rand(1, 1, S, S, generator=generator), poses)
-    if T > 1:
-        inputs += (torch.randn(1, T - 1, channels, F, F, generator=generator),)
-    if T > 2:
-        inputs += (torch.randn(1, T - 2, 2, F, F, generator=generator),)
-    if T > 1:  # past_flow_features: phi of the previous frame, cfg.flow_channels on the flow grid
-        inputs += (torch.randn(1, cfg.flow_channels, cfg.flow_size, cfg.flow_size, generator=generator),)
-    return inputs
+def build_graph(model: RaFD, cfg: RaFDConfig) -> tuple[StepGraph, tuple[Tensor, ...]]:
+    """The step graph of an eval-mode model and example inputs of its static shapes (random frame, a small ego
+    motion, a random cache of a started stream), in input order."""
+    model = model.eval()
+    cache = model.empty_cache(1, cfg.input_size)
+    graph = StepGraph(model, tuple(cache))
+    generator = torch.Generator().manual_seed(0)
+    size = cfg.input_size
+    example = [torch.rand(1, 1, size, size, generator=generator), torch.tensor([[0.3, 1.5, 0.02]])]
+    for name, zeros in cache.items():
+        example.append(torch.full_like(zeros, 2.0) if name == "frames" else torch.randn(zeros.shape, generator=generator))
+    return graph.eval(), tuple(example)

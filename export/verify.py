@@ -6,14 +6,15 @@ PyTorch detection of equal score (within tolerance) with the nearest centre. An 
 accepted only at the top-K boundary (its score equals the K-th PyTorch score within tolerance: the tie was broken
 the other way).
 
-The step form is verified by streaming a sequence through rafd.runtime.OnnxRunner and comparing every frame, the
-warm-up frames included, with model.forward on the warm-up-padded window (rafd.runtime.window_from_history).
+The step graph is verified by streaming a sequence through rafd.runtime.OnnxRunner and comparing every frame, the
+warm-up frames included, with model.forward on the warm-up-padded window (window_from_history); a graph with a free
+batch axis also streams two views at once (the tiles of a whole scan step so).
 """
 
 from __future__ import annotations
 
 import os
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -22,7 +23,9 @@ import torch
 from torch import nn
 
 from rafd.config import RaFDConfig
-from rafd.runtime import OnnxRunner, window_from_history
+from rafd.geometry import relative_pose
+from rafd.runtime import OnnxRunner, StreamRunner
+from rafd.runtime.backend import DYNAMIC
 
 # (rtol, atol) per output; heatmap and flow as issue 5 asks, boxes in metres / radians.
 TOLERANCES: dict[str, tuple[float, float]] = {
@@ -148,7 +151,7 @@ def _detections(outputs: dict[str, np.ndarray | None], name: str) -> np.ndarray:
 def compare_outputs(
     report: Report, source: str, ort: dict[str, np.ndarray | None], ref: dict[str, np.ndarray | None]
 ) -> None:
-    """ort/ref: heatmap [Hf,Wf], boxes [K,5], scores [K], flow [T-1,2,Hf,Wf] or None (batch dimension dropped)."""
+    """ort/ref: heatmap [Hf,Wf], boxes [K,5], scores [K], flow [2,Hf,Wf] or None (batch dimension dropped)."""
     report.cases[source] = report.cases.get(source, 0) + 1
     for name in ("heatmap", "flow"):
         ort_value, ref_value = ort.get(name), ref.get(name)
@@ -163,79 +166,68 @@ def compare_outputs(
     report.add(source, "scores", scores)
 
 
+def window_from_history(
+    frames: Sequence[np.ndarray] | np.ndarray, poses: np.ndarray | Sequence[np.ndarray], num_frames: int
+) -> tuple[np.ndarray, np.ndarray]:
+    """A stream's history (oldest first, any length >= 1) -> its newest window under the warm-up rule of RaFD.step:
+    the last T frames, padded at the old end by repeating the oldest of them with its pose when fewer than T are
+    available. Returns (frames [T, ...] stacked as given, poses float64 [T, 3])."""
+    frames = list(frames)[-num_frames:]
+    poses = np.asarray(poses, dtype=np.float64).reshape(-1, 3)[-num_frames:]
+    if not frames:
+        raise ValueError("window_from_history needs at least one frame")
+    if len(poses) != len(frames):
+        raise ValueError(f"got {len(frames)} frames but {len(poses)} poses")
+    pad = num_frames - len(frames)
+    return np.stack([frames[0]] * pad + frames), np.concatenate([np.repeat(poses[:1], pad, axis=0), poses])
+
+
 @torch.no_grad()
 def torch_window(model: nn.Module, frames: np.ndarray, poses: np.ndarray) -> dict[str, np.ndarray | None]:
-    """model.forward on one window: frames [T,S,S] in [0,1], poses [T,3] -> outputs without the batch dimension."""
+    """model.forward on one window: frames [T,S,S] in [0,1], world poses [T,3] -> outputs without the batch
+    dimension, the flow the newest pair's [2,Hf,Wf]. The poses are taken relative to the newest in float64 first,
+    as a stream's are."""
+    local = relative_pose(np.asarray(poses, np.float64), np.asarray(poses, np.float64)[-1])
     out = model(
         torch.from_numpy(np.asarray(frames, np.float32))[None, :, None],
-        torch.from_numpy(np.asarray(poses, np.float32))[None],
+        torch.from_numpy(local.astype(np.float32))[None],
     )
     flow = out.get("flow")
     return {
         "heatmap": out["heatmap"][0, 0].numpy(),
         "boxes": out["boxes"][0].numpy(),
         "scores": out["scores"][0].numpy(),
-        "flow": None if flow is None else flow[0].numpy(),
+        "flow": None if flow is None else flow[0, -1].numpy(),
     }
 
 
 def verify_stream(
-    runner: OnnxRunner, model: nn.Module, frames: np.ndarray, poses: np.ndarray, report: Report, source: str
+    runner: StreamRunner,
+    model: nn.Module,
+    views: Sequence[tuple[np.ndarray, np.ndarray]],
+    report: Report,
+    source: str,
 ) -> None:
-    """Stream frames [N,S,S] / poses [N,3] through the runner; compare every frame with the padded window."""
+    """Stream one or more views (frames [N,S,S] / world poses [N,3] each, the same N) through the runner as one
+    stream, all views in one run per frame; compare every view's every frame, the warm-up frames included, with
+    model.forward on its own padded window."""
     T = runner.config.num_frames
     state = runner.new_state()
-    for n in range(len(frames)):
-        result, state = runner.step(state, np.ascontiguousarray(frames[n], np.float32), poses[n])
+    for n in range(len(views[0][0])):
+        frames = np.stack([np.asarray(f[n], np.float32) for f, _ in views])
+        poses = np.stack([p[n] for _, p in views])
+        result, state = runner.step(state, frames, poses)
         if result.frames_used != min(n + 1, T):
             raise VerificationError(f"frame {n}: frames_used {result.frames_used}, expected {min(n + 1, T)}")
-        window = window_from_history(frames[: n + 1], poses[: n + 1], T)
-        ort = {"heatmap": result.heatmap, "boxes": result.boxes, "scores": result.scores, "flow": result.flow}
-        compare_outputs(report, source, ort, torch_window(model, *window))
-
-
-def verify_batched(
-    runner: OnnxRunner, model: nn.Module, sequences: list[tuple[np.ndarray, np.ndarray]], report: Report
-) -> None:
-    """A batchable step graph: several streams, stream k starting k frames late, advanced together with
-    OnnxRunner.step_many (so one run mixes streams at different points of their warm-up); every frame of every
-    stream is compared with the padded window of its own history."""
-    T = runner.config.num_frames
-    states = [runner.new_state() for _ in sequences]
-    length = max(len(frames) for frames, _ in sequences) + len(sequences)
-    for tick in range(length):
-        active = [k for k, (frames, _) in enumerate(sequences) if 0 <= tick - k < len(frames)]
-        items = [
-            (states[k], np.ascontiguousarray(sequences[k][0][tick - k], np.float32), sequences[k][1][tick - k])
-            for k in active
-        ]
-        for k, (result, state) in zip(active, runner.step_many(items)):
-            n = tick - k
-            states[k] = state
-            if result.frames_used != min(n + 1, T):
-                raise VerificationError(f"batched stream {k}, frame {n}: frames_used {result.frames_used}")
-            frames, poses = sequences[k]
-            window = window_from_history(frames[: n + 1], poses[: n + 1], T)
-            ort = {"heatmap": result.heatmap, "boxes": result.boxes, "scores": result.scores, "flow": result.flow}
-            compare_outputs(report, "batched", ort, torch_window(model, *window))
-
-
-def verify_windows(
-    runner: OnnxRunner, model: nn.Module, frames: np.ndarray, poses: np.ndarray, report: Report, source: str
-) -> None:
-    """Window form: feed every full window of frames [N,S,S] / poses [N,3] to the ONNX graph directly."""
-    T = runner.config.num_frames
-    for end in range(T, len(frames) + 1):
-        window_frames = np.ascontiguousarray(frames[end - T : end], np.float32)
-        window_poses = np.asarray(poses[end - T : end], np.float32)
-        out = runner.run({"frames": window_frames[None, :, None], "poses": window_poses[None]})
-        ort = {
-            "heatmap": out["heatmap"][0, 0],
-            "boxes": out["boxes"][0],
-            "scores": out["scores"][0],
-            "flow": out["flow"][0] if "flow" in out else None,
-        }
-        compare_outputs(report, source, ort, torch_window(model, window_frames, window_poses))
+        for v, (view_frames, view_poses) in enumerate(views):
+            window = window_from_history(view_frames[: n + 1], view_poses[: n + 1], T)
+            ort = {
+                "heatmap": result.heatmap[v],
+                "boxes": result.boxes[v],
+                "scores": result.scores[v],
+                "flow": None if result.flow is None else result.flow[v],
+            }
+            compare_outputs(report, source, ort, torch_window(model, *window))
 
 
 def random_sequence(
@@ -281,7 +273,6 @@ def verify_export(
     onnx_path: str | os.PathLike[str],
     model: nn.Module,
     cfg: RaFDConfig,
-    form: str,
     log: Callable[[str], None] = print,
     length: int | None = None,
 ) -> Report:
@@ -298,13 +289,12 @@ def verify_export(
             log(f"warning: RAFD_RADIATE_SAMPLE={sample} holds no Navtech_Cartesian/ folder; real frames skipped")
     report = Report()
     model = model.eval()
-    for source, (frames, poses) in sources.items():
-        (verify_stream if form == "step" else verify_windows)(runner, model, frames, poses, report, source)
-    if runner.batchable:  # the dynamic batch axis: streams run together must answer as they do alone
-        batch_length = cfg.num_frames + 1  # two streams one frame apart: warm-up and steady state in one run
-        verify_batched(runner, model, [random_sequence(cfg, batch_length, seed=seed) for seed in (1, 2)], report)
-    how = "streamed through OnnxRunner vs padded windows" if form == "step" else "windows"
-    log(f"parity onnxruntime vs PyTorch ({how}):")
+    for source, sequence in sources.items():
+        verify_stream(runner, model, [sequence], report, source)
+    if runner.batch == DYNAMIC:  # the views of one stream (a whole scan's tiles) step as one batch
+        views = [random_sequence(cfg, cfg.num_frames + 1, seed=seed) for seed in (1, 2)]
+        verify_stream(runner, model, views, report, "batched")
+    log("parity onnxruntime vs PyTorch (streamed through OnnxRunner vs padded windows):")
     for line in report.lines():
         log(line)
     if not report.ok:

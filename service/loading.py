@@ -59,4 +59,4 @@ def check_buffer_length(settings: Settings, runner: Any) -> None:
 def warm_up(runner: Any) -> None:
     """One step on a blank frame: first-run allocations and kernel choices happen before traffic."""
     size = runner.config.input_size
-    runner.step(runner.new_state(), np.zeros((size, size), np.float32), np.zeros(3, np.float32))
+    runner.step(runner.new_state(), np.zeros((1, size, size), np.float32), np.zeros((1, 3)))

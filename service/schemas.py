@@ -254,10 +254,6 @@ class RuntimeOut(Answer):
     selection_ms_per_run: dict[str, float] = Field(
         description="RAFD_RUNTIME=auto: the median ms per run of every candidate timed at start-up"
     )
-    max_batch: int = Field(
-        description="most streams' steps in one model run (RAFD_MAX_BATCH; 1 when off or the graph has no batch axis)"
-    )
-    batch_window_ms: float = Field(description="how long a ready step waits for company when the model is idle")
     precision_choice: PrecisionChoiceOut | None = Field(
         default=None, description="the precisions this CPU runs, which the model's gate records allow, and why"
     )

@@ -323,25 +323,6 @@ class Settings(BaseSettings):
             "those); a full queue answers 503 + Retry-After at once."
         ),
     )
-    max_batch: int = Field(
-        default=1,
-        ge=1,
-        le=64,
-        description=(
-            "Cross-stream batching (service/pipeline/batcher.py): at most this many streams' steady-state steps "
-            "in one model run, when the graph has a batch axis (rafd-export --batch dynamic); 1 = every step runs "
-            'alone. Off by default: on the CPUs measured it does not pay (docs/performance.md, "Cross-stream '
-            'batching").'
-        ),
-    )
-    batch_window_ms: float = Field(
-        default=0.0,
-        ge=0.0,
-        le=50.0,
-        description=(
-            "When the model is idle, milliseconds a ready step waits for other streams' steps before it runs alone."
-        ),
-    )
     retry_after_s: int = Field(
         default=1,
         ge=1,

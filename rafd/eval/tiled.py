@@ -139,7 +139,8 @@ def detect_windows(
 
 
 class TiledStream:
-    """A stream of full scans through a streaming runner (rafd.runtime): one runner state per tile."""
+    """A stream of full scans through a streaming runner (rafd.runtime): the tiles step together as the views of
+    one stream state."""
 
     def __init__(self, runner, grid: TileGrid | None = None) -> None:
         from rafd.preprocess import to_model_input
@@ -150,17 +151,11 @@ class TiledStream:
         if self.grid.tile != cfg.input_size:
             raise ValueError(f"tiles of {self.grid.tile} px for a model of {cfg.input_size} px")
         self._to_input = to_model_input
-        self.states = [runner.new_state() for _ in range(self.grid.per_side**2)]
+        self.state = runner.new_state()
 
     def step(self, scan: np.ndarray, pose: np.ndarray, score_threshold: float = 0.0) -> Detections:
         """Add one full scan with its world pose -> its merged detections (ego frame)."""
-        crops = self.grid.crops(scan)
+        crops = self._to_input(np.ascontiguousarray(self.grid.crops(scan)))  # [n*n, S, S]
         poses = tile_poses(np.asarray(pose, np.float64)[None], self.grid.offsets_m)[:, 0]  # [n*n, 3]
-        boxes, scores, states = [], [], []
-        for crop, tile_pose, state in zip(crops, poses, self.states):
-            result, new_state = self.runner.step(state, self._to_input(np.ascontiguousarray(crop)), tile_pose)
-            boxes.append(result.boxes)
-            scores.append(result.scores)
-            states.append(new_state)
-        self.states = states  # committed only after every tile stepped
-        return merge_tiles(self.grid, np.stack(boxes), np.stack(scores), score_threshold)
+        result, self.state = self.runner.step(self.state, crops, poses)
+        return merge_tiles(self.grid, result.boxes, result.scores, score_threshold)

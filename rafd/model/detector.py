@@ -1,6 +1,8 @@
-"""RaFD: the whole network, decomposed into the streaming steps encode_frame / pair_flow / detect."""
+"""RaFD: the whole network, and its streaming step (`step`: one new frame and the cache of the previous ones)."""
 
 from __future__ import annotations
+
+from collections.abc import Callable
 
 import torch
 from torch import Tensor, nn
@@ -10,6 +12,19 @@ from rafd.model.flow import FlowEstimator
 from rafd.model.head import DetectionHead
 from rafd.model.joint_propagation import JointPropagation
 from rafd.model.propagation import FlowGuidedPropagation
+
+
+class Stage(nn.Module):
+    """A method of another module called as a module of its own, so that the ONNX exporter names the step graph's
+    nodes after it (/flow_encode/..., /flow_match/...: units of a by-module profile and of the float32 islands). It
+    holds no parameters: the method's module keeps them, so the state dict is unchanged."""
+
+    def __init__(self, method: Callable[..., Tensor]) -> None:
+        super().__init__()
+        self.method = method
+
+    def forward(self, *args: Tensor) -> Tensor:
+        return self.method(*args)
 
 
 class FrameEncoder(nn.Module):
@@ -29,10 +44,11 @@ class FrameEncoder(nn.Module):
 class RaFD(nn.Module):
     """frames [B, T, 1, S, S] in [0, 1] + world poses [B, T, 3] -> detections in the newest ego frame.
 
-    Each frame's features and each consecutive pair's flow depend only on those frames, so a stream
-    caches them; forward is exactly encode_frame on every frame, pair_flow on every pair, then detect,
-    so a streaming run equals the window run by construction. For T = 1 there is no flow branch and no
-    propagation (single-frame CenterFormer baseline).
+    forward is encode_frame on every frame, pair_flow on every consecutive pair, then detect. Each frame's
+    features and each pair's flow depend only on those frames, so a stream caches them: `step` takes one new
+    frame and the cache (which the runtime carries without knowing what it holds) and equals forward on the
+    stream's newest window. For T = 1 there is no flow branch and no propagation (single-frame CenterFormer
+    baseline).
     """
 
     def __init__(
@@ -51,6 +67,9 @@ class RaFD(nn.Module):
         self.propagation = propagation
         self.head = head
         self.num_frames = num_frames
+        if flow is not None:  # the step's two flow stages: phi once per frame (cached), matching once per pair
+            self.flow_encode = Stage(flow.encode)
+            self.flow_match = Stage(flow.match)
 
     def encode_frame(self, frame: Tensor) -> Tensor:
         """[B, 1, S, S] -> [B, C, Hf, Wf]."""
@@ -65,19 +84,6 @@ class RaFD(nn.Module):
         if self.flow is None:
             raise RuntimeError("a single-frame RaFD has no flow branch")
         return self.flow(features_prev, features_cur, relative_pose.to(features_cur.dtype))
-
-    def flow_features(self, features: Tensor) -> Tensor:
-        """S [B, C, Hf, Wf] -> E = phi(S) [B, C/2, Hm, Wm]: per frame, so a stream caches it beside S."""
-        if self.flow is None:
-            raise RuntimeError("a single-frame RaFD has no flow branch")
-        return self.flow.encode(features)
-
-    def pair_flow_encoded(self, encoded_prev: Tensor, encoded_cur: Tensor, relative_pose: Tensor) -> Tensor:
-        """pair_flow from cached E_prev, E_cur [B, C/2, Hm, Wm] (flow_features): equal to pair_flow in eval mode
-        (phi's BN uses its running statistics there, so phi of a frame does not depend on its pair)."""
-        if self.flow is None:
-            raise RuntimeError("a single-frame RaFD has no flow branch")
-        return self.flow.match(encoded_prev, encoded_cur, relative_pose.to(encoded_cur.dtype))
 
     def detect(
         self,
@@ -104,6 +110,74 @@ class RaFD(nn.Module):
         if isinstance(self.propagation, JointPropagation):
             return self.head(self.propagation(past_features, features, flows, poses))
         return self.detect(torch.cat([past_features, features[:, None]], 1), flows, poses)
+
+    @torch.no_grad()
+    def empty_cache(self, batch: int, input_size: int) -> dict[str, Tensor]:
+        """The cache `step` takes on a stream's first frame: zeros, `frames` 0 (nothing seen). Its names and shapes
+        are the step graph's cache inputs; what they hold is the model's business (see `step`)."""
+        T = self.num_frames
+        if T == 1:
+            return {}
+        if self.training:  # the shapes come from a forward pass, which would move BatchNorm's statistics
+            raise RuntimeError("empty_cache is for streaming: call model.eval() first")
+        device = next(self.parameters()).device
+        features = self.encode_frame(torch.zeros(1, 1, input_size, input_size, device=device))  # [1, C, Hf, Wf]
+        encoded = self.flow_encode(features)  # [1, Cm, Hm, Wm]
+        shapes = {
+            "features": (T - 1, *features.shape[1:]),  # the last T-1 frames' S, oldest first
+            "flow_features": tuple(encoded.shape[1:]),  # the last frame's E = phi(S)
+            "poses": (T - 1, 3),  # the last T-1 frames' poses in the last frame's ego frame
+            "frames": (),  # real frames in the last window (0: a new stream)
+        }
+        if T > 2:
+            shapes["flows"] = (T - 2, 2, *features.shape[2:])  # the last T-2 pair flows, oldest first
+        return {name: torch.zeros(batch, *shape, device=device) for name, shape in shapes.items()}
+
+    def step(self, frame: Tensor, pose: Tensor, cache: dict[str, Tensor]) -> tuple[dict[str, Tensor], dict[str, Tensor]]:
+        """One new frame of a stream: frame [B, 1, S, S], pose [B, 3] (this frame's pose in the previous frame's ego
+        frame, geometry.relative_pose(current, previous); anything on a stream's first frame), the cache of the
+        previous step (empty_cache's on the first) -> (outputs for the window ending at this frame, the new cache).
+
+        outputs: heatmap, scores, boxes as forward's, flow [B, 2, Hf, Wf] (the newest pair's; T > 1), frames_used
+        [B] (real frames in the window). Exactly forward on the window padded by the warm-up rule (a window of fewer
+        than T real frames repeats its oldest frame with its pose): each frame's S and E and each pair's flow depend
+        only on those frames, so the cache keeps them and a step computes one frame's and one pair's. On a stream's
+        first frame (cache frames 0) the padding is this frame itself: the past features are its own, the pair flows
+        its self-pair flow, the poses its own.
+        """
+        features = self.encode_frame(frame)  # [B, C, Hf, Wf]
+        T = self.num_frames
+        if T == 1:
+            return {**self.head(features), "frames_used": torch.ones_like(frame[:, 0, 0, 0])}, {}
+        seen = cache["frames"]  # [B]
+        started = seen > 0  # [B]
+
+        def continued(cached: Tensor, fresh: Tensor) -> Tensor:
+            """The cache where the stream has started, else this frame's own `fresh` padding."""
+            return torch.where(started.reshape(-1, *[1] * (cached.dim() - 1)), cached, fresh)
+
+        past = continued(cache["features"], features[:, None].expand_as(cache["features"]))  # [B, T-1, C, Hf, Wf]
+        encoded = self.flow_encode(features)  # [B, Cm, Hm, Wm]
+        past_encoded = continued(cache["flow_features"], encoded)  # [B, Cm, Hm, Wm]
+        # the window's poses in this frame's ego frame (this frame's is the origin): the past ones moved by `pose`
+        here = torch.zeros_like(pose)[:, None]  # [B, 1, 3]
+        moved = relative_pose_torch(cache["poses"], pose[:, None])  # [B, T-1, 3]
+        poses = torch.cat([continued(moved, here.expand_as(moved)), here], 1)  # [B, T, 3]
+        newest = self.flow_match(past_encoded, encoded, relative_pose_torch(poses[:, -2], poses[:, -1]))  # [B, 2, Hf, Wf]
+        flows = newest[:, None]  # [B, 1, 2, Hf, Wf]
+        if T > 2:
+            flows = torch.cat([continued(cache["flows"], flows.expand_as(cache["flows"])), flows], 1)  # [B, T-1, ...]
+        outputs = self.detect_newest(past, features, flows, poses)
+        frames_used = torch.clamp(seen + 1, max=T)  # [B]
+        new_cache = {
+            "features": torch.cat([past[:, 1:], features[:, None]], 1),
+            "flow_features": encoded,
+            "poses": poses[:, 1:],
+            "frames": frames_used,
+        }
+        if T > 2:
+            new_cache["flows"] = flows[:, 1:]
+        return {**outputs, "flow": newest, "frames_used": frames_used}, new_cache
 
     def forward(
         self, frames: Tensor, poses: Tensor, gt_indices: Tensor | None = None, gt_mask: Tensor | None = None

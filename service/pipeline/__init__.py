@@ -1,1 +1,1 @@
-"""The detect pipeline: stream store, arrival order, poses, executors, batching, live view and metrics."""
+"""The detect pipeline: stream store, arrival order, poses, executors, live view and metrics."""

@@ -48,7 +48,6 @@ from service.body.requests import StructureCount, parse_detect_request, parse_js
 from service.http.errors import ApiError, client_of, timestamp_error
 from service.http.intake import arrival_of
 from service.pipeline import poses
-from service.pipeline.batcher import StepBatcher
 from service.pipeline.executors import AdmissionLimit, BoundedExecutor
 from service.pipeline.ordering import ArrivalOrder, Unresolved
 from service.pipeline.service_metrics import ServiceMetrics
@@ -221,8 +220,6 @@ class DetectService:
         self.admission = AdmissionLimit(settings.max_inflight_requests, settings.retry_after_s)
         self.order = ArrivalOrder(settings.order_hold_s)
         self._odometry = odometry
-        self.batcher = StepBatcher(runner, self.executors.model, settings.max_batch, settings.batch_window_ms / 1000.0)
-        self.batcher.on_batch = metrics.model_batch_size.observe
         # RAFD_SCORE_THRESHOLD when set, else the model's documented operating threshold (rafd.protocol)
         self.score_threshold = operating_threshold(runner.metadata, settings.score_threshold)
         # the native scan sizes accepted, checked from the PNG header before any inflating
@@ -271,14 +268,14 @@ class DetectService:
             clock.lap("wait")
             located = await self._locate(fields, decoded, chain)
             clock.lap("odometry")
-            result, state = await self.batcher.step(chain.state, frame, located.pose)
+            result, state = await self.executors.model.run(self.runner.step, chain.state, frame[None], located.pose[None])
             clock.lap("model")
             self.store.commit(
                 ticket, state, fields.timestamp, located.memory, located.pose, located.source, digest, chain.broken
             )
         self.metrics.frames.inc()
         self.metrics.model_latency.observe(clock.seconds["model"])
-        answer = self._answer(fields, decoded, result, located, chain, options, ticket.restarted, clock)
+        answer = self._answer(fields, decoded, result.view(0), located, chain, options, ticket.restarted, clock)
         ticket.entry.remember_answer(fields.timestamp, digest, answer)  # for a retry whose answer was lost
         if self.on_answer is not None:
             self.on_answer(answer.to_plain(), decoded, caller)
@@ -500,7 +497,7 @@ class DetectService:
         exists yet."""
         if not options.flow or result.flow is None or result.frames_used < 2:
             return None
-        flow = np.asarray(result.flow)[-1]  # [T-1, 2, Hf, Wf] -> [2, Hf, Wf] newest pair
+        flow = np.asarray(result.flow)  # [2, Hf, Wf] the newest pair
         _, height, width = flow.shape
         steps = self.validity_steps(chain.last_pose, located.pose, result.frames_used, height)  # [Hf, Wf] of k / 100
         if options.flow_format == "base64":

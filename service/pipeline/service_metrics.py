@@ -96,12 +96,6 @@ class ServiceMetrics:
             buckets=LATENCY_BUCKETS,
             registry=self.registry,
         )
-        self.model_batch_size = Histogram(
-            "rafd_model_batch_size",
-            "streams' steps per model run (RAFD_MAX_BATCH; 1 when batching is off or a step ran alone)",
-            buckets=(1, 2, 3, 4, 6, 8, 12, 16, 32, 64),
-            registry=self.registry,
-        )
         self.frames = Counter("rafd_frames_processed", "frames run through the model", registry=self.registry)
         self.active_streams = Gauge("rafd_active_streams", "streams holding a buffer", registry=self.registry)
         self.evictions = Counter(

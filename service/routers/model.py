@@ -42,12 +42,6 @@ async def model_info(service: DetectService = Depends(get_service)) -> ModelInfo
         if accepts_polar(cfg.input_size, cfg.resolution)
         else None,
         score_threshold=service.score_threshold,
-        # how the graph runs: runtime, precision, threads per run, concurrent runs, start-up timings, batching
-        runtime=RuntimeOut.model_validate(
-            {
-                **service.runner.describe(),
-                "max_batch": service.batcher.max_batch,
-                "batch_window_ms": 1000.0 * service.batcher.window_s,
-            }
-        ),
+        # how the graph runs: runtime, precision, threads per run, concurrent runs, start-up timings
+        runtime=RuntimeOut.model_validate(service.runner.describe()),
     )

@@ -28,16 +28,16 @@ def test_export_and_verify(checkpoint, tmp_path, capsys):
     assert "max abs" in out and "max rel" in out and "FAIL" not in out
     assert f"wrote {output}" in out and "verified" in out
     runner = OnnxRunner(output)
-    assert runner.form == "step" and runner.config == small_config(2)
+    assert runner.config == small_config(2) and runner.cache_names
     assert _leftovers(tmp_path) == []
 
 
-def test_window_form_without_verification(checkpoint, tmp_path, capsys):
-    output = tmp_path / "window.onnx"
-    assert main([str(checkpoint), str(output), "--form", "window", "--no-verify", "--opset", "18"]) == 0
+def test_export_without_verification(checkpoint, tmp_path, capsys):
+    output = tmp_path / "static.onnx"
+    assert main([str(checkpoint), str(output), "--batch", "static", "--no-verify", "--opset", "18"]) == 0
     assert "not verified" in capsys.readouterr().out
     runner = OnnxRunner(output)
-    assert runner.form == "window" and runner.metadata["opset"] == "18"
+    assert runner.batch == 1 and runner.metadata["opset"] == "18"
 
 
 def test_failed_parity_exits_non_zero_and_writes_nothing(checkpoint, tmp_path, monkeypatch, capsys):

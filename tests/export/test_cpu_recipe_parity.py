@@ -38,12 +38,12 @@ def test_cpu_network_matches_onnxruntime(tmp_path) -> None:
                 parameter.normal_(0.0, 0.05)
     checkpoint = tmp_path / "cpu.pt"
     save_checkpoint(checkpoint, model, cfg)
-    step_path = export_onnx(checkpoint, tmp_path / "step.onnx", form="step", verify=False, log=lambda _: None).path
+    step_path = export_onnx(checkpoint, tmp_path / "step.onnx", verify=False, log=lambda _: None).path
     step = OnnxRunner(step_path, threads=1)
     assert step.config == cfg
     frames, poses = random_sequence(cfg, 6, seed=2)
     report = Report()
-    verify_stream(step, model, frames, poses, report, "random")
+    verify_stream(step, model, [(frames, poses)], report, "random")
     assert report.ok, "\n".join(report.lines())
     assert report.diffs["random"]["flow"].max_abs < 1e-4 and report.diffs["random"]["boxes"].unmatched == 0
 

@@ -1,5 +1,5 @@
 """A model using the speed options (flow at stride 8, 4 x 4-cell enhancement windows) exports and streams through
-onnxruntime like PyTorch's padded windows, warm-up frames included, and its window form agrees too."""
+onnxruntime like PyTorch's padded windows, warm-up frames included."""
 
 from __future__ import annotations
 
@@ -8,7 +8,7 @@ import dataclasses
 import numpy as np
 import pytest
 
-from export.verify import Report, random_sequence, verify_stream, verify_windows
+from export.verify import Report, random_sequence, verify_stream
 from rafd.runtime import OnnxRunner
 from tests.utils.export_testing import make_checkpoint, small_config
 
@@ -27,22 +27,18 @@ def test_options_model_matches_onnxruntime(tmp_path) -> None:
     model, loaded, _ = load_checkpoint(checkpoint)
     assert loaded == cfg
     model = model.eval()
-    paths = {
-        form: export_onnx(checkpoint, tmp_path / f"{form}.onnx", form=form, verify=False, log=lambda _: None).path
-        for form in ("step", "window")
-    }
-    step = OnnxRunner(paths["step"], threads=1)
+    path = export_onnx(checkpoint, tmp_path / "step.onnx", verify=False, log=lambda _: None).path
+    step = OnnxRunner(path, threads=1)
     assert step.config == cfg
     frames, poses = random_sequence(cfg, 7, seed=8)
     report = Report()
-    verify_stream(step, model, frames, poses, report, "random")
-    verify_windows(OnnxRunner(paths["window"], threads=1), model, frames, poses, report, "random")
+    verify_stream(step, model, [(frames, poses)], report, "random")
     assert report.ok, "\n".join(report.lines())
-    assert report.cases["random"] == 7 + 4
+    assert report.cases["random"] == 7
     assert report.diffs["random"]["flow"].max_abs < 1e-4 and report.diffs["random"]["boxes"].unmatched == 0
     # the flow output is on the detection grid (upsampled), as the service's contract says
-    result, _ = step.step(step.new_state(), frames[0], poses[0])
-    assert result.flow.shape == (3, 2, cfg.feature_size, cfg.feature_size)
+    result, _ = step.step(step.new_state(), frames[:1], poses[:1])
+    assert result.flow.shape == (1, 2, cfg.feature_size, cfg.feature_size)
     assert np.isfinite(result.flow).all()
 
 
@@ -63,9 +59,9 @@ def test_pre_norm_propagation_matches_onnxruntime(tmp_path) -> None:
     checkpoint = save_checkpoint(tmp_path / "pre.pt", model, cfg, meta={"purpose": "export tests"})
     model, loaded, _ = load_checkpoint(checkpoint)
     assert loaded.propagation.norm == "pre"
-    path = export_onnx(checkpoint, tmp_path / "step.onnx", form="step", verify=False, log=lambda _: None).path
+    path = export_onnx(checkpoint, tmp_path / "step.onnx", verify=False, log=lambda _: None).path
     frames, poses = random_sequence(cfg, 6, seed=4)
     report = Report()
-    verify_stream(OnnxRunner(path, threads=1), model, frames, poses, report, "random")
+    verify_stream(OnnxRunner(path, threads=1), model, [(frames, poses)], report, "random")
     assert report.ok, "\n".join(report.lines())
     assert report.diffs["random"]["boxes"].unmatched == 0

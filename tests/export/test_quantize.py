@@ -106,7 +106,7 @@ def test_openvino_serves_it_as_int8_with_the_float_models_metadata(quantized):
     assert int8.precision == "int8" and int8.config == OnnxRunner(model, 1).config
     assert int8.islands == ISLANDS and int8.describe()["float32_islands"] == list(ISLANDS)
     size = int8.config.input_size
-    result, _ = int8.step(int8.new_state(), np.zeros((size, size), np.float32), np.zeros(3))
+    result, _ = int8.step(int8.new_state(), np.zeros((1, size, size), np.float32), np.zeros((1, 3)))
     assert result.frames_used == 1
 
 

@@ -36,11 +36,11 @@ class Exported:
     cfg: RaFDConfig
     checkpoint: Path
     model: torch.nn.Module  # loaded back from the checkpoint: the reference
-    paths: dict[str, Path]  # form -> ONNX file
-    results: dict  # form -> export.onnx_export.ExportResult
+    path: Path  # the ONNX step graph
+    result: object  # export.onnx_export.ExportResult
 
 
-def export_forms(root: Path, num_frames: int, forms: tuple[str, ...] = ("step", "window")) -> Exported:
+def export_step(root: Path, num_frames: int, batch: str = "dynamic") -> Exported:
     from export.onnx_export import export_onnx
     from rafd.model.checkpoint import load_checkpoint
 
@@ -48,8 +48,5 @@ def export_forms(root: Path, num_frames: int, forms: tuple[str, ...] = ("step", 
     checkpoint = make_checkpoint(root / "model.pt", cfg)
     model, loaded_cfg, _ = load_checkpoint(checkpoint)
     assert loaded_cfg == cfg
-    results = {
-        form: export_onnx(checkpoint, root / f"{form}.onnx", form=form, verify=False, log=lambda _: None)
-        for form in forms
-    }
-    return Exported(cfg, checkpoint, model.eval(), {f: r.path for f, r in results.items()}, results)
+    result = export_onnx(checkpoint, root / "step.onnx", batch=batch, verify=False, log=lambda _: None)
+    return Exported(cfg, checkpoint, model.eval(), result.path, result)

@@ -1,11 +1,12 @@
-"""A deterministic numpy stand-in for rafd.runtime.OnnxRunner, following the runtime contract exactly.
+"""A deterministic numpy stand-in for an exported step graph (FakeBackend), run by the real rafd.runtime.StreamRunner:
+the fake follows the runtime contract because it is run through it.
 
-Its outputs are simple functions of the stream's own window, so tests can recompute them:
-- window: the last T frames with poses, padded at the old end by repeating the oldest (warm-up rule);
-- cells: the NEWEST frame mean-pooled to the feature grid [Hf, Wf]; heatmap = cells;
-- boxes: the K brightest cells (ties by flat index), centred on the cell centre, width 1.5 + value,
-  length 4, yaw = newest pose yaw - oldest pose yaw; scores = the cell values;
-- flow per consecutive pair (a, b): x = 255 * (cells_b - cells_a), y = pose_b.x - pose_a.x.
+The fake graph's cache holds the last T-1 frames' cells and poses; its outputs are simple functions of the stream's
+padded window (the warm-up rule: a window of fewer than T frames repeats its oldest), so tests can recompute them:
+- cells: a frame mean-pooled to the feature grid [Hf, Wf]; heatmap = the newest frame's cells;
+- boxes: the K brightest cells (ties by flat index), centred on the cell centre, width 1.5 + value, length 4,
+  yaw = the newest pose's yaw - the oldest's; scores = the cell values;
+- flow of the newest pair (a, b): x = 255 * (cells_b - cells_a), y = b's x - a's x in b's ego frame.
 """
 
 from __future__ import annotations
@@ -13,144 +14,133 @@ from __future__ import annotations
 import json
 import threading
 import time
-from dataclasses import dataclass
 
 import numpy as np
 
 from rafd.config import RaFDConfig
-from rafd.geometry import feature_cell_centres, wrap_angle
+from rafd.geometry import feature_cell_centres, relative_pose, wrap_angle
+from rafd.runtime import StreamRunner
+from rafd.runtime.backend import DYNAMIC
 
 
-@dataclass(frozen=True)
-class FakeState:
-    frames: tuple[np.ndarray, ...] = ()  # each [S, S] float32, oldest first
-    poses: tuple[np.ndarray, ...] = ()  # each [3]
+class FakeBackend:
+    """A rafd.runtime.backend.Backend computing the fake graph in numpy; counts its runs."""
 
-    @property
-    def frames_used(self) -> int:
-        return len(self.frames)
-
-    @property
-    def nbytes(self) -> int:
-        return sum(f.nbytes for f in self.frames) + sum(p.nbytes for p in self.poses)
-
-
-@dataclass(frozen=True)
-class FakeStepResult:
-    heatmap: np.ndarray  # [Hf, Wf]
-    boxes: np.ndarray  # [K, 5]
-    scores: np.ndarray  # [K]
-    flow: np.ndarray | None  # [T-1, 2, Hf, Wf]
-    frames_used: int
-
-
-class FakeRunner:
     runtime = "fake"
     precision = "fp32"
+    threads = 1
+    concurrent_runs = 4
 
-    def __init__(
-        self, config: RaFDConfig | None = None, delay_s: float = 0.0, gate: threading.Event | None = None
-    ) -> None:
-        self.config = config or RaFDConfig.tiny()  # 128x128 input, 4 frames, 32x32 cells, K = 32
+    def __init__(self, config: RaFDConfig, delay_s: float = 0.0, gate: threading.Event | None = None) -> None:
+        self.config = config
         self.metadata = {
-            "config": self.config.to_json(),
-            "input_size": str(self.config.input_size),
-            "resolution": str(self.config.resolution),
-            "num_frames": str(self.config.num_frames),
-            "class_names": json.dumps(list(self.config.class_names)),
+            "config": config.to_json(),
+            "input_size": str(config.input_size),
+            "resolution": str(config.resolution),
+            "num_frames": str(config.num_frames),
+            "class_names": json.dumps(list(config.class_names)),
             "checkpoint_sha256": "0" * 64,
             "version": "fake-1",
         }
+        S, F, T = config.input_size, config.feature_size, config.num_frames
+        self.input_shapes: dict[str, tuple[int, ...]] = {"frame": (DYNAMIC, 1, S, S), "pose": (DYNAMIC, 3)}
+        if T > 1:
+            self.input_shapes |= {
+                "cache.cells": (DYNAMIC, T - 1, F, F),
+                "cache.poses": (DYNAMIC, T - 1, 3),
+                "cache.frames": (DYNAMIC,),
+            }
+        caches = tuple("new_" + name for name in self.input_shapes if name.startswith("cache."))
+        flow = ("flow",) if T > 1 else ()
+        self.output_names = ("heatmap", "scores", "boxes", *flow, "frames_used", *caches)
         self.delay_s = delay_s
-        self.gate = gate  # when set, step() waits for it (to hold the app in "loading")
+        self.gate = gate  # when set, run() waits for it (to hold the app in "loading")
         self.calls = 0
-        self.at_gate = 0  # steps blocked at the gate right now
+        self.at_gate = 0  # runs blocked at the gate right now
         self.in_flight = 0
-        self.max_in_flight = 0  # most steps seen running at once (different streams run concurrently)
-        self._calls_lock = threading.Lock()
+        self.max_in_flight = 0  # most runs seen at once (different streams run concurrently)
+        self._lock = threading.Lock()
 
-    def new_state(self) -> FakeState:
-        return FakeState()
-
-    def describe(self) -> dict[str, object]:
-        """As rafd.runtime.StreamRunner.describe: how the graph runs."""
-        return {
-            "runtime": self.runtime,
-            "precision": self.precision,
-            "threads": 1,
-            "concurrent_runs": 1,
-            "threads_per_concurrent_run": 1,
-            "selection_ms_per_run": {},
-            "float32_islands": [],
-        }
-
-    def step(self, state: FakeState, frame: np.ndarray, pose: np.ndarray) -> tuple[FakeStepResult, FakeState]:
-        size = self.config.input_size
-        if frame.dtype != np.float32 or frame.shape != (size, size):
-            raise ValueError(f"frame must be float32 [{size}, {size}], got {frame.dtype} {frame.shape}")
-        if not (np.all(frame >= 0.0) and np.all(frame <= 1.0)):
-            raise ValueError("frame values must lie in [0, 1]")
-        pose = np.asarray(pose, dtype=np.float64)
-        if pose.shape != (3,) or not np.all(np.isfinite(pose)):
-            raise ValueError(f"pose must be 3 finite numbers, got {pose!r}")
+    def run(self, feeds: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
         if self.gate is not None:
-            with self._calls_lock:
+            with self._lock:
                 self.at_gate += 1
             try:
                 self.gate.wait(timeout=10.0)
             finally:
-                with self._calls_lock:
+                with self._lock:
                     self.at_gate -= 1
-        with self._calls_lock:
+        with self._lock:
             self.calls += 1
             self.in_flight += 1
             self.max_in_flight = max(self.max_in_flight, self.in_flight)
         try:
             if self.delay_s:
                 time.sleep(self.delay_s)
-            return self._step(state, frame, pose)
+            rows = [self._row({name: value[b] for name, value in feeds.items()}) for b in range(len(feeds["frame"]))]
+            return {name: np.stack([row[name] for row in rows]) for name in self.output_names}
         finally:
-            with self._calls_lock:
+            with self._lock:
                 self.in_flight -= 1
 
-    def _step(self, state: FakeState, frame: np.ndarray, pose: np.ndarray) -> tuple[FakeStepResult, FakeState]:
-        size = self.config.input_size
-
-        T = self.config.num_frames
-        new_state = FakeState(frames=(state.frames + (frame.copy(),))[-T:], poses=(state.poses + (pose.copy(),))[-T:])
-        pad = T - new_state.frames_used
-        frames = (new_state.frames[0],) * pad + new_state.frames
-        poses = (new_state.poses[0],) * pad + new_state.poses
-        cells = [self._cells(f) for f in frames]  # T x [Hf, Wf]
-
-        newest = cells[-1]
-        k = self.config.head.num_queries
-        order = np.argsort(-newest.reshape(-1), kind="stable")[:k]  # [K] flat cell indices
-        centres = feature_cell_centres(self.config.feature_size, size, self.config.resolution).reshape(-1, 2)
-        boxes = np.zeros((k, 5))
+    def _row(self, feeds: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
+        cfg = self.config
+        T, K = cfg.num_frames, cfg.head.num_queries
+        newest = self._cells(feeds["frame"][0])  # [Hf, Wf]
+        pose = feeds["pose"].astype(np.float64)  # this frame in the previous one's ego frame
+        out: dict[str, np.ndarray] = {}
+        if T == 1:
+            cells, poses = [newest], np.zeros((1, 3))
+            out["frames_used"] = np.float32(1.0)
+        else:
+            seen = float(feeds["cache.frames"])
+            if seen > 0:
+                past_cells = list(feeds["cache.cells"])
+                past_poses = relative_pose(feeds["cache.poses"].astype(np.float64), pose)  # into this frame
+            else:
+                past_cells, past_poses = [newest] * (T - 1), np.zeros((T - 1, 3))
+            cells, poses = past_cells + [newest], np.concatenate([past_poses, np.zeros((1, 3))])
+            out["flow"] = np.stack([255.0 * (cells[-1] - cells[-2]), np.full_like(newest, -poses[-2][0])])
+            out["frames_used"] = np.float32(min(seen + 1, T))
+            out["new_cache.cells"] = np.stack(cells[1:])
+            out["new_cache.poses"] = poses[1:]
+            out["new_cache.frames"] = out["frames_used"]
+        order = np.argsort(-newest.reshape(-1), kind="stable")[:K]  # [K] flat cell indices
+        centres = feature_cell_centres(cfg.feature_size, cfg.input_size, cfg.resolution).reshape(-1, 2)
+        boxes = np.zeros((K, 5))
         boxes[:, :2] = centres[order]
         boxes[:, 2] = 1.5 + newest.reshape(-1)[order]
         boxes[:, 3] = 4.0
-        boxes[:, 4] = wrap_angle(poses[-1][2] - poses[0][2])
-        flow = None
-        if T > 1:
-            flow = np.stack(
-                [
-                    np.stack([255.0 * (cells[t] - cells[t - 1]), np.full_like(newest, poses[t][0] - poses[t - 1][0])])
-                    for t in range(1, T)
-                ]
-            ).astype(np.float32)  # [T-1, 2, Hf, Wf]
-        result = FakeStepResult(
-            heatmap=newest.astype(np.float32),
-            boxes=boxes.astype(np.float32),
-            scores=newest.reshape(-1)[order].astype(np.float32),
-            flow=flow,
-            frames_used=new_state.frames_used,
-        )
-        return result, new_state
+        boxes[:, 4] = wrap_angle(-poses[0][2])  # the newest pose's yaw (0 here) - the oldest's
+        out |= {"heatmap": newest[None], "scores": newest.reshape(-1)[order], "boxes": boxes}
+        return {name: np.asarray(value, np.float32) for name, value in out.items()}
 
     def _cells(self, frame: np.ndarray) -> np.ndarray:
         """[S, S] -> [Hf, Wf] mean over each cell's stride x stride pixels."""
         f = self.config.feature_size
         s = self.config.input_size // f
         return frame.reshape(f, s, f, s).mean(axis=(1, 3)).astype(np.float64)
+
+
+class FakeRunner(StreamRunner):
+    """StreamRunner over a FakeBackend; its counters read through."""
+
+    backend: FakeBackend
+
+    def __init__(
+        self, config: RaFDConfig | None = None, delay_s: float = 0.0, gate: threading.Event | None = None
+    ) -> None:
+        # 128x128 input, 4 frames, 32x32 cells, K = 32 by default
+        super().__init__(FakeBackend(config or RaFDConfig.tiny(), delay_s, gate))
+
+    @property
+    def calls(self) -> int:
+        return self.backend.calls
+
+    @property
+    def max_in_flight(self) -> int:
+        return self.backend.max_in_flight
+
+    @property
+    def at_gate(self) -> int:
+        return self.backend.at_gate

@@ -73,4 +73,4 @@ def test_a_full_scan_streams_through_the_shipped_runner(tmp_path) -> None:
     for scan, pose in zip(sequence.images, sequence.poses):
         found = stream.step(scan, pose, score_threshold=0.3)
         assert np.all(np.isfinite(found.boxes)) and np.all(np.abs(found.boxes[:, :2]) < 101)
-    assert all(state.frames_used == 2 for state in stream.states)
+    assert stream.state.frames_used == 2 and stream.state.views == stream.grid.per_side**2

@@ -23,8 +23,8 @@ def offline(frames, poses):
     runner, state, results = FakeRunner(), None, []
     state = runner.new_state()
     for frame, pose in zip(frames, poses):
-        result, state = runner.step(state, frame.astype(np.float32) / 255.0, np.asarray(pose, np.float32))
-        results.append(result)
+        result, state = runner.step(state, (frame.astype(np.float32) / 255.0)[None], np.asarray(pose)[None])
+        results.append(result.view(0))
     return results
 
 
@@ -66,7 +66,7 @@ def test_json_stream_warms_up_then_uses_full_window(client):
             flow = answer["flow"]
             assert flow["shape"] == [2, 32, 32] and flow["units"] == "m" and flow["encoding"] == "list"
             assert flow["pair"] == [100.0 + t - 1, 100.0 + t]
-            np.testing.assert_allclose(np.array(flow["values"]), expected[t].flow[-1], atol=5e-4)
+            np.testing.assert_allclose(np.array(flow["values"]), expected[t].flow, atol=5e-4)
 
 
 def test_full_scan_is_centre_cropped_and_polygons_use_its_pixels(client):
@@ -110,7 +110,7 @@ def test_multipart_gives_the_same_answer_as_json(client):
 
 
 def test_flow_can_be_left_out_or_sent_as_base64_float16(client):
-    expected = offline(FRAMES[:2], POSES[:2])[1].flow[-1]
+    expected = offline(FRAMES[:2], POSES[:2])[1].flow
     client.post("/detect", json=detect_json("f", 1.0, FRAMES[0], POSES[0]))
     client.post("/detect", json=detect_json("g", 1.0, FRAMES[0], POSES[0]))
     assert client.post("/detect?flow=false", json=detect_json("f", 2.0, FRAMES[1], POSES[1])).json()["flow"] is None
@@ -206,10 +206,10 @@ def test_real_odometry_on_the_radiate_sample(radiate_sample, settings):
 class FailingRunner(FakeRunner):
     """Fails on frames whose top-left pixel is 7 (the model breaking on one frame)."""
 
-    def step(self, state, frame, pose):
-        if round(float(frame[0, 0]) * 255) == 7:
+    def step(self, state, frames, poses):
+        if round(float(frames[0, 0, 0]) * 255) == 7:
             raise RuntimeError("onnxruntime failed")
-        return super().step(state, frame, pose)
+        return super().step(state, frames, poses)
 
 
 def test_a_model_failure_answers_500_and_changes_no_stream(settings):

@@ -1,7 +1,7 @@
 """The service on the SHIPPED model (ONNX, streaming) answers what offline PyTorch inference answers.
 
 Offline reference: the shipped checkpoint's model.forward on the same padded window (warm-up rule of
-rafd.runtime.window_from_history) built from the same crops and the poses the service reports using.
+rafd.runtime.export.verify.window_from_history) built from the same crops and the poses the service reports using.
 """
 
 from __future__ import annotations
@@ -23,7 +23,8 @@ torch = pytest.importorskip("torch", reason="the offline PyTorch reference needs
 from rafd.assets import default_checkpoint, default_onnx  # noqa: E402
 from rafd.detections import decode_detections  # noqa: E402
 from rafd.model.checkpoint import load_checkpoint  # noqa: E402
-from rafd.runtime import OnnxRunner, window_from_history  # noqa: E402
+from export.verify import window_from_history  # noqa: E402
+from rafd.runtime import OnnxRunner  # noqa: E402
 from service.app import create_app  # noqa: E402
 from service.settings import Settings  # noqa: E402
 
