@@ -116,7 +116,7 @@ class HeadConfig:
     # How orientation and size are regressed. "symmetric": a box is the same box turned by 180 degrees, and RADIATE's
     # annotators flip yaw by 180 degrees and swap width/length within one track, so the targets are the canonical
     # box (width <= length) with (sin 2yaw, cos 2yaw); decoding returns width <= length, yaw in [-pi/2, pi/2).
-    # "as_labelled": (sin yaw, cos yaw) and log(width, length) exactly as annotated (checkpoints before this field).
+    # "as_labelled": (sin yaw, cos yaw) and log(width, length) exactly as annotated (the targets before "symmetric").
     box_encoding: str = "symmetric"
 
     def __post_init__(self) -> None:
@@ -228,8 +228,8 @@ class RaFDConfig:
 
     @classmethod
     def from_dict(cls, data: dict[str, Any]) -> RaFDConfig:
-        """Rebuild from `to_dict()`; unknown keys are an error, not silently dropped. Fields a stored config predates
-        take the value they had before they existed (LEGACY_DEFAULTS), never today's default."""
+        """Rebuild from `to_dict()`; an unknown or a missing key is an error: a stored config names every field, so a
+        field it lacks never silently takes today's default."""
         sub_types = {f.name: f.type for f in dataclasses.fields(cls)}
         nested = {
             "input": InputConfig,
@@ -241,7 +241,6 @@ class RaFDConfig:
             "head": HeadConfig,
             "targets": TargetConfig,
         }
-        data = {**data, **{k: {**v, **data.get(k, {})} for k, v in LEGACY_DEFAULTS.items()}}
         kwargs: dict[str, Any] = {}
         for key, value in data.items():
             if key not in sub_types:
@@ -252,6 +251,9 @@ class RaFDConfig:
                 kwargs[key] = tuple(value)
             else:
                 kwargs[key] = value
+        missing = set(sub_types) - set(data)
+        if missing:
+            raise ValueError(f"RaFDConfig fields missing: {sorted(missing)}")
         return cls(**kwargs)
 
     @classmethod
@@ -259,17 +261,10 @@ class RaFDConfig:
         return cls.from_dict(json.loads(text))
 
 
-# What configs written before a field existed meant by its absence (see RaFDConfig.from_dict).
-LEGACY_DEFAULTS: dict[str, dict[str, Any]] = {
-    "head": {"box_encoding": "as_labelled"},
-    "targets": {"heatmap_min_overlap": 0.7, "heatmap_min_radius": 1, "flow_min_overlap": 0.7, "flow_min_radius": 2.0},
-}
-
-
 def _build_dataclass(kind: type, values: dict[str, Any]) -> Any:
     names = {f.name for f in dataclasses.fields(kind)}
-    unknown = set(values) - names
-    if unknown:
-        raise ValueError(f"unknown {kind.__name__} fields {sorted(unknown)}")
+    unknown, missing = set(values) - names, names - set(values)
+    if unknown or missing:
+        raise ValueError(f"{kind.__name__}: unknown fields {sorted(unknown)}, missing fields {sorted(missing)}")
     # JSON turns tuples into lists; the dataclasses are frozen and hashable with tuples.
     return kind(**{k: tuple(v) if isinstance(v, list) else v for k, v in values.items()})
