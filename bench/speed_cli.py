@@ -29,7 +29,6 @@ from bench.speed import (
 )
 from bench.speed_profile import PROFILE_THREADS
 from rafd.cli import flags
-from rafd.cli.common import renamed
 from rafd.progress import Stages
 
 log = logging.getLogger("bench")
@@ -124,20 +123,12 @@ def build_parser() -> argparse.ArgumentParser:
         "(default %(default)s)",
     )
     flags.add_quiet(parser)
-    flags.deprecated(
-        parser, "--checkpoint", "the positional CHECKPOINT", "checkpoint_option", type=Path, metavar="CKPT"
-    )
-    flags.deprecated(parser, "--gate-frames", "--gate-sequence-frames", "gate_frames", type=int, metavar="N")
     return parser
 
 
 def main(argv: Sequence[str] | None = None) -> int:
     parser = build_parser()
     args = parser.parse_args(argv)
-    option = getattr(args, "checkpoint_option", None)
-    if option is not None and args.checkpoint is not None:
-        parser.error("give the checkpoint once: as the positional CHECKPOINT")
-    args.checkpoint = args.checkpoint or option
     flags.apply_quiet(args)
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(levelname)s %(name)s: %(message)s")
     logging.getLogger("httpx").setLevel(logging.WARNING)  # one line per request would bury the table
@@ -284,9 +275,6 @@ def run_profile(args: argparse.Namespace) -> int:
     if args.json:
         args.json.write_text(json.dumps(profiles_json(profiles, args.profile_depth, cost), indent=2))
     return 0
-
-
-legacy_main = renamed("rafd-bench", "rafd-bench-speed", main)
 
 
 if __name__ == "__main__":

@@ -26,7 +26,7 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument(
         "root", type=Path, metavar="ROOT", help="data root holding RADIATE sequence folders (or one sequence)"
     )
-    flags.add_out(parser, "CACHE", "cache root to write (mirrors the sequence folders)")
+    flags.add_out(parser, "CACHE", "cache root to write (mirrors the sequence folders)", required=True)
     flags.add_split(parser, "only sequences of these splits")
     parser.add_argument(
         "--crop-size",
@@ -38,17 +38,12 @@ def build_parser() -> argparse.ArgumentParser:
     flags.add_workers(parser, default_workers(), "sequences prepared at once (default: the CPUs)")
     parser.add_argument("--force", action="store_true", help="rebuild complete caches too")
     flags.add_quiet(parser)
-    parser.add_argument("cache", nargs="?", type=Path, metavar="CACHE", help="deprecated: use --out CACHE")
-    flags.deprecated(parser, "--crop", "--crop-size", "crop_size", type=int, metavar="PX")
     return parser
 
 
 def main(argv: list[str] | None = None) -> int:
     parser = build_parser()
     args = parser.parse_args(argv)
-    flags.deprecated_positional(parser, args, "cache", "--out", "out")
-    if args.out is None:
-        parser.error("the cache to write is required: --out CACHE")
     flags.apply_quiet(args)
     logging.basicConfig(level=logging.WARNING, format="%(levelname)s %(name)s: %(message)s")
     try:

@@ -29,7 +29,7 @@ Group = argparse.ArgumentParser | argparse._ArgumentGroup
 # where the shared flag takes one. Every other field becomes --FIELD-NAME, made by field_flag.
 SHARED: dict[str, Callable[[Group, dataclasses.Field[Any]], object]] = {
     "data": lambda group, field: group.add_argument(
-        "data", nargs="?", type=Path, metavar=field.metadata["metavar"], help=field.metadata["help"]
+        "data", type=Path, metavar=field.metadata["metavar"], help=field.metadata["help"]
     ),
     "split": lambda group, field: flags.add_split(group, field.metadata["help"], required=True),
     "val_split": lambda group, field: flags.add_split(group, field.metadata["help"], flag="--val-split"),
@@ -58,10 +58,6 @@ def build_parser() -> argparse.ArgumentParser:
         if title not in groups:
             groups[title] = parser.add_argument_group(title)
         adders.get(field.name, field_flag)(groups[title], field)
-    flags.deprecated(parser, "--data", "the positional ROOT", "data_option", type=Path, metavar="ROOT")
-    flags.deprecated(parser, "--frames", "--window-frames", "frames", type=int, metavar="N")
-    flags.deprecated(parser, "--num-workers", "--workers", "workers", type=int, metavar="N")
-    flags.deprecated(parser, "--no-progress", "--quiet", "quiet", kind="store_true")
     return parser
 
 
@@ -135,13 +131,7 @@ def field_types() -> dict[str, Any]:
 
 
 def parse(argv: Sequence[str] | None = None) -> argparse.Namespace:
-    """The flags, old spellings moved to the new ones (ROOT from --data; --resume continues --out)."""
-    parser = build_parser()
-    argv, legacy_resume = flags.legacy_resume_path(sys.argv[1:] if argv is None else argv, parser.prog)
-    args = parser.parse_args(argv)
-    args.resume = legacy_resume or args.resume
-    flags.resolve_data_root(parser, args)
-    return args
+    return build_parser().parse_args(argv)
 
 
 def train_run(args: argparse.Namespace) -> TrainRun:
@@ -157,8 +147,7 @@ def train_run(args: argparse.Namespace) -> TrainRun:
     values["mix_split"] = flags.split_names(args.mix_split) if args.mix_split else None
     values["freeze"] = tuple(args.freeze)
     values["progress"] = not args.quiet
-    # --resume continues --out; the deprecated --resume PATH continues PATH
-    values["resume"] = args.resume if isinstance(args.resume, Path) else (args.out if args.resume else None)
+    values["resume"] = args.out if args.resume else None  # --resume continues --out
     return TrainRun(**values)
 
 

@@ -78,9 +78,8 @@ def test_missing_resume_checkpoint_fails_clearly(
         "--split",
         "train",
         "--out",
-        str(tmp_path / "m.pt"),
-        "--resume",
         str(tmp_path / "x.pt"),
+        "--resume",
     ]
     assert main(argv) != 0
     assert "x.pt" in capsys.readouterr().err
@@ -96,11 +95,10 @@ def test_init_and_resume_together_are_refused(
         "--split",
         "train",
         "--out",
-        str(tmp_path / "m.pt"),
+        str(some),
         "--init",
         str(some),
         "--resume",
-        str(some),
     ]
     assert main(argv) != 0
     assert "--init" in capsys.readouterr().err
