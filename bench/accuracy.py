@@ -1,4 +1,4 @@
-"""The synthetic accuracy benchmark (`rafd-bench-accuracy`): the fixed simulated data (make_data), its Table 1/2-style
+"""The synthetic accuracy benchmark (`rafd bench accuracy`): the fixed simulated data (make_data), its Table 1/2-style
 comparison of the variants (run_benchmark, bench.variants) and a paired bootstrap between two models
 (compare_models)."""
 
@@ -41,7 +41,7 @@ BENCHMARK_INPUT_SIZE = 256
 SCORED_HISTORY = 4  # frames: every variant is scored on the frames the 4-frame model scores
 BENCHMARK_RECIPE = "default"
 CACHE = "cache"
-DETECTIONS = "test_detections.npz"  # each variant's test detections, for rafd-bench-accuracy compare
+DETECTIONS = "test_detections.npz"  # each variant's test detections, for rafd bench accuracy compare
 
 
 def make_data(out_root: Path, scale: float, frames: int | None) -> Path:
@@ -86,7 +86,7 @@ def make_data(out_root: Path, scale: float, frames: int | None) -> Path:
 def read_manifest(data_root: Path) -> dict:
     path = data_root / MANIFEST
     if not path.is_file():
-        raise FileNotFoundError(f"{path} is missing: create the benchmark with `rafd-bench-accuracy data {data_root}`")
+        raise FileNotFoundError(f"{path} is missing: create the benchmark with `rafd bench accuracy data {data_root}`")
     return json.loads(path.read_text())
 
 
@@ -250,7 +250,7 @@ def compare_models(
         file = path / DETECTIONS if path.is_dir() else path
         if not file.is_file():
             raise FileNotFoundError(
-                f"{file} does not exist (rafd-eval --detections writes it; rafd-bench-accuracy "
+                f"{file} does not exist (rafd-eval --detections writes it; rafd bench accuracy "
                 f"run writes {DETECTIONS} into each variant's folder)"
             )
         return (path.name if path.is_dir() else path.stem), load_detections(file)

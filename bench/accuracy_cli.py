@@ -107,7 +107,7 @@ def main(argv: Sequence[str] | None = None) -> int:
             )
             print(markdown_table(rows))
     except (FileNotFoundError, ValueError, RuntimeError, TrainSetupError, EvalError) as error:
-        print(f"rafd-bench-accuracy: error: {error}", file=sys.stderr)
+        print(f"rafd bench accuracy: error: {error}", file=sys.stderr)
         return 2
     return 0
 

@@ -1,4 +1,4 @@
-"""The speed benchmark (`rafd-bench-speed`): speed, accuracy drift and memory of every runtime and precision, side
+"""The speed benchmark (`rafd bench speed`): speed, accuracy drift and memory of every runtime and precision, side
 by side in one run.
 
 For each config (the shipped default model, the paper's network with random weights, and the paper's network with

@@ -138,7 +138,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     unknown = set(configs) - set(CONFIGS)
     if unknown:
         print(
-            f"rafd-bench-speed: error: unknown configs {sorted(unknown)} (known: {', '.join(CONFIGS)})", file=sys.stderr
+            f"rafd bench speed: error: unknown configs {sorted(unknown)} (known: {', '.join(CONFIGS)})", file=sys.stderr
         )
         return 2
     from rafd.runtime import supported_choices
@@ -147,7 +147,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     http_runtimes = [c.strip() for c in args.http_runtimes.split(",") if c.strip()]
     bad = [c for c in http_runtimes if c.count("/") != 1]
     if bad:
-        print(f"rafd-bench-speed: error: --http-runtimes takes runtime/precision pairs, got {bad}", file=sys.stderr)
+        print(f"rafd bench speed: error: --http-runtimes takes runtime/precision pairs, got {bad}", file=sys.stderr)
         return 2
     skipped = [c for c in http_runtimes if c not in supported]
     if skipped:
@@ -179,7 +179,7 @@ def main(argv: Sequence[str] | None = None) -> int:
             else:
                 checkpoint = config_checkpoint(work, name)
             if not Path(checkpoint).is_file():
-                print(f"rafd-bench-speed: error: checkpoint {checkpoint} not found", file=sys.stderr)
+                print(f"rafd bench speed: error: checkpoint {checkpoint} not found", file=sys.stderr)
                 return 2
             log.info("benchmarking %s (%s)", name, checkpoint)
             paths = bench_model(
@@ -250,7 +250,7 @@ def run_profile(args: argparse.Namespace) -> int:
     recipes = [c.strip() for c in (args.profile_config or "").split(",") if c.strip()]
     unknown = sorted(set(recipes) - set(RECIPES))
     if unknown:
-        print(f"rafd-bench-speed: error: unknown recipes {unknown} (known: {', '.join(RECIPES)})", file=sys.stderr)
+        print(f"rafd bench speed: error: unknown recipes {unknown} (known: {', '.join(RECIPES)})", file=sys.stderr)
         return 2
     with tempfile.TemporaryDirectory(prefix="rafd-profile-") as tmp:
         work = Path(tmp)
@@ -263,7 +263,7 @@ def run_profile(args: argparse.Namespace) -> int:
 
                 checkpoint = Path(default_checkpoint())
             if not checkpoint.is_file():
-                print(f"rafd-bench-speed: error: checkpoint {checkpoint} not found", file=sys.stderr)
+                print(f"rafd bench speed: error: checkpoint {checkpoint} not found", file=sys.stderr)
                 return 2
             checkpoints[checkpoint.name] = checkpoint
         for name in recipes:

@@ -47,7 +47,7 @@ from rafd.protocol import (
 )
 from rafd.runtime import StepResult, StreamRunner
 
-DEFAULT_SEED = 7100  # not a seed of rafd-bench-accuracy's data (1000 train, 2000 test); override if a model saw it
+DEFAULT_SEED = 7100  # not a seed of rafd bench accuracy's data (1000 train, 2000 test); override if a model saw it
 
 
 @dataclass(frozen=True)

@@ -35,8 +35,9 @@ def set_dispatched(value: bool) -> None:
 
 
 def prog(command: str) -> str:
-    """The program name in usage lines: `rafd COMMAND` under the `rafd` dispatcher, else the `rafd-COMMAND` alias."""
-    return f"rafd {command}" if _dispatched else "rafd-" + command.replace(" ", "-")
+    """The program name in usage lines: `rafd COMMAND` under the `rafd` dispatcher or for a command of a group (`rafd
+    bench speed`, which has no alias), else the `rafd-COMMAND` alias."""
+    return f"rafd {command}" if _dispatched or " " in command else f"rafd-{command}"
 
 
 def split_names(values: Sequence[str] | None) -> tuple[str, ...]:

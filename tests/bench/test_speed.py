@@ -1,4 +1,4 @@
-"""rafd-bench-speed on the shipped model, model paths only (the service itself is exercised by the service tests):
+"""rafd bench speed on the shipped model, model paths only (the service itself is exercised by the service tests):
 every runtime and precision side by side, the matmul peaks, the concurrency comparison and the accuracy gate."""
 
 from __future__ import annotations

@@ -1,7 +1,7 @@
 """The service's odometry against a baseline copy of it, side by side: accuracy and CPU per frame.
 
     git show REV:rafd/data/odometry.py > /tmp/odometry_old.py
-    rafd bench odometry SEQUENCE... [--baseline /tmp/odometry_old.py] [--rounds 2]
+    python -m tools.odometry_cost SEQUENCE... [--baseline /tmp/odometry_old.py] [--rounds 2]
 
 Each SEQUENCE (a simulated drive, the Oxford sample, any folder rafd's reader takes) is run as the service runs a
 stream posted without poses: `OdometryStream.add` on the centre 512 px of each scan (service/body/images.py), with the
@@ -130,7 +130,7 @@ def error_line(name: str, where: str, tally: Tally) -> str:
 
 
 def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(prog=flags.prog("bench odometry"), description=__doc__.splitlines()[0])
+    parser = argparse.ArgumentParser(prog="python -m tools.odometry_cost", description=__doc__.splitlines()[0])
     parser.add_argument("sequences", nargs="+", type=Path, help="sequence folders")
     parser.add_argument("--baseline", type=Path, help="a copy of rafd/data/odometry.py to compare with")
     flags.add_count(parser, "--rounds", 2, 100, "CPU rounds (accuracy is read in the first)")

@@ -1,4 +1,4 @@
-"""bench.odometry_prior prints both ways' per-frame medians on a simulated sequence and refuses a too-short one."""
+"""tools.odometry_prior prints both ways' per-frame medians on a simulated sequence and refuses a too-short one."""
 
 from __future__ import annotations
 
@@ -6,10 +6,10 @@ from pathlib import Path
 
 import pytest
 
-from bench.odometry_prior import main
 from rafd.sim import Difficulty
 from rafd.sim.sequence import run_simulation
 from rafd.sim.writer import write_sequence
+from tools.odometry_prior import main
 
 
 def test_it_times_both_ways(tmp_path: Path, capsys):

@@ -1,7 +1,7 @@
 """What decoding a posted scan costs the service, per posted form, side by side: a full Cartesian scan, RADIATE's
 polar scan, a native (Oxford / Boreas) scan and a model-size crop, each as the JSON body carries it (base64 text).
 
-    rafd bench decode --cartesian DIR [--polar DIR] [--native DIR] [--repeats 15]
+    python -m tools.decode_speed --cartesian DIR [--polar DIR] [--native DIR] [--repeats 15]
 
 Each DIR holds PNG scans of that form (e.g. tiny_foggy/Navtech_Cartesian, tiny_foggy_polar/Navtech_Polar,
 oxford_radar_sample/radar); the crops are the Cartesian scans' model-size centres. Times
@@ -28,7 +28,7 @@ from service.body.images import decode_frame
 
 
 def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(prog=flags.prog("bench decode"), description=__doc__.splitlines()[0])
+    parser = argparse.ArgumentParser(prog="python -m tools.decode_speed", description=__doc__.splitlines()[0])
     parser.add_argument("--cartesian", type=Path, required=True, help="folder of full Cartesian PNG scans")
     parser.add_argument("--polar", type=Path, help="folder of RADIATE Navtech_Polar PNG scans")
     parser.add_argument("--native", type=Path, help="folder of Oxford / Boreas native PNG scans")

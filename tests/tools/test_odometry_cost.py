@@ -1,4 +1,4 @@
-"""bench.odometry: against a baseline that is the same code, both ways' errors agree exactly (accuracy is
+"""tools.odometry_cost: against a baseline that is the same code, both ways' errors agree exactly (accuracy is
 deterministic) and both are timed; the errors are those of the true poses; a missing baseline is refused."""
 
 from __future__ import annotations
@@ -10,10 +10,10 @@ from pathlib import Path
 import pytest
 
 import rafd.data.odometry
-from bench.odometry import main
 from rafd.sim import Difficulty
 from rafd.sim.sequence import run_simulation
 from rafd.sim.writer import write_sequence
+from tools.odometry_cost import main
 
 
 @pytest.fixture(scope="module")

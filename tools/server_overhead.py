@@ -2,7 +2,7 @@
 issue 34), the service's httptools protocol with head limits (service/http/head_limits.py, what it runs now) and
 uvicorn's h11 protocol (the pure-Python parser that bounds a head's size itself: the alternative considered).
 
-    rafd bench server [--requests 300] [--rounds 5]
+    python -m tools.server_overhead [--requests 300] [--rounds 5]
 
 Starts one server per variant on loopback, each in its own process, all serving the same app: the service with a
 stub runner (no model time: what is left is the server, the middlewares, parsing and the answer). Then, in rounds
@@ -160,7 +160,7 @@ def block(server: Server, kind: str, requests: int) -> None:
 
 
 def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(prog=flags.prog("bench server"), description=__doc__.splitlines()[0])
+    parser = argparse.ArgumentParser(prog="python -m tools.server_overhead", description=__doc__.splitlines()[0])
     parser.add_argument("--requests", type=int, default=300, help="timed requests per kind, variant and round")
     flags.add_count(parser, "--rounds", 5, 50, "rounds, the variants' order rotated each")
     parser.add_argument("--variants", default=",".join(VARIANTS), help="comma-separated, from " + ", ".join(VARIANTS))
@@ -184,7 +184,7 @@ def main(argv: list[str] | None = None) -> int:
         for variant in variants:
             port = free_port()
             process = subprocess.Popen(
-                [sys.executable, "-m", "bench.server_overhead", "--serve", variant, "--port", str(port)],
+                [sys.executable, "-m", "tools.server_overhead", "--serve", variant, "--port", str(port)],
                 env={k: v for k, v in os.environ.items() if not k.startswith("RAFD_")},
             )
             servers.append(Server(variant, process, port, detect_client.connect(f"http://{HOST}:{port}", timeout=30)))

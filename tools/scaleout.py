@@ -1,4 +1,4 @@
-"""`rafd bench scaleout SAMPLE [--replicas 1 3] [--streams 6] [--stream-frames 8]`: frames per second through
+"""`python -m tools.scaleout SAMPLE [--replicas 1 3] [--streams 6] [--stream-frames 8]`: frames per second through
 nginx (the shipped nginx.conf, on loopback) in front of 1 and of 3 rafd-serve replicas, measured side by side.
 
 The same load for each: `--streams` clients at once, each posting `--frames` real scans of SAMPLE (a RADIATE
@@ -69,7 +69,7 @@ def run_load(url: str, scans: list[Path], streams: int, frames: int) -> tuple[fl
 
 
 def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(prog=flags.prog("bench scaleout"), description=__doc__.splitlines()[0])
+    parser = argparse.ArgumentParser(prog="python -m tools.scaleout", description=__doc__.splitlines()[0])
     parser.add_argument("sample", type=Path, help="RADIATE folder with Navtech_Cartesian/*.png (e.g. tiny_foggy)")
     parser.add_argument(
         "--replicas", type=int, nargs="+", default=[1, 3], help="cluster sizes to measure (default 1 3)"

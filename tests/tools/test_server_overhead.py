@@ -1,4 +1,4 @@
-"""bench.server_overhead at a tiny scale: every variant is served and timed (its figures are measured in
+"""tools.server_overhead at a tiny scale: every variant is served and timed (its figures are measured in
 docs/performance.md, not here)."""
 
 from __future__ import annotations
@@ -17,7 +17,7 @@ REPO = Path(__file__).resolve().parents[2]
 @pytest.mark.slow
 def test_the_server_overhead_comparison_runs_every_variant():
     out = subprocess.run(
-        [sys.executable, "-m", "bench.server_overhead", "--requests", "10", "--rounds", "1"],
+        [sys.executable, "-m", "tools.server_overhead", "--requests", "10", "--rounds", "1"],
         cwd=REPO,
         capture_output=True,
         text=True,

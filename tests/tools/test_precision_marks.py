@@ -1,12 +1,12 @@
-"""bench.precision_marks on the shipped model: where OpenVINO runs bf16 it prints each mark's runtime precisions and
+"""tools.precision_marks on the shipped model: where OpenVINO runs bf16 it prints each mark's runtime precisions and
 a verdict; elsewhere it refuses, saying why (exit 2)."""
 
 from __future__ import annotations
 
 import pytest
 
-from bench import precision_marks
 from rafd.runtime.openvino_backend import openvino_supports_bf16
+from tools import precision_marks
 
 pytest.importorskip("openvino")
 

@@ -2,7 +2,7 @@
 `service.body.images.decode_frame` on the largest native scan the default settings accept (400 azimuths x 6848 range
 bins), an Oxford-size native scan, a RADIATE polar scan and a 1152 px Cartesian scan.
 
-    rafd bench decode-memory [--repeats 5]
+    python -m tools.decode_memory [--repeats 5]
 
 Each case runs in a fresh process (so its peak resident memory is its own): the decode is run once to warm up, then
 --repeats times; printed are the PNG and inflated sizes, the median and max wall time, and the rise of the process's
@@ -78,7 +78,7 @@ def _child(case: str, repeats: int) -> dict[str, float]:
 
 
 def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(prog=flags.prog("bench decode-memory"), description=__doc__.splitlines()[0])
+    parser = argparse.ArgumentParser(prog="python -m tools.decode_memory", description=__doc__.splitlines()[0])
     flags.add_count(parser, "--repeats", 5, 50, "timed decodes per case")
     parser.add_argument("--child", choices=CASES, help=argparse.SUPPRESS)
     flags.add_quiet(parser)
@@ -93,7 +93,7 @@ def main(argv: list[str] | None = None) -> int:
     print(f"{'case':<14} {'size':>10} {'PNG MB':>7} {'inflated MB':>11} {'median ms':>9} {'max ms':>7} {'peak +MB':>8}")
     for case in progress.track(CASES, desc="decode cases", unit="case"):
         out = subprocess.run(
-            [sys.executable, "-m", "bench.decode_memory", "--child", case, "--repeats", str(args.repeats)],
+            [sys.executable, "-m", "tools.decode_memory", "--child", case, "--repeats", str(args.repeats)],
             check=True,
             capture_output=True,
             text=True,

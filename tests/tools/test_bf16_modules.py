@@ -1,11 +1,11 @@
-"""bench.bf16_modules runs a small model with each module in bf16 and prints one row per variant."""
+"""tools.bf16_modules runs a small model with each module in bf16 and prints one row per variant."""
 
 from __future__ import annotations
 
 from pathlib import Path
 
-from bench.bf16_modules import main
 from tests.utils.export_testing import make_checkpoint, small_config
+from tools.bf16_modules import main
 
 
 def test_one_row_per_module_and_the_kept_variant(tmp_path: Path, capsys):

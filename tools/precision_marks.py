@@ -1,7 +1,7 @@
 """Whether OpenVINO keeps nodes marked for float32 in float32 under bf16: the runtime precision of each layer type of
 an ONNX model compiled with INFERENCE_PRECISION_HINT bf16, unmarked against marked (issue 41 item 2, fp32 islands).
 
-    rafd bench precision-marks [MODEL.onnx] [--types Convolution,MatMul] [--scope /flow/] [--marks precise_0,...]
+    python -m tools.precision_marks [MODEL.onnx] [--types Convolution,MatMul] [--scope /flow/] [--marks precise_0,...]
 
 The marks are rt_info keys set to "" on the chosen nodes after `core.read_model` (every node of --types, or whose
 name starts with --scope): `precise_0` (the name this OpenVINO's serializer uses) and `disable_fp16_compression_0`
@@ -29,7 +29,7 @@ def shown(counts: dict[tuple[str, str], int]) -> str:
 
 
 def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(prog=flags.prog("bench precision-marks"), description=__doc__.splitlines()[0])
+    parser = argparse.ArgumentParser(prog="python -m tools.precision_marks", description=__doc__.splitlines()[0])
     parser.add_argument("model", nargs="?", type=Path, help="ONNX model (default: the shipped one)")
     parser.add_argument(
         "--types", default="Convolution,MatMul", help="comma-separated node types to mark (default %(default)s)"

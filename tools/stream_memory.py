@@ -1,7 +1,7 @@
 """The service's resident memory as streams come and expire: held at its high-water mark after they expire, and reused
 (not grown) by the next streams.
 
-    rafd bench memory [--streams 200] [--rounds 2]
+    python -m tools.stream_memory [--streams 200] [--rounds 2]
 
 In one process, the app with the shipped model (onnxruntime fp32, 1 thread) is driven in-process (Starlette's test
 client, no sockets): each round posts 2 frames (model-size crops with poses) to each of --streams new streams, reads
@@ -30,7 +30,7 @@ def rss_mb() -> float:
 
 
 def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(prog=flags.prog("bench memory"), description=__doc__.splitlines()[0])
+    parser = argparse.ArgumentParser(prog="python -m tools.stream_memory", description=__doc__.splitlines()[0])
     flags.add_count(parser, "--streams", 200, 1000, "new streams per round")
     flags.add_count(parser, "--rounds", 2, 5, "rounds of streams that come and expire")
     flags.add_quiet(parser)

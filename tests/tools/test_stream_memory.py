@@ -1,11 +1,11 @@
-"""bench.stream_memory at a tiny scale: it runs, stays bounded and prints what docs/deployment.md cites (its figures
+"""tools.stream_memory at a tiny scale: it runs, stays bounded and prints what docs/deployment.md cites (its figures
 are measured there, not here)."""
 
 from __future__ import annotations
 
 import pytest
 
-from bench import stream_memory
+from tools import stream_memory
 
 
 @pytest.mark.slow

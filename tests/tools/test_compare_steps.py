@@ -1,4 +1,4 @@
-"""bench.steps: both models are timed on every runtime installed and the ratio is printed; bad paths refused."""
+"""tools.compare_steps: both models are timed on every runtime installed and the ratio is printed; bad paths refused."""
 
 from __future__ import annotations
 
@@ -6,7 +6,7 @@ from pathlib import Path
 
 import pytest
 
-from bench.steps import compare, main
+from tools.compare_steps import compare, main
 
 
 def test_the_shipped_step_against_itself_is_timed_on_each_runtime(capsys) -> None:

@@ -2,7 +2,7 @@
 bfloat16 (weights, inputs and arithmetic; its outputs back to float32), compared with float32 on held-out simulated
 windows, as the accuracy gate compares OpenVINO bf16 with onnxruntime fp32 (export/gate.py).
 
-    rafd bench bf16-modules CHECKPOINT [--sequences 2] [--sequence-frames 12] [--seed 7100]
+    python -m tools.bf16_modules CHECKPOINT [--sequences 2] [--sequence-frames 12] [--seed 7100]
 
 Prints per variant: detections at the operating threshold (float32's and the variant's), the share that changed
 (no partner within one feature cell), the p99 centre shift and score difference of the matched ones, and the max
@@ -101,7 +101,7 @@ def held_out_windows(cfg: Any, sequences: int, frames: int, seed: int) -> list[t
 
 
 def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(prog=flags.prog("bench bf16-modules"), description=__doc__.splitlines()[0])
+    parser = argparse.ArgumentParser(prog="python -m tools.bf16_modules", description=__doc__.splitlines()[0])
     flags.add_checkpoint(parser)
     parser.add_argument(
         "--sequences", type=int, default=2, help="held-out simulated sequences, 1-50 (default %(default)s)"

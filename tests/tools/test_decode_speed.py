@@ -1,4 +1,4 @@
-"""bench.decode times every posted form it is given, through the service's decode path."""
+"""tools.decode_speed times every posted form it is given, through the service's decode path."""
 
 from __future__ import annotations
 
@@ -6,10 +6,10 @@ from pathlib import Path
 
 import pytest
 
-from bench.decode import main
 from rafd.sim import Difficulty
 from rafd.sim.sequence import run_simulation
 from rafd.sim.writer import write_sequence
+from tools.decode_speed import main
 
 
 def test_each_form_is_timed(tmp_path: Path, capsys):

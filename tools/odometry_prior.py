@@ -2,7 +2,7 @@
 the service ran before issue 30) against the stream's OdometryStream (each scan prepared once, the previous pair's
 motion as the prior: what it runs now).
 
-    rafd bench odometry-prior SEQUENCE [--rounds 5]
+    python -m tools.odometry_prior SEQUENCE [--rounds 5]
 
 SEQUENCE: any folder rafd's reader takes (RADIATE, Oxford/Boreas native, simulated). Each frame's odometry view is
 what the service registers: the centre 512 px of the scan (service/body/images.py). Rounds alternate the two ways;
@@ -26,7 +26,7 @@ from service.body.images import ODOMETRY_VIEW_SIZE
 
 
 def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(prog=flags.prog("bench odometry-prior"), description=__doc__.splitlines()[0])
+    parser = argparse.ArgumentParser(prog="python -m tools.odometry_prior", description=__doc__.splitlines()[0])
     parser.add_argument("sequence", help="a sequence folder")
     flags.add_count(parser, "--rounds", 5, 100, "rounds over the sequence")
     flags.add_quiet(parser)

@@ -1,6 +1,6 @@
 """Two exported step graphs side by side: onnxruntime fp32 and OpenVINO fp32 on one thread, interleaved calls.
 
-    rafd bench steps OLD.onnx NEW.onnx [--rounds 40]
+    python -m tools.compare_steps OLD.onnx NEW.onnx [--rounds 40]
 
 Each round calls every (runtime, model) once in turn, so both models see the same machine load; prints the median
 ms per step of each and NEW / OLD per runtime. The inputs are the graphs' own (a batch of one on a dynamic axis):
@@ -71,7 +71,7 @@ def compare(old: Path, new: Path, rounds: int) -> dict[str, tuple[float, float]]
 
 
 def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(prog=flags.prog("bench steps"), description=__doc__.splitlines()[0])
+    parser = argparse.ArgumentParser(prog="python -m tools.compare_steps", description=__doc__.splitlines()[0])
     parser.add_argument("old", type=Path, help="the step graph to compare against (.onnx)")
     parser.add_argument("new", type=Path, help="the step graph compared (.onnx)")
     flags.add_count(parser, "--rounds", 40, 1000, "interleaved rounds")

@@ -1,11 +1,11 @@
-"""bench.decode_memory at a tiny scale: it runs, stays bounded and prints what the docs cite (its figures are measured
+"""tools.decode_memory at a tiny scale: it runs, stays bounded and prints what the docs cite (its figures are measured
 in docs/api.md, not here)."""
 
 from __future__ import annotations
 
 import pytest
 
-from bench import decode_memory
+from tools import decode_memory
 
 
 def test_decode_memory_measures_every_case_including_the_largest_native_scan(capsys):
