@@ -18,7 +18,9 @@ import torch
 
 import rafd
 from export import MIN_OPSET
-from export.gate import GateOptions, GateReport, gate_metadata, put_in_place, run_export_gates
+from export.gate import gate_metadata, put_in_place, run_export_gates
+from export.gate_options import GateOptions
+from export.gate_report import GateReport
 from export.step import build_graph, example_inputs, feature_channels
 from export.verify import Report, verify_export
 from rafd.config import RaFDConfig

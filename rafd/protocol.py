@@ -6,7 +6,7 @@
   lookup, range-checked, used by `rafd-eval`, the plots, the MCAP logs and the service.
 - How detections are scored: oriented-box IoU thresholds of the benchmark protocol (TempoRadar, SIRA, RaFD) and the
   centre-matching distance.
-- How much evidence the accuracy gate of a reduced precision needs (export/gate.py): fewer compared windows or
+- How much evidence the accuracy gate of a reduced precision needs (export/gate_report.py): fewer compared windows or
   fewer reference detections than GATE_MIN_FRAMES / GATE_MIN_REFERENCE_DETECTIONS is a FAIL ("too little to
   judge"), and the service (rafd.runtime.runners.gate_passed) never considers a precision whose recorded gate did
   not pass on at least that much.

@@ -1,6 +1,6 @@
 """Which module of a model bf16 arithmetic hurts: the model in PyTorch with one top-level module at a time cast to
 bfloat16 (weights, inputs and arithmetic; its outputs back to float32), compared with float32 on held-out simulated
-windows, as the accuracy gate compares OpenVINO bf16 with onnxruntime fp32 (export/gate.py).
+windows, as the accuracy gate compares OpenVINO bf16 with onnxruntime fp32 (export/gate_run.py).
 
     python -m tools.bf16_modules CHECKPOINT [--sequences 2] [--sequence-frames 12] [--seed 7100]
 
@@ -22,7 +22,7 @@ import numpy as np
 import torch
 from torch import nn
 
-from export.gate import SourceFigures, compare_frame
+from export.gate_report import SourceFigures, compare_frame
 from rafd import progress
 from rafd.cli import flags
 from rafd.model.checkpoint import load_checkpoint
