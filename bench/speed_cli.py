@@ -7,7 +7,6 @@ from __future__ import annotations
 import argparse
 import json
 import logging
-import os
 import sys
 import tempfile
 from collections.abc import Sequence
@@ -29,6 +28,7 @@ from bench.speed import (
 )
 from bench.speed_profile import PROFILE_THREADS
 from rafd.cli import flags
+from rafd.cpu import usable_cpus
 from rafd.progress import Stages
 
 log = logging.getLogger("bench")
@@ -44,9 +44,7 @@ def build_parser() -> argparse.ArgumentParser:
         default="default,paper,paper-options",
         help=f"comma list of the configs to measure, of {', '.join(CONFIGS)} (default %(default)s)",
     )
-    flags.add_threads(
-        parser, len(os.sched_getaffinity(0)), "onnxruntime's / OpenVINO's threads per run (default: the CPUs)"
-    )
+    flags.add_threads(parser, usable_cpus(), "onnxruntime's / OpenVINO's threads per run (default: the CPUs)")
     parser.add_argument("--repeats", type=int, default=20, help="timed calls per model path (default %(default)s)")
     parser.add_argument(
         "--islands",

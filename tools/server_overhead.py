@@ -31,6 +31,7 @@ from bench.server import cpu_seconds, free_port, wait_ready
 from rafd import detect_client, progress
 from rafd.cli import flags
 from rafd.config import RaFDConfig
+from rafd.cpu import usable_cpus
 
 HOST = "127.0.0.1"
 VARIANTS = {
@@ -201,7 +202,7 @@ def main(argv: list[str] | None = None) -> int:
 
     print(
         f"{args.rounds} rounds x {args.requests} requests per kind and variant, one keep-alive connection; "
-        f"{os.cpu_count()} CPUs ({len(os.sched_getaffinity(0))} usable); medians over rounds"
+        f"{usable_cpus()} usable CPUs; medians over rounds"
     )
     header = f"{'variant':<10} " + " ".join(f"{kind + ' ms':>22} {'server CPU ms':>13}" for kind in KINDS)
     print(header)

@@ -14,8 +14,8 @@ import sys
 from pathlib import Path
 
 from rafd.cli import flags
+from rafd.cpu import usable_cpus
 from rafd.data.cache import DEFAULT_CROP
-from rafd.data.parallel import default_workers
 from rafd.data.prepare import prepare_root
 
 
@@ -35,7 +35,7 @@ def build_parser() -> argparse.ArgumentParser:
         metavar="PX",
         help=f"side in pixels of the cached centre crop (default {DEFAULT_CROP}: a 256 px input turned by any angle)",
     )
-    flags.add_workers(parser, default_workers(), "sequences prepared at once (default: the CPUs)")
+    flags.add_workers(parser, usable_cpus(), "sequences prepared at once (default: the CPUs)")
     parser.add_argument("--force", action="store_true", help="rebuild complete caches too")
     flags.add_quiet(parser)
     return parser

@@ -2,7 +2,7 @@
 and the tools. Backends one file each behind rafd.runtime.backend.Backend: onnxruntime fp32 (the reference) and
 OpenVINO bf16/fp32; the streaming and warm-up logic (rafd.runtime.streaming) is shared by all of them."""
 
-from rafd.runtime.backend import PRECISIONS, RUNTIMES, Backend, default_threads
+from rafd.runtime.backend import PRECISIONS, RUNTIMES, Backend
 from rafd.runtime.contract import FORMS, METADATA_KEYS, graph_inputs, graph_outputs
 from rafd.runtime.runners import OnnxRunner, OpenVinoRunner, create_runner, open_runner, supported_choices
 from rafd.runtime.streaming import (
@@ -26,7 +26,6 @@ __all__ = [
     "StreamRunner",
     "StreamState",
     "create_runner",
-    "default_threads",
     "graph_inputs",
     "graph_outputs",
     "open_runner",

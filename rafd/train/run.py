@@ -18,8 +18,8 @@ from pathlib import Path
 from typing import Any
 
 from rafd.config import RaFDConfig
+from rafd.cpu import usable_cpus
 from rafd.data.augment import AugmentConfig
-from rafd.data.parallel import default_workers as available_cpus
 
 log = logging.getLogger("rafd.train")
 
@@ -222,8 +222,8 @@ def mix_augmentation(run: TrainRun, recipe_augment: AugmentConfig | None) -> Aug
 
 
 def default_threads(world_size: int) -> int:
-    """CPUs this process may use (affinity, not cpu_count) shared among the local processes."""
-    return max(1, available_cpus() // max(1, world_size))
+    """CPUs this process may use (rafd.cpu.usable_cpus) shared among the local processes."""
+    return max(1, usable_cpus() // max(1, world_size))
 
 
 class TrainSetupError(Exception):

@@ -32,8 +32,8 @@ from torch import nn
 from torch.utils.data import DataLoader, Dataset
 
 from rafd.config import FREEZABLE, RaFDConfig
+from rafd.cpu import usable_cpus
 from rafd.data.collate import Batch, Collator
-from rafd.data.parallel import default_workers as available_cpus
 from rafd.model.precision import autocast, check_precision, grad_scaler
 from rafd.progress import bar as progress_bar
 from rafd.train.distributed import (
@@ -73,7 +73,7 @@ class TrainConfig:
     seed: int = 0
     device: str = "auto"
     precision: str = "fp32"  # fp32 | bf16 (autocast) | fp16 (autocast + gradient scaler; CUDA)
-    num_workers: int | None = None  # DataLoader workers per rank; None = default_workers()
+    num_workers: int | None = None  # DataLoader workers per rank; None = default_workers(device)
     val_every: int = 1  # validate every N epochs (needs a validation set); 0 disables
     max_steps_per_epoch: int | None = None  # cap (smoke runs); None = the whole epoch
     log_every: int = 20  # optimizer steps between host synchronisations (loss log, NaN check)
@@ -131,7 +131,7 @@ def default_workers(device: torch.device, local_world_size: int = 1) -> int:
     needs the cores far more than the prepared windows do)."""
     if device.type != "cuda":
         return 0
-    return max(1, min(4, available_cpus() // max(1, local_world_size) - 1))
+    return max(1, min(4, usable_cpus() // max(1, local_world_size) - 1))
 
 
 def optimizer_state_path(checkpoint: Path) -> Path:
