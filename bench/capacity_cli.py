@@ -79,7 +79,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     except FileNotFoundError as error:
         print(f"rafd bench capacity: error: {error}", file=sys.stderr)
         return 2
-    from rafd.data.odometry import estimate_sequence_poses
+    from rafd.odometry.registration import estimate_sequence_poses
 
     poses = estimate_sequence_poses(scans, 0.173611)  # what the vehicle's localisation would send
     report: dict[str, Any] = {"machine": machine_description(args.threads or 0), "levels": {}}

@@ -1,6 +1,6 @@
 """The service's odometry against a baseline copy of it, side by side: accuracy and CPU per frame.
 
-    git show REV:rafd/data/odometry.py > /tmp/odometry_old.py
+    git show REV:rafd/odometry/registration.py > /tmp/odometry_old.py
     python -m tools.odometry_cost SEQUENCE... [--baseline /tmp/odometry_old.py] [--rounds 2]
 
 Each SEQUENCE (a simulated drive, the Oxford sample, any folder rafd's reader takes) is run as the service runs a
@@ -27,14 +27,14 @@ from types import ModuleType
 import cv2
 import numpy as np
 
-import rafd.data.odometry as this_odometry
+import rafd.odometry.registration as this_odometry
 from rafd import progress
 from rafd.cli import flags
 from rafd.data import read_sequence
 from rafd.data.ego_motion import consecutive_pairs, scan_and_timing
 from rafd.data.folders import list_frames
-from rafd.data.odometry import SweepTiming
 from rafd.geometry import relative_pose, wrap_angle
+from rafd.odometry.registration import SweepTiming
 from rafd.preprocess import model_crop
 from service.body.images import ODOMETRY_VIEW_SIZE
 
@@ -132,7 +132,7 @@ def error_line(name: str, where: str, tally: Tally) -> str:
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="python -m tools.odometry_cost", description=__doc__.splitlines()[0])
     parser.add_argument("sequences", nargs="+", type=Path, help="sequence folders")
-    parser.add_argument("--baseline", type=Path, help="a copy of rafd/data/odometry.py to compare with")
+    parser.add_argument("--baseline", type=Path, help="a copy of rafd/odometry/registration.py to compare with")
     flags.add_count(parser, "--rounds", 2, 100, "CPU rounds (accuracy is read in the first)")
     flags.add_quiet(parser)
     return parser

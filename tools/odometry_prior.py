@@ -20,7 +20,7 @@ import cv2
 from rafd import progress
 from rafd.cli import flags
 from rafd.data import read_sequence
-from rafd.data.odometry import OdometryStream, estimate_relative_pose
+from rafd.odometry.registration import OdometryStream, estimate_relative_pose
 from rafd.preprocess import model_crop
 from service.body.images import ODOMETRY_VIEW_SIZE
 

@@ -9,7 +9,7 @@ from pathlib import Path
 
 import pytest
 
-import rafd.data.odometry
+import rafd.odometry.registration
 from rafd.sim import Difficulty
 from rafd.sim.sequence import run_simulation
 from rafd.sim.writer import write_sequence
@@ -22,7 +22,7 @@ def drive(tmp_path_factory: pytest.TempPathFactory) -> Path:
 
 
 def test_the_same_code_as_baseline_gives_the_same_errors(drive: Path, tmp_path: Path, capsys):
-    baseline = shutil.copy(rafd.data.odometry.__file__, tmp_path / "odometry_copy.py")
+    baseline = shutil.copy(rafd.odometry.registration.__file__, tmp_path / "odometry_copy.py")
     assert main([str(drive), "--baseline", str(baseline), "--rounds", "2"]) == 0
     out = capsys.readouterr().out
     errors = [line.split(f"{drive}: ")[1] for line in out.splitlines() if "pairs," in line]

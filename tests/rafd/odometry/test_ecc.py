@@ -1,11 +1,11 @@
-"""rafd.data.ecc: inverse-compositional ECC recovers a known Euclidean warp and refuses a blank template."""
+"""rafd.odometry.ecc: inverse-compositional ECC recovers a known Euclidean warp and refuses a blank template."""
 
 import math
 
 import cv2
 import numpy as np
 
-from rafd.data.ecc import EccTemplate, align, euclidean_matrix
+from rafd.odometry.ecc import EccTemplate, align, euclidean_matrix
 
 SIZE = 128
 

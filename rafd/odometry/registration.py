@@ -13,7 +13,7 @@ CPU in docs/performance.md, "Odometry"):
    within MAX_STEP_M of zero shift wins, sub-step by a parabola. Without a prior (or with the best yaw on the
    window's edge) a narrower window is centred on the best of all +-MAX_YAW_DEG (WIDE_STEP_DEG steps), searched on
    the coarse level halved.
-3. Refinement: ECC (Euclidean, inverse compositional: rafd.data.ecc) at the fine level from 2 improves the yaw;
+3. Refinement: ECC (Euclidean, inverse compositional: rafd.odometry.ecc) at the fine level from 2 improves the yaw;
    the shift is then read from the fine level's correlation at that yaw (ECC's least squares is pulled by moving
    objects, the correlation peak is not). ECC results that fail or move far from 2 are rejected (2's yaw stands).
    With refine=False the fine level is searched instead (+-0.5 degree).
@@ -29,7 +29,7 @@ relative_pose(current_world_pose, previous_world_pose) (relative_pose(a, b) maps
 
 Accuracy against the simulator's true poses: `rafd-odometry SEQ_DIR... --evaluate` (rafd/cli/odometry.py).
 On simulated 384-1152 px scans (+-33 to +-100 m) the per-pair error is ~0.02 m mean / 0.05 m p95 and
-~0.03 deg mean / 0.08 deg p95; the bound is tested in tests/rafd/test_odometry.py. Known limit: on small
+~0.03 deg mean / 0.08 deg p95; the bound is tested in tests/rafd/odometry/test_registration.py. Known limit: on small
 crops (256 px, +-22 m) a pair whose static scene is only long lines along the road (aperture problem) while
 nearby vehicles move with the ego can lock onto the vehicles (about 1 pair in 100, errors up to ~1.5 m);
 use the full scan for odometry where it is available.
@@ -48,8 +48,8 @@ from dataclasses import dataclass, field
 import cv2
 import numpy as np
 
-from rafd.data.ecc import EccTemplate, align
 from rafd.geometry import compose_poses
+from rafd.odometry.ecc import EccTemplate, align
 
 log = logging.getLogger(__name__)
 
@@ -65,7 +65,7 @@ WHITENING = 0.5  # cross-power spectrum divided by |.|^this: 1 = phase correlati
 MAX_STEP_M = 8.0  # largest ego translation between consecutive scans (32 m/s at 4 Hz): bounds the peak search
 MAX_ECC_SHIFT_PX = 3.0  # ECC refinements further than this (fine pixels) from the search result are rejected
 MAX_ECC_YAW_DEG = 1.0  # ... or turning further than this
-# ECC's iterations (rafd.data.ecc, inverse compositional: one warp and four dot products each): from the
+# ECC's iterations (rafd.odometry.ecc, inverse compositional: one warp and four dot products each): from the
 # correlation's start, 10 keep the Oxford sample's mean yaw error at 0.1079 degrees (20: 0.1078);
 # 5 give 0.1089 and 3 0.1115, past the 0.108 kept as the bar. Measured with `python -m tools.odometry_cost`.
 ECC_ITERATIONS = 10
@@ -309,7 +309,7 @@ def _shift_to_warp(yaw: float, shift: tuple[float, float], size: int) -> np.ndar
 
 
 def _refine_yaw(previous: np.ndarray, current: np.ndarray, warp: np.ndarray) -> float | None:
-    """ECC (Euclidean, inverse compositional: rafd.data.ecc) from `warp` -> refined yaw, or None when ECC fails or
+    """ECC (Euclidean, inverse compositional: rafd.odometry.ecc) from `warp` -> refined yaw, or None when ECC fails or
     strays."""
     size = previous.shape[0]
     start = warp_to_pose(warp, size, 1.0)  # (x px, y px, yaw)
@@ -433,7 +433,7 @@ class Odometer:
     """Radar odometry between consecutive scans of one stream, motion-compensated.
 
     prepare() makes a scan's registration levels once; estimate(previous, current, dt, prior) registers a pair. With
-    sweep timings, each scan is de-skewed (rafd.data.odometry.deskew) with its ego velocity before registering: the
+    sweep timings, each scan is de-skewed (`deskew`) with its ego velocity before registering: the
     velocity comes from the prior (the previous pair's motion: constant velocity) and is re-estimated from the pair's
     own registration, then the pair is registered again de-skewed, so the pose refers to the scans' reference times
     and turns no longer smear the scans. Without a prior (a stream's first pair) the raw scans are registered, and

@@ -1,4 +1,4 @@
-"""Inverse-compositional ECC for a Euclidean warp: the refinement step of radar odometry (rafd.data.odometry).
+"""Inverse-compositional ECC for a Euclidean warp: the refinement step of radar odometry (rafd.odometry.registration).
 
 ECC (Evangelidis & Psarakis, "Parametric image alignment using enhanced correlation coefficient maximization",
 PAMI 2008) maximises the zero-mean normalised correlation between a template and the warped input; opencv's
@@ -8,8 +8,8 @@ its steepest-descent images, their Hessian and the template's own projections ar
 an iteration is one warp of the input and four dot products. Same criterion, same closed-form step; the warp update
 composes with the step's inverse.
 
-Roles as in rafd.data.odometry: the template is the CURRENT scan (its pixel grid u), the input the PREVIOUS one, and
-the warp W maps u to previous-scan pixels, current(u) ~ previous(W u) (cv2.warpAffine(previous, W,
+Roles as in rafd.odometry.registration: the template is the CURRENT scan (its pixel grid u), the input the PREVIOUS
+one, and the warp W maps u to previous-scan pixels, current(u) ~ previous(W u) (cv2.warpAffine(previous, W,
 WARP_INVERSE_MAP) predicts the current scan). Euclidean parameters (yaw about the image centre, shift x, shift y in
 pixels) keep rotation and shift decorrelated.
 """
