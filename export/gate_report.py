@@ -145,7 +145,7 @@ class GateReport:
         return all(check[-1] for check in self.checks())
 
     def figures(self) -> dict[str, dict[str, float]]:
-        """Flat figures per source and for all sources together (for JSON, rafd-bench and the ONNX metadata)."""
+        """Flat figures per source and for all sources together (for JSON, rafd bench speed and the ONNX metadata)."""
         out: dict[str, dict[str, float]] = {}
         sources = dict(self.sources, all=self.pooled) if len(self.sources) > 1 else self.sources
         for name, s in sources.items():

@@ -127,7 +127,7 @@ def plan_batches(batch_size: int, world_size: int, micro_batch_size: int | None 
 
 def default_workers(device: torch.device, local_world_size: int = 1) -> int:
     """DataLoader workers per rank: on CUDA up to 4 (one prepared-cache worker feeds ~100+ windows/s, see
-    `rafd-train-bench loader`), leaving a CPU per rank for the training process; on the CPU none (the model
+    `rafd bench training loader`), leaving a CPU per rank for the training process; on the CPU none (the model
     needs the cores far more than the prepared windows do)."""
     if device.type != "cuda":
         return 0
