@@ -7,6 +7,7 @@ import json
 from dataclasses import dataclass, field
 from typing import Any
 
+from rafd.config_tree import from_dict
 from rafd.geometry import RADIATE_RESOLUTION
 
 ALLOWED_FRAMES = (1, 2, 4)
@@ -230,41 +231,8 @@ class RaFDConfig:
     def from_dict(cls, data: dict[str, Any]) -> RaFDConfig:
         """Rebuild from `to_dict()`; an unknown or a missing key is an error: a stored config names every field, so a
         field it lacks never silently takes today's default."""
-        sub_types = {f.name: f.type for f in dataclasses.fields(cls)}
-        nested = {
-            "input": InputConfig,
-            "backbone": BackboneConfig,
-            "neck": NeckConfig,
-            "enhance": EnhanceConfig,
-            "flow": FlowConfig,
-            "propagation": PropagationConfig,
-            "head": HeadConfig,
-            "targets": TargetConfig,
-        }
-        kwargs: dict[str, Any] = {}
-        for key, value in data.items():
-            if key not in sub_types:
-                raise ValueError(f"unknown RaFDConfig field {key!r}")
-            if key in nested:
-                kwargs[key] = _build_dataclass(nested[key], value)
-            elif key == "class_names":
-                kwargs[key] = tuple(value)
-            else:
-                kwargs[key] = value
-        missing = set(sub_types) - set(data)
-        if missing:
-            raise ValueError(f"RaFDConfig fields missing: {sorted(missing)}")
-        return cls(**kwargs)
+        return from_dict(cls, data)
 
     @classmethod
     def from_json(cls, text: str) -> RaFDConfig:
         return cls.from_dict(json.loads(text))
-
-
-def _build_dataclass(kind: type, values: dict[str, Any]) -> Any:
-    names = {f.name for f in dataclasses.fields(kind)}
-    unknown, missing = set(values) - names, names - set(values)
-    if unknown or missing:
-        raise ValueError(f"{kind.__name__}: unknown fields {sorted(unknown)}, missing fields {sorted(missing)}")
-    # JSON turns tuples into lists; the dataclasses are frozen and hashable with tuples.
-    return kind(**{k: tuple(v) if isinstance(v, list) else v for k, v in values.items()})
