@@ -315,10 +315,10 @@ def recipe_checkpoint(work: Path, name: str) -> Path:
     import torch
 
     from rafd import build_model, save_checkpoint
-    from rafd.train.recipes import RECIPES
+    from rafd.train.recipes import recipe_model
 
     torch.manual_seed(0)
-    cfg = RECIPES[name].model
+    cfg = recipe_model(name)
     path = work / f"{name}_random.pt"
     save_checkpoint(path, build_model(cfg).eval(), cfg, meta={"note": "random weights for profiling"})
     return path

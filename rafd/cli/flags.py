@@ -7,8 +7,8 @@ The vocabulary (docs/cli.md, "Shared flags", lists it with the commands that tak
   outputs are named for what they hold (`--json FILE`, `--plots DIR`, `--mcap FILE`, `--mcap-dir DIR`);
 - `--split` is repeatable and comma-separable everywhere;
 - `--workers N` parallel worker processes, `--threads N` CPU threads of the model, `--device`, `--config`;
-- `--window-frames N` frames per window (the model's T) and `--sequence-frames N` frames per sequence are two
-  names for two things;
+- `--sequence-frames N` frames per sequence (a window's frames are the model's: `rafd train ...
+  model.num_frames=N`);
 - `--resume` has one meaning: continue the unfinished run in `--out` from its last finished epoch;
 - `--quiet` silences the progress bars (rafd.progress).
 """
@@ -17,13 +17,14 @@ from __future__ import annotations
 
 import argparse
 import signal
-import types
-import typing
 from collections.abc import Callable, Iterable, Sequence
 from pathlib import Path
 from typing import Any
 
 from rafd import progress
+
+# `X | None` -> X, for the flags made from typed fields (service.serve_flags: one per Settings field)
+from rafd.config_tree import without_none as without_none
 
 # Set by `rafd` (rafd.cli.main) while it runs a command: usage lines then read `rafd serve`, not `rafd-serve`.
 _dispatched = False
@@ -101,20 +102,6 @@ def add_config(
         choices=sorted(choices),
         default=default,
         help=f"recipe (rafd.train.recipes), default {default}: {what}",
-    )
-
-
-def add_window_frames(
-    parser: argparse.ArgumentParser | argparse._ArgumentGroup, choices: Sequence[int] | None = None
-) -> None:
-    """--window-frames N: frames per window, the model's T."""
-    parser.add_argument(
-        "--window-frames",
-        dest="frames",
-        type=int,
-        choices=choices,
-        metavar="N",
-        help="frames per window: the model sees the newest frame and N-1 earlier ones (1, 2 or 4)",
     )
 
 
@@ -199,15 +186,6 @@ def exit_on_sigterm() -> None:
 
 
 # ----------------------------------------------------------------------------- value types
-def without_none(annotation: Any) -> Any:
-    """`X | None` / Optional[X] -> X (None is a generated flag not given); any other annotation as it is."""
-    if typing.get_origin(annotation) in (typing.Union, types.UnionType):
-        args = [a for a in typing.get_args(annotation) if a is not type(None)]
-        if len(args) == 1:
-            return args[0]
-    return annotation
-
-
 def positive_int(text: str) -> int:
     value = int(text)
     if value < 1:

@@ -5,7 +5,8 @@ Writes ego_poses.csv into every sequence folder at or under each ROOT that has n
 elsewhere. --evaluate compares the estimates with each sequence's ego_poses.csv (e.g. the simulator's true poses):
 per-pair translation (m) and yaw (deg) errors and ms per pair; it writes nothing.
 
-Training and evaluation never run odometry themselves (unless asked with --estimate-poses): prepare once here.
+Training and evaluation never run odometry themselves (unless asked: `rafd eval --estimate-poses`, `rafd train ...
+data.estimate_poses=true`): prepare once here.
 Exit status 0 on success, 2 on bad input, 1 when a sequence failed (the others are still written).
 """
 

@@ -1,7 +1,8 @@
 """Ego poses of whole sequences by radar odometry: estimate them, write ego_poses.csv, compare with true poses.
 
 `rafd-odometry` runs these over a data root (in parallel processes, rafd.data.parallel); training and evaluation
-read the written files and never run odometry themselves unless asked (--estimate-poses).
+read the written files and never run odometry themselves unless asked (`rafd eval --estimate-poses`, `rafd train
+... data.estimate_poses=true`).
 """
 
 from __future__ import annotations

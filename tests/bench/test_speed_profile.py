@@ -30,7 +30,7 @@ from bench.speed_profile import (
     timed_node_ms,
 )
 from rafd import RaFDConfig, build_model, save_checkpoint
-from rafd.train.recipes import RECIPES
+from rafd.train.recipes import recipe_model
 
 TOP_LEVEL = {"encoder", "flow", "propagation", "head"}
 
@@ -142,7 +142,7 @@ def test_nodes_onnxruntime_inserted_are_charged_by_their_tensors_or_neighbours()
 @pytest.mark.parametrize("name", ["default", "cpu", "tiny", "paper"])
 def test_no_module_is_named_like_the_exporters_repeat_suffix(name: str):
     """scope_of strips "_1", "_2" from every part: the exporter's suffix of a module called again."""
-    model = build_model(RECIPES[name].model)
+    model = build_model(recipe_model(name))
     atoms = {atom for qualified, _ in model.named_modules() for atom in qualified.split(".")}
     assert not [atom for atom in atoms if REPEAT_SUFFIX.search(atom) and not atom.isdigit()]
 
