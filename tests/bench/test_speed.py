@@ -33,7 +33,7 @@ def test_bench_reports_every_runtime_side_by_side_and_writes_json(
                 "2",
                 "--gate-sequences",
                 "1",
-                "--gate-frames",
+                "--gate-sequence-frames",
                 "6",
                 "--islands",
                 "/head/",
