@@ -48,3 +48,18 @@ def test_the_cpu_network_trains_a_step(tiny_root: Path, tiny_cfg: RaFDConfig) ->
     assert torch.isfinite(losses[LOSS_TERMS.index("total")]) and losses[LOSS_TERMS.index("flow")] > 0
     moved = [k for k, v in trainer.model.state_dict().items() if not torch.equal(v, before[k])]
     assert any("propagation" in k for k in moved) and any("flow" in k for k in moved)
+
+
+def test_recipes_are_settings_on_top_of_each_other() -> None:
+    """`paper` is the config's defaults, `tiny` the tiny network (RaFDConfig.tiny), and each recipe's mixed-in data
+    are augmented as its own."""
+    from rafd.train.config import RunConfig
+    from rafd.train.recipes import RECIPES, recipe_config
+
+    assert recipe_config("paper") == RunConfig()
+    assert recipe_config("tiny").model == RaFDConfig.tiny()
+    for name in RECIPES:
+        config = recipe_config(name)
+        assert config.data.mix_augment == config.data.augment, name
+    default, cpu = recipe_config("default"), recipe_config("cpu")
+    assert (default.train, default.data) == (cpu.train, cpu.data)  # cpu reshapes the network only
