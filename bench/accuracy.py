@@ -1,4 +1,4 @@
-"""The synthetic accuracy benchmark (`rafd-bench-accuracy`): the fixed simulated data (make_data), its Table 1/2-style
+"""The synthetic accuracy benchmark (`rafd bench accuracy`): the fixed simulated data (make_data), its Table 1/2-style
 comparison of the variants (run_benchmark, bench.variants) and a paired bootstrap between two models
 (compare_models)."""
 
@@ -41,7 +41,7 @@ BENCHMARK_INPUT_SIZE = 256
 SCORED_HISTORY = 4  # frames: every variant is scored on the frames the 4-frame model scores
 BENCHMARK_RECIPE = "default"
 CACHE = "cache"
-DETECTIONS = "test_detections.npz"  # each variant's test detections, for rafd-bench-accuracy compare
+DETECTIONS = "test_detections.npz"  # each variant's test detections, for rafd bench accuracy compare
 
 
 def make_data(out_root: Path, scale: float, frames: int | None) -> Path:
@@ -86,7 +86,7 @@ def make_data(out_root: Path, scale: float, frames: int | None) -> Path:
 def read_manifest(data_root: Path) -> dict:
     path = data_root / MANIFEST
     if not path.is_file():
-        raise FileNotFoundError(f"{path} is missing: create the benchmark with `rafd-bench-accuracy data {data_root}`")
+        raise FileNotFoundError(f"{path} is missing: create the benchmark with `rafd bench accuracy data {data_root}`")
     return json.loads(path.read_text())
 
 
@@ -147,7 +147,8 @@ def run_benchmark(bench: BenchmarkRun) -> list[dict[str, Any]]:
     frames that a 4-frame model scores (rafd.eval.run.evaluate) -> the rows; writes results.json / results.md and
     each variant's model, figures and detections under out_dir."""
     from rafd.eval.run import EvalRun, evaluate, jsonable
-    from rafd.train.run import TrainRun, train
+    from rafd.train.recipes import recipe_config
+    from rafd.train.run import DataSource, TrainRun, train
     from rafd.train.trainer import history_path, optimizer_state_path
 
     manifest = read_manifest(bench.data_root)
@@ -156,34 +157,36 @@ def run_benchmark(bench: BenchmarkRun) -> list[dict[str, Any]]:
         raise ValueError(f"unknown variants {unknown}; choose from {sorted(VARIANTS)}")
     bench.out_dir.mkdir(parents=True, exist_ok=True)
     cache = bench.data_root / manifest["cache"] if manifest.get("cache") else None
+    budget = {"train.epochs": bench.epochs, "train.batch_size": bench.batch_size, "train.lr": bench.lr}
+    config = recipe_config(bench.config).overridden(
+        {
+            "model.input_size": manifest["input_size"],
+            "train.seed": bench.seed,
+            "train.device": bench.device,
+            "train.precision": bench.precision,
+            "train.val_every": 0,
+            "train.progress": not is_quiet(),  # one bar per epoch, titled with the epoch
+            "train.max_steps_per_epoch": bench.max_steps_per_epoch,
+            "data.max_windows": bench.max_windows,
+            **{key: value for key, value in budget.items() if value is not None},  # None: the recipe's
+        }
+    )
     rows = []
     for position, name in enumerate(bench.variants):
         variant = VARIANTS[name]
         ckpt = bench.out_dir / name / "model.pt"
         base = TrainRun(
-            data=bench.data_root,
-            split=(manifest["train_split"],),
+            config=config,
+            data=DataSource(bench.data_root, (manifest["train_split"],), cache),
             out=ckpt,
-            config=bench.config,
-            cache=cache,
-            seed=bench.seed,
-            device=bench.device,
-            precision=bench.precision,
-            epochs=bench.epochs,
-            batch_size=bench.batch_size,
-            lr=bench.lr,
-            input_size=manifest["input_size"],
-            val_every=0,
-            progress=not is_quiet(),  # one bar per epoch, titled with the epoch
-            max_windows=bench.max_windows,
-            max_steps_per_epoch=bench.max_steps_per_epoch,
+            recipe=bench.config,
         )
         run = variant.apply(base)
         # resume: a variant stopped mid-run goes on from its last finished epoch (training refuses another config
         # or --freeze); one that finished is only evaluated
         resumed = bench.resume and ckpt.is_file() and optimizer_state_path(ckpt).is_file()
         if resumed:
-            run = replace(run, resume=ckpt)
+            run = replace(run, resume=True)
             log.info("variant %s: resuming %s", name, ckpt)
         elif variant.init is not None:
             init_ckpt = bench.out_dir / variant.init / "model.pt"
@@ -250,7 +253,7 @@ def compare_models(
         file = path / DETECTIONS if path.is_dir() else path
         if not file.is_file():
             raise FileNotFoundError(
-                f"{file} does not exist (rafd-eval --detections writes it; rafd-bench-accuracy "
+                f"{file} does not exist (rafd-eval --detections writes it; rafd bench accuracy "
                 f"run writes {DETECTIONS} into each variant's folder)"
             )
         return (path.name if path.is_dir() else path.stem), load_detections(file)

@@ -12,24 +12,23 @@ from pathlib import Path
 from bench.accuracy import BENCHMARK_RECIPE, BenchmarkRun, compare_models, make_data, markdown_table, run_benchmark
 from bench.variants import DEFAULT_VARIANTS, VARIANTS
 from rafd.cli import flags
-from rafd.cli.common import renamed
 
 
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog=flags.prog("bench accuracy"), description=__doc__)
     commands = parser.add_subparsers(dest="command", required=True, metavar="{data,run,compare}")
     data = commands.add_parser("data", help="simulate the fixed benchmark's train and test sequences")
-    flags.add_out(data, "ROOT", "data root to write (train and test sequences)")
+    flags.add_out(data, "ROOT", "data root to write (train and test sequences)", required=True)
     data.add_argument("--scale", type=float, default=1.0, help="multiply sequence counts (smoke tests: < 1)")
     flags.add_sequence_frames(data, None, "default: the benchmark's; fewer for smoke tests")
     flags.add_quiet(data)
-    data.add_argument("out_root", nargs="?", type=Path, metavar="OUT_ROOT", help="deprecated: use --out ROOT")
-    flags.deprecated(data, "--frames", "--sequence-frames", "frames", type=int, metavar="N")
     run = commands.add_parser("run", help="train every variant with the same budget and seed, evaluate on test")
     run.add_argument(
         "data_root", type=Path, metavar="ROOT", help="the benchmark's data root (rafd bench accuracy data)"
     )
-    flags.add_out(run, "DIR", "folder of the run: one sub-folder per variant (checkpoint, metrics, detections)")
+    flags.add_out(
+        run, "DIR", "folder of the run: one sub-folder per variant (checkpoint, metrics, detections)", required=True
+    )
     run.add_argument("--variants", default=",".join(DEFAULT_VARIANTS), help=f"comma list of {sorted(VARIANTS)}")
     run.add_argument("--epochs", type=int, help="epochs per variant (default: the recipe's)")
     run.add_argument("--batch-size", type=int, help="global batch (default: the recipe's)")
@@ -47,7 +46,6 @@ def build_parser() -> argparse.ArgumentParser:
         "variant is only evaluated",
     )
     flags.add_quiet(run)
-    run.add_argument("out_dir", nargs="?", type=Path, metavar="OUT_DIR", help="deprecated: use --out DIR")
     compare = commands.add_parser(
         "compare", help="paired bootstrap over drives: is CANDIDATE better than BASELINE on the same frames?"
     )
@@ -72,15 +70,7 @@ def _recipes() -> list[str]:
 
 
 def parse(argv: Sequence[str] | None = None) -> argparse.Namespace:
-    parser = build_parser()
-    args = parser.parse_args(argv)
-    if args.command == "data":
-        flags.deprecated_positional(parser, args, "out_root", "--out", "out")
-    elif args.command == "run":
-        flags.deprecated_positional(parser, args, "out_dir", "--out", "out")
-    if args.command in ("data", "run") and args.out is None:
-        parser.error("the output is required: --out " + ("ROOT" if args.command == "data" else "DIR"))
-    return args
+    return build_parser().parse_args(argv)
 
 
 def main(argv: Sequence[str] | None = None) -> int:
@@ -117,12 +107,9 @@ def main(argv: Sequence[str] | None = None) -> int:
             )
             print(markdown_table(rows))
     except (FileNotFoundError, ValueError, RuntimeError, TrainSetupError, EvalError) as error:
-        print(f"rafd-bench-accuracy: error: {error}", file=sys.stderr)
+        print(f"rafd bench accuracy: error: {error}", file=sys.stderr)
         return 2
     return 0
-
-
-legacy_main = renamed("rafd-benchmark", "rafd-bench-accuracy", main)
 
 
 if __name__ == "__main__":

@@ -1,4 +1,4 @@
-"""`rafd-bench-capacity`: how many radars at 4 Hz one replica holds (bench.capacity), per model and input form.
+"""`rafd bench capacity`: how many radars at 4 Hz one replica holds (bench.capacity), per model and input form.
 
 For each config (the shipped default model; the paper's network with random weights, exported here) a real
 `rafd-serve` runs on loopback with the given threads; for each form of input (full 1152 px scans without poses, so
@@ -58,9 +58,9 @@ def _model_for(config: str, work: Path, model: Path | None) -> Path:
         from rafd.assets import default_onnx
 
         return default_onnx()
-    from bench.speed import config_checkpoint, export_forms
+    from bench.speed import config_checkpoint, export_step
 
-    return export_forms(config_checkpoint(work, config), work)["step"]
+    return export_step(config_checkpoint(work, config), work)
 
 
 def main(argv: Sequence[str] | None = None) -> int:
@@ -71,15 +71,15 @@ def main(argv: Sequence[str] | None = None) -> int:
     inputs = [i.strip() for i in args.inputs.split(",") if i.strip()]
     bad = [c for c in configs if c not in ("default", "paper")] + [i for i in inputs if i not in INPUTS]
     if bad:
-        print(f"rafd-bench-capacity: error: unknown configs or inputs {bad}", file=sys.stderr)
+        print(f"rafd bench capacity: error: unknown configs or inputs {bad}", file=sys.stderr)
         return 2
     env = dict(item.split("=", 1) for item in args.env)
     try:
         scans = looped_scans(args.sample)
     except FileNotFoundError as error:
-        print(f"rafd-bench-capacity: error: {error}", file=sys.stderr)
+        print(f"rafd bench capacity: error: {error}", file=sys.stderr)
         return 2
-    from rafd.data.odometry import estimate_sequence_poses
+    from rafd.odometry.registration import estimate_sequence_poses
 
     poses = estimate_sequence_poses(scans, 0.173611)  # what the vehicle's localisation would send
     report: dict[str, Any] = {"machine": machine_description(args.threads or 0), "levels": {}}

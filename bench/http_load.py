@@ -12,6 +12,7 @@ from typing import Any
 import numpy as np
 
 from rafd import detect_client
+from rafd.protocol import stream_id_from
 
 
 def encode_png(image: np.ndarray) -> str:
@@ -30,7 +31,7 @@ def load_streams(url: str, bodies: list[str], poses: np.ndarray, streams: int, f
 
     def client(index: int) -> None:
         connection = detect_client.connect(url, timeout=120.0)
-        stream_id = detect_client.stream_id_from(f"bench-{tag}-{streams}-{index}")
+        stream_id = stream_id_from(f"bench-{tag}-{streams}-{index}")
         try:
             for k in range(frames):
                 j = k % len(bodies)

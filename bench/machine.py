@@ -2,9 +2,7 @@
 
 from __future__ import annotations
 
-import os
-
-from rafd.cpu import BF16_UNITS, cpu_model_and_flags, has_units
+from rafd.cpu import BF16_UNITS, cpu_model_and_flags, has_units, usable_cpus
 
 
 def has_bf16_units() -> bool:
@@ -12,15 +10,8 @@ def has_bf16_units() -> bool:
     return has_units(BF16_UNITS)
 
 
-def usable_cores() -> int:
-    try:
-        return len(os.sched_getaffinity(0))
-    except AttributeError:  # not on Linux
-        return os.cpu_count() or 1
-
-
 def machine_description(threads: int) -> str:
     model, flags = cpu_model_and_flags()
     found: list[str] = [f for f in ("avx512_bf16", "amx_bf16", "amx_int8", "avx512_vnni") if f in flags]
     units = found or ["no bf16 units"]
-    return f"{model} ({', '.join(units)}), {usable_cores()} usable cores, {threads} threads"
+    return f"{model} ({', '.join(units)}), {usable_cpus()} usable cores, {threads} threads"

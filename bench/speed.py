@@ -1,4 +1,4 @@
-"""The speed benchmark (`rafd-bench-speed`): speed, accuracy drift and memory of every runtime and precision, side
+"""The speed benchmark (`rafd bench speed`): speed, accuracy drift and memory of every runtime and precision, side
 by side in one run.
 
 For each config (the shipped default model, the paper's network with random weights, and the paper's network with
@@ -9,7 +9,7 @@ the speed options flow.stride 8 and enhance.window 16):
     fp32 and bf16 matmul peaks measured in the same run;
   - 1 stream against 8 concurrent streams through one runner, with one run at a time and with the service's
     default of one concurrent run per CPU;
-  - the accuracy gate of every reduced precision against onnxruntime fp32 (export.gate, a small sample);
+  - the accuracy gate of every reduced precision against onnxruntime fp32 (export.gate_run, a small sample);
 then `POST /detect` over HTTP on loopback against a real `rafd-serve` per runtime (1 and N streams, memory with
 100 streams; for the default model also full 1152 px scans). Prints one table.
 """
@@ -233,8 +233,8 @@ class ModelBench:
         return found
 
     def gates(self, step_onnx: Path, choices: Sequence[tuple[str, str]], gate: tuple[int, int]) -> dict[str, Any]:
-        """The accuracy gate of every reduced precision (export.gate) on `gate` = (sequences, frames)."""
-        from export.gate import gate_model
+        """The accuracy gate of every reduced precision (export.gate_run) on `gate` = (sequences, frames)."""
+        from export.gate_run import gate_model
 
         sample = os.environ.get("RAFD_RADIATE_SAMPLE")
         radiate = sample if sample and Path(sample, "Navtech_Cartesian").is_dir() else None

@@ -7,7 +7,6 @@ from __future__ import annotations
 import argparse
 import json
 import logging
-import os
 import sys
 import tempfile
 from collections.abc import Sequence
@@ -29,7 +28,7 @@ from bench.speed import (
 )
 from bench.speed_profile import PROFILE_THREADS
 from rafd.cli import flags
-from rafd.cli.common import renamed
+from rafd.cpu import usable_cpus
 from rafd.progress import Stages
 
 log = logging.getLogger("bench")
@@ -45,9 +44,7 @@ def build_parser() -> argparse.ArgumentParser:
         default="default,paper,paper-options",
         help=f"comma list of the configs to measure, of {', '.join(CONFIGS)} (default %(default)s)",
     )
-    flags.add_threads(
-        parser, len(os.sched_getaffinity(0)), "onnxruntime's / OpenVINO's threads per run (default: the CPUs)"
-    )
+    flags.add_threads(parser, usable_cpus(), "onnxruntime's / OpenVINO's threads per run (default: the CPUs)")
     parser.add_argument("--repeats", type=int, default=20, help="timed calls per model path (default %(default)s)")
     parser.add_argument(
         "--islands",
@@ -124,20 +121,12 @@ def build_parser() -> argparse.ArgumentParser:
         "(default %(default)s)",
     )
     flags.add_quiet(parser)
-    flags.deprecated(
-        parser, "--checkpoint", "the positional CHECKPOINT", "checkpoint_option", type=Path, metavar="CKPT"
-    )
-    flags.deprecated(parser, "--gate-frames", "--gate-sequence-frames", "gate_frames", type=int, metavar="N")
     return parser
 
 
 def main(argv: Sequence[str] | None = None) -> int:
     parser = build_parser()
     args = parser.parse_args(argv)
-    option = getattr(args, "checkpoint_option", None)
-    if option is not None and args.checkpoint is not None:
-        parser.error("give the checkpoint once: as the positional CHECKPOINT")
-    args.checkpoint = args.checkpoint or option
     flags.apply_quiet(args)
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(levelname)s %(name)s: %(message)s")
     logging.getLogger("httpx").setLevel(logging.WARNING)  # one line per request would bury the table
@@ -147,7 +136,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     unknown = set(configs) - set(CONFIGS)
     if unknown:
         print(
-            f"rafd-bench-speed: error: unknown configs {sorted(unknown)} (known: {', '.join(CONFIGS)})", file=sys.stderr
+            f"rafd bench speed: error: unknown configs {sorted(unknown)} (known: {', '.join(CONFIGS)})", file=sys.stderr
         )
         return 2
     from rafd.runtime import supported_choices
@@ -156,7 +145,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     http_runtimes = [c.strip() for c in args.http_runtimes.split(",") if c.strip()]
     bad = [c for c in http_runtimes if c.count("/") != 1]
     if bad:
-        print(f"rafd-bench-speed: error: --http-runtimes takes runtime/precision pairs, got {bad}", file=sys.stderr)
+        print(f"rafd bench speed: error: --http-runtimes takes runtime/precision pairs, got {bad}", file=sys.stderr)
         return 2
     skipped = [c for c in http_runtimes if c not in supported]
     if skipped:
@@ -188,7 +177,7 @@ def main(argv: Sequence[str] | None = None) -> int:
             else:
                 checkpoint = config_checkpoint(work, name)
             if not Path(checkpoint).is_file():
-                print(f"rafd-bench-speed: error: checkpoint {checkpoint} not found", file=sys.stderr)
+                print(f"rafd bench speed: error: checkpoint {checkpoint} not found", file=sys.stderr)
                 return 2
             log.info("benchmarking %s (%s)", name, checkpoint)
             paths = bench_model(
@@ -259,7 +248,7 @@ def run_profile(args: argparse.Namespace) -> int:
     recipes = [c.strip() for c in (args.profile_config or "").split(",") if c.strip()]
     unknown = sorted(set(recipes) - set(RECIPES))
     if unknown:
-        print(f"rafd-bench-speed: error: unknown recipes {unknown} (known: {', '.join(RECIPES)})", file=sys.stderr)
+        print(f"rafd bench speed: error: unknown recipes {unknown} (known: {', '.join(RECIPES)})", file=sys.stderr)
         return 2
     with tempfile.TemporaryDirectory(prefix="rafd-profile-") as tmp:
         work = Path(tmp)
@@ -272,7 +261,7 @@ def run_profile(args: argparse.Namespace) -> int:
 
                 checkpoint = Path(default_checkpoint())
             if not checkpoint.is_file():
-                print(f"rafd-bench-speed: error: checkpoint {checkpoint} not found", file=sys.stderr)
+                print(f"rafd bench speed: error: checkpoint {checkpoint} not found", file=sys.stderr)
                 return 2
             checkpoints[checkpoint.name] = checkpoint
         for name in recipes:
@@ -284,9 +273,6 @@ def run_profile(args: argparse.Namespace) -> int:
     if args.json:
         args.json.write_text(json.dumps(profiles_json(profiles, args.profile_depth, cost), indent=2))
     return 0
-
-
-legacy_main = renamed("rafd-bench", "rafd-bench-speed", main)
 
 
 if __name__ == "__main__":

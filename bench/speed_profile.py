@@ -170,18 +170,15 @@ def group_rows(
 
 # ----------------------------------------------------------------------------- the profiler
 def step_feeds(session: Any) -> dict[str, np.ndarray]:
-    """The step's contract inputs (export.step.example_inputs) from the graph's own config metadata."""
-    from export.step import example_inputs
-    from rafd.config import RaFDConfig
-
-    metadata = session.get_modelmeta().custom_metadata_map
-    if "config" not in metadata:
-        raise ValueError("--profile needs a graph written by rafd export (its config metadata gives the inputs)")
-    if metadata.get("form", "step") != "step":
-        raise ValueError(f"--profile times the streaming step; this graph is the {metadata['form']} form")
-    cfg = RaFDConfig.from_json(metadata["config"])
-    inputs = example_inputs(cfg, "step", int(metadata["feature_channels"]))
-    return {i.name: tensor.numpy() for i, tensor in zip(session.get_inputs(), inputs)}
+    """Random inputs of the step graph's own shapes (a batch of one; frame in [0, 1], the cache non-zero: a stream
+    past its first frame)."""
+    if "config" not in session.get_modelmeta().custom_metadata_map:
+        raise ValueError("--profile needs a step graph written by rafd export (its metadata has no config)")
+    rng = np.random.default_rng(0)
+    return {
+        i.name: rng.random([d if isinstance(d, int) else 1 for d in i.shape], dtype=np.float32)
+        for i in session.get_inputs()
+    }
 
 
 def open_session(path: Path, threads: int, profile_dir: Path | None = None) -> Any:
@@ -315,10 +312,10 @@ def recipe_checkpoint(work: Path, name: str) -> Path:
     import torch
 
     from rafd import build_model, save_checkpoint
-    from rafd.train.recipes import RECIPES
+    from rafd.train.recipes import recipe_model
 
     torch.manual_seed(0)
-    cfg = RECIPES[name].model
+    cfg = recipe_model(name)
     path = work / f"{name}_random.pt"
     save_checkpoint(path, build_model(cfg).eval(), cfg, meta={"note": "random weights for profiling"})
     return path
@@ -331,7 +328,7 @@ def step_onnx(checkpoint: Path, work: Path) -> Path:
     from export.onnx_export import export_onnx
 
     output = work / f"{checkpoint.stem}.step.onnx"
-    export_onnx(checkpoint, output, form="step", verify=False, log=log.info)
+    export_onnx(checkpoint, output, batch="static", verify=False, log=log.info)
     return output
 
 

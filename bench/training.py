@@ -163,15 +163,20 @@ def _training_batch(cfg, batch_size: int):
 
 def step_times(cfg, batch_size: int, steps: int) -> dict[str, float]:
     """Median ms per optimizer step in fp32 and bf16 (interleaved, so machine noise hits both alike)."""
+    from rafd.train.config import RunConfig, TrainConfig
     from rafd.train.distributed import DistContext
-    from rafd.train.trainer import TrainConfig, Trainer
+    from rafd.train.trainer import Trainer
 
     stage(f"time {steps} training steps of {cfg.input_size} px, batch {batch_size}, in fp32 and bf16")
     batch = _training_batch(cfg, batch_size)
     trainers = {
         precision: Trainer(
-            cfg,
-            TrainConfig(batch_size=batch_size, precision=precision, progress=False, device="cpu", optimizer="adam"),
+            RunConfig(
+                model=cfg,
+                train=TrainConfig(
+                    batch_size=batch_size, precision=precision, progress=False, device="cpu", optimizer="adam"
+                ),
+            ),
             cast("Dataset[Any]", [0]),  # a stand-in: train_step gets its batch from here
             None,
             DistContext(),
@@ -193,8 +198,9 @@ def loss_curves(steps: int, log_every: int) -> dict[str, list[dict]]:
     from rafd.config import RaFDConfig
     from rafd.data.windows import open_windows
     from rafd.sim import simulate_dataset
+    from rafd.train.config import RunConfig, TrainConfig
     from rafd.train.distributed import DistContext
-    from rafd.train.trainer import TrainConfig, Trainer
+    from rafd.train.trainer import Trainer
 
     cfg = RaFDConfig.tiny()
     curves = {}
@@ -216,7 +222,7 @@ def loss_curves(steps: int, log_every: int) -> dict[str, list[dict]]:
                 val_every=0,
                 seed=0,
             )
-            history = Trainer(cfg, train_cfg, dataset, None, DistContext()).fit()
+            history = Trainer(RunConfig(model=cfg, train=train_cfg), dataset, None, DistContext()).fit()
             curves[precision] = history[0]["curve"]
     return curves
 

@@ -11,7 +11,6 @@ from pathlib import Path
 from bench.training import __doc__ as DESCRIPTION
 from bench.training import run_loader, run_precision
 from rafd.cli import flags
-from rafd.cli.common import renamed
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -33,7 +32,6 @@ def build_parser() -> argparse.ArgumentParser:
     )
     loader.add_argument("--prepare-workers", type=int, default=2, help="processes for rafd odometry / rafd prepare")
     flags.add_quiet(loader)
-    flags.deprecated(loader, "--frames", "--sequence-frames", "frames", type=int, metavar="N")
     precision = commands.add_parser("precision", help="fp32 vs bf16 step time and loss curves")
     precision.add_argument("--steps", type=int, default=5, help="timed steps per configuration and precision")
     precision.add_argument("--curve-steps", type=int, default=100, help="steps of the loss-curve runs")
@@ -50,9 +48,6 @@ def main(argv: Sequence[str] | None = None) -> int:
     if args.command == "loader":
         return run_loader(args.work, args.sequences, args.frames, args.windows, args.workers, args.prepare_workers)
     return run_precision(args.steps, args.curve_steps, args.threads, args.json)
-
-
-legacy_main = renamed("rafd-train-bench", "rafd-bench-training", main)
 
 
 if __name__ == "__main__":

@@ -56,9 +56,6 @@ def build_parser() -> argparse.ArgumentParser:
     gate.add_argument("--gate", action="store_true", help="run the accuracy gate")
     add_gate_flags(gate)
     flags.add_quiet(parser)
-    flags.deprecated(
-        parser, "--gate-frames", "--gate-sequence-frames", "gate_frames", type=flags.positive_int, metavar="N"
-    )
     return parser
 
 

@@ -17,7 +17,7 @@ from export.quantize import CALIBRATION_FRAMES, CALIBRATION_SEQUENCES
 from rafd.cli import flags
 
 if TYPE_CHECKING:
-    from export.gate import GateOptions
+    from export.gate_options import GateOptions
 
 
 def add_gate_flags(parser: argparse.ArgumentParser | argparse._ArgumentGroup) -> None:
@@ -60,13 +60,13 @@ def add_gate_flags(parser: argparse.ArgumentParser | argparse._ArgumentGroup) ->
         type=int,
         default=None,
         help="simulation seed; must be one the model was never trained or tested on "
-        "(default: export.gate.DEFAULT_SEED)",
+        "(default: export.gate_options.DEFAULT_SEED)",
     )
 
 
 def gate_options(args: argparse.Namespace, threads: int | None = None) -> GateOptions:
     """The options add_gate_flags parsed."""
-    from export.gate import DEFAULT_SEED, GateOptions
+    from export.gate_options import DEFAULT_SEED, GateOptions
 
     return GateOptions(
         sequences=args.gate_sequences,

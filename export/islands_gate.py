@@ -35,12 +35,15 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
-from export.gate import GateOptions, GateReport, LabelledFrame, gate_model
+from export.gate_drives import LabelledFrame
+from export.gate_options import GateOptions
+from export.gate_report import GateReport
+from export.gate_run import gate_model
 from export.islands import replace_dir, search_units, write_islands
 from export.quantize import Calibration
 from rafd.model_files import file_sha256, int8_model_path, islands_dir, islands_sha256
 
-SEARCH_SEED = 7200  # apart from the gate's (export.gate.DEFAULT_SEED), int8 calibration's and training's
+SEARCH_SEED = 7200  # apart from the gate's (export.gate_options.DEFAULT_SEED), int8 calibration's and training's
 NOT_FINITE = 1e6  # the excess of a check whose figure is not finite (the arithmetic broke)
 
 INT8_UNIT_DEPTH = 3  # int8's units: one level below bf16's (the module docstring says why)

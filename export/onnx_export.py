@@ -19,7 +19,9 @@ import torch
 
 import rafd
 from export import MIN_OPSET
-from export.gate import GateOptions, GateReport, gate_metadata, put_in_place, run_export_gates
+from export.gate import gate_metadata, put_in_place, run_export_gates
+from export.gate_options import GateOptions
+from export.gate_report import GateReport
 from export.step import StepGraph, build_graph
 from export.verify import Report, verify_export
 from rafd.config import RaFDConfig
@@ -215,7 +217,10 @@ def export_onnx(
         del proto
         export_seconds = time.perf_counter() - start
         size = tmp.stat().st_size
-        log(f"exported the step graph with the {exporter} exporter, opset {opset}: {size / 1e6:.2f} MB in {export_seconds:.1f} s")
+        log(
+            f"exported the step graph with the {exporter} exporter, opset {opset}: {size / 1e6:.2f} MB "
+            f"in {export_seconds:.1f} s"
+        )
 
         report, verify_seconds = None, 0.0
         if verify:

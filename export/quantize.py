@@ -32,7 +32,7 @@ import numpy as np
 from rafd.model_files import FLOAT32_ISLANDS_KEY, int8_model_path
 from rafd.progress import stage
 
-CALIBRATION_SEED = 7300  # not the gate's (export.gate.DEFAULT_SEED) nor a training or benchmark seed
+CALIBRATION_SEED = 7300  # not the gate's (export.gate_options.DEFAULT_SEED) nor a training or benchmark seed
 CALIBRATION_SEQUENCES, CALIBRATION_FRAMES = 4, 30  # simulated sequences streamed for the activation ranges
 QUANTIZED_OPS = ("Conv", "MatMul", "Gemm")  # the rest of the graph stays float32 (the module docstring says why)
 
@@ -60,7 +60,7 @@ def calibration_feeds(
     seed: int = CALIBRATION_SEED,
 ) -> list[dict[str, np.ndarray]]:
     """The step graph's inputs over `sequences` simulated sequences of `frames` frames, state included."""
-    from export.gate import simulated_sequences
+    from export.gate_drives import simulated_sequences
     from rafd.runtime import OnnxRunner
 
     runner = OnnxRunner(onnx_path, threads=None)

@@ -50,5 +50,7 @@ def build_graph(model: RaFD, cfg: RaFDConfig) -> tuple[StepGraph, tuple[Tensor, 
     size = cfg.input_size
     example = [torch.rand(1, 1, size, size, generator=generator), torch.tensor([[0.3, 1.5, 0.02]])]
     for name, zeros in cache.items():
-        example.append(torch.full_like(zeros, 2.0) if name == "frames" else torch.randn(zeros.shape, generator=generator))
+        example.append(
+            torch.full_like(zeros, 2.0) if name == "frames" else torch.randn(zeros.shape, generator=generator)
+        )
     return graph.eval(), tuple(example)

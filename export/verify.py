@@ -247,7 +247,7 @@ def random_sequence(
 
 def radiate_sequence(folder: str | os.PathLike[str], cfg: RaFDConfig, length: int) -> tuple[np.ndarray, np.ndarray]:
     """The first `length` Navtech_Cartesian frames of a RADIATE sequence as model inputs (rafd.preprocess), with
-    poses from rafd.data.odometry when it is available (zeros otherwise)."""
+    poses from rafd.odometry.registration when it is available (zeros otherwise)."""
     import cv2
 
     from rafd.preprocess import model_crop, to_model_input
@@ -263,7 +263,7 @@ def radiate_sequence(folder: str | os.PathLike[str], cfg: RaFDConfig, length: in
         images.append(model_crop(image, cfg.input_size))
     frames = to_model_input(np.stack(images))
     try:
-        from rafd.data.odometry import estimate_sequence_poses
+        from rafd.odometry.registration import estimate_sequence_poses
     except ImportError:
         return frames, np.zeros((len(frames), 3))
     return frames, np.asarray(estimate_sequence_poses(np.stack(images), cfg.resolution), np.float64)

@@ -7,6 +7,7 @@ import json
 from dataclasses import dataclass, field
 from typing import Any
 
+from rafd.config_tree import from_dict
 from rafd.geometry import RADIATE_RESOLUTION
 
 ALLOWED_FRAMES = (1, 2, 4)
@@ -116,7 +117,7 @@ class HeadConfig:
     # How orientation and size are regressed. "symmetric": a box is the same box turned by 180 degrees, and RADIATE's
     # annotators flip yaw by 180 degrees and swap width/length within one track, so the targets are the canonical
     # box (width <= length) with (sin 2yaw, cos 2yaw); decoding returns width <= length, yaw in [-pi/2, pi/2).
-    # "as_labelled": (sin yaw, cos yaw) and log(width, length) exactly as annotated (checkpoints before this field).
+    # "as_labelled": (sin yaw, cos yaw) and log(width, length) exactly as annotated (the targets before "symmetric").
     box_encoding: str = "symmetric"
 
     def __post_init__(self) -> None:
@@ -228,48 +229,10 @@ class RaFDConfig:
 
     @classmethod
     def from_dict(cls, data: dict[str, Any]) -> RaFDConfig:
-        """Rebuild from `to_dict()`; unknown keys are an error, not silently dropped. Fields a stored config predates
-        take the value they had before they existed (LEGACY_DEFAULTS), never today's default."""
-        sub_types = {f.name: f.type for f in dataclasses.fields(cls)}
-        nested = {
-            "input": InputConfig,
-            "backbone": BackboneConfig,
-            "neck": NeckConfig,
-            "enhance": EnhanceConfig,
-            "flow": FlowConfig,
-            "propagation": PropagationConfig,
-            "head": HeadConfig,
-            "targets": TargetConfig,
-        }
-        data = {**data, **{k: {**v, **data.get(k, {})} for k, v in LEGACY_DEFAULTS.items()}}
-        kwargs: dict[str, Any] = {}
-        for key, value in data.items():
-            if key not in sub_types:
-                raise ValueError(f"unknown RaFDConfig field {key!r}")
-            if key in nested:
-                kwargs[key] = _build_dataclass(nested[key], value)
-            elif key == "class_names":
-                kwargs[key] = tuple(value)
-            else:
-                kwargs[key] = value
-        return cls(**kwargs)
+        """Rebuild from `to_dict()`; an unknown or a missing key is an error: a stored config names every field, so a
+        field it lacks never silently takes today's default."""
+        return from_dict(cls, data)
 
     @classmethod
     def from_json(cls, text: str) -> RaFDConfig:
         return cls.from_dict(json.loads(text))
-
-
-# What configs written before a field existed meant by its absence (see RaFDConfig.from_dict).
-LEGACY_DEFAULTS: dict[str, dict[str, Any]] = {
-    "head": {"box_encoding": "as_labelled"},
-    "targets": {"heatmap_min_overlap": 0.7, "heatmap_min_radius": 1, "flow_min_overlap": 0.7, "flow_min_radius": 2.0},
-}
-
-
-def _build_dataclass(kind: type, values: dict[str, Any]) -> Any:
-    names = {f.name for f in dataclasses.fields(kind)}
-    unknown = set(values) - names
-    if unknown:
-        raise ValueError(f"unknown {kind.__name__} fields {sorted(unknown)}")
-    # JSON turns tuples into lists; the dataclasses are frozen and hashable with tuples.
-    return kind(**{k: tuple(v) if isinstance(v, list) else v for k, v in values.items()})

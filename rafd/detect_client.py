@@ -1,7 +1,6 @@
-"""The client side of POST /detect, written once: the stream-id rule, the request a frame becomes, and sending it.
+"""The client side of POST /detect, written once: the request a frame becomes, and sending it. Its stream ids follow
+the rule the service checks (rafd.protocol: `stream_id_from`, `STREAM_ID_PATTERN`).
 
-- The stream-id rule (`STREAM_ID_PATTERN`, `STREAM_ID_MAX_LENGTH`) is the service's own: service/schemas.py's
-  `StreamId` is built from these constants, so a client cannot drift from what the server accepts.
 - The forms the project's clients post (`detect_request` of a body): JSON (`json_body`: the PNG as base64 text) and
   multipart/form-data (`multipart_body`: the PNG as the file field `image`); the stream named in the body, in the
   X-Stream-Id header or both; with or without a pose and previous_timestamp. A polar or native scan (Navtech_Polar,
@@ -9,9 +8,8 @@
   `flow=False` asks for an answer without the flow (`?flow=false`).
 - Sending: `post` (urllib, a connection per request) or `exchange` (on a kept-alive `http.client` connection).
 
-Standard library only, and opencv only inside `png_bytes`: the service imports this module for the stream-id rule,
-and `rafd client` needs no HTTP package. Not httpx: the load benchmarks measure the service, not a client library
-(httpx adds about 1 ms per request).
+Standard library only, and opencv only inside `png_bytes`: `rafd client` needs no HTTP package. Not httpx: the load
+benchmarks measure the service, not a client library (httpx adds about 1 ms per request).
 """
 
 from __future__ import annotations
@@ -19,7 +17,6 @@ from __future__ import annotations
 import base64
 import http.client
 import json
-import re
 import urllib.request
 from collections.abc import Sequence
 from dataclasses import dataclass
@@ -28,34 +25,6 @@ from urllib.parse import urlsplit
 
 if TYPE_CHECKING:
     import numpy as np
-
-# ------------------------------------------------------------------------------------------------ the stream-id rule
-STREAM_ID_MAX_LENGTH = 128
-# URL-path-safe, printable, no whitespace: the id also appears in DELETE /streams/{stream_id}. As the inside of a
-# regular-expression class, with and without ".".
-_ID_CHARACTERS = r"A-Za-z0-9._~:@+\-"
-_ID_CHARACTERS_BUT_DOT = r"A-Za-z0-9_~:@+\-"
-# Neither "." nor "..", which a normalising proxy rewrites as path segments (`/streams/../detect` would become
-# `/detect`): an id starts with a character other than ".", or with "." and one other, or with ".." and more.
-STREAM_ID_PATTERN = (
-    rf"^(?:[{_ID_CHARACTERS_BUT_DOT}][{_ID_CHARACTERS}]{{0,{STREAM_ID_MAX_LENGTH - 1}}}"
-    rf"|\.[{_ID_CHARACTERS_BUT_DOT}][{_ID_CHARACTERS}]{{0,{STREAM_ID_MAX_LENGTH - 2}}}"
-    rf"|\.\.[{_ID_CHARACTERS}]{{1,{STREAM_ID_MAX_LENGTH - 2}}})$"
-)
-STREAM_ID_RULE = f'1-{STREAM_ID_MAX_LENGTH} characters from A-Z a-z 0-9 . _ ~ : @ + -, and not "." or ".."'
-_NOT_ID_CHARACTER = re.compile(f"[^{_ID_CHARACTERS}]")
-
-
-def is_stream_id(text: str) -> bool:
-    """Whether the service takes `text` as a stream id (the pattern bounds the length too)."""
-    return re.fullmatch(STREAM_ID_PATTERN, text) is not None
-
-
-def stream_id_from(name: str) -> str:
-    """`name` with every character a stream id may not hold replaced by "_". Not cut to length, and "." or ".."
-    stay as they are: callers add a suffix (a run id, a stream number) that makes the id valid."""
-    return _NOT_ID_CHARACTER.sub("_", name)
-
 
 # ------------------------------------------------------------------------------------------------ the request
 JSON_TYPE = "application/json"
@@ -111,7 +80,7 @@ def pose_of(row: Any) -> tuple[float, float, float]:
 
 def png_bytes(image: np.ndarray) -> bytes:
     """A uint8 image as PNG bytes; ValueError when opencv cannot encode it."""
-    import cv2  # here, not at the top: the service imports this module for the stream-id rule alone
+    import cv2  # here, not at the top: the load benchmarks and `rafd client --help` stay light
 
     ok, encoded = cv2.imencode(".png", image)
     if not ok:

@@ -13,12 +13,11 @@ from typing import Annotated, Any, Literal
 import orjson
 from pydantic import BaseModel, ConfigDict, Field
 
-# The stream-id rule is defined once, in rafd.detect_client, where the clients build their requests from it
-# (URL-path-safe, printable, no whitespace, neither "." nor ".."); re-exported (`as`) for the routers' path and
-# header parameters.
-from rafd.detect_client import STREAM_ID_MAX_LENGTH as STREAM_ID_MAX_LENGTH
-from rafd.detect_client import STREAM_ID_PATTERN as STREAM_ID_PATTERN
-from rafd.detect_client import STREAM_ID_RULE
+# The stream-id rule is defined once, in rafd.protocol, which the clients name their streams by too (URL-path-safe,
+# printable, no whitespace, neither "." nor ".."); re-exported (`as`) for the routers' path and header parameters.
+from rafd.protocol import STREAM_ID_MAX_LENGTH as STREAM_ID_MAX_LENGTH
+from rafd.protocol import STREAM_ID_PATTERN as STREAM_ID_PATTERN
+from rafd.protocol import STREAM_ID_RULE
 
 StreamId = Annotated[
     str,

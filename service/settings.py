@@ -2,8 +2,6 @@
 
 from __future__ import annotations
 
-import math
-import os
 from functools import lru_cache
 from pathlib import Path
 from typing import Annotated, Literal
@@ -11,39 +9,7 @@ from typing import Annotated, Literal
 from pydantic import Field, SecretStr, field_validator
 from pydantic_settings import BaseSettings, NoDecode, SettingsConfigDict
 
-CGROUP_V2_CPU_MAX = Path("/sys/fs/cgroup/cpu.max")
-CGROUP_V1_QUOTA = Path("/sys/fs/cgroup/cpu/cpu.cfs_quota_us")
-CGROUP_V1_PERIOD = Path("/sys/fs/cgroup/cpu/cpu.cfs_period_us")
-
-
-def cgroup_cpu_limit(
-    cpu_max: Path = CGROUP_V2_CPU_MAX, v1_quota: Path = CGROUP_V1_QUOTA, v1_period: Path = CGROUP_V1_PERIOD
-) -> int | None:
-    """Whole CPUs allowed by the container's CFS quota (rounded up), None when unlimited or unknown."""
-    try:
-        if cpu_max.is_file():
-            quota, period = cpu_max.read_text().split()[:2]
-            if quota == "max":
-                return None
-            return max(1, math.ceil(int(quota) / int(period)))
-        if v1_quota.is_file() and v1_period.is_file():
-            quota_us = int(v1_quota.read_text())
-            if quota_us <= 0:  # -1 = unlimited
-                return None
-            return max(1, math.ceil(quota_us / int(v1_period.read_text())))
-    except (OSError, ValueError):
-        return None  # unreadable or malformed: fall back to the affinity mask
-    return None
-
-
-def available_cpus() -> int:
-    """CPUs this process may use: the affinity mask (not os.cpu_count()), capped by the cgroup quota."""
-    try:
-        cpus = len(os.sched_getaffinity(0))
-    except AttributeError:  # not on Linux
-        cpus = os.cpu_count() or 1
-    limit = cgroup_cpu_limit()
-    return max(1, min(cpus, limit) if limit else cpus)
+from rafd.cpu import usable_cpus
 
 
 class Settings(BaseSettings):
@@ -57,7 +23,7 @@ class Settings(BaseSettings):
         description="ONNX file; None serves the model shipped in the package (rafd.assets.default_onnx()).",
     )
     threads: int = Field(
-        default_factory=available_cpus,
+        default_factory=usable_cpus,
         ge=1,
         description=(
             "Threads of one model run when it runs alone (lowest latency for one stream): the CPUs the container "
@@ -65,7 +31,7 @@ class Settings(BaseSettings):
         ),
     )
     concurrent_runs: int = Field(
-        default_factory=available_cpus,
+        default_factory=usable_cpus,
         ge=1,
         description=(
             "Model runs executing at once. Runs that overlap get threads // concurrent_runs threads each (a "

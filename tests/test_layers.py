@@ -6,10 +6,13 @@ package folder has an __init__.py.
 
 Inside rafd the sub-packages import downwards too, in the order of RAFD_LAYERS: the top-level modules (geometry,
 config, preprocessing, the wire protocol) and the scan formats (rafd.scans), numpy and opencv only, at the bottom as
-one layer, then data, the simulator, the model, the ONNX runtime, pictures, evaluation, training and the command
-line. So training may call evaluation
-(validation during training) but evaluation never imports training: what both need (collation, precision, the device)
-lives below both. And no module imports a private (underscore) name from another package."""
+one layer, then the radar odometry (which the data readers and the service run), data, the simulator, the model, the
+ONNX runtime, pictures, evaluation, training and the command line. So training may call evaluation (validation during
+training) but evaluation never imports training: what both need (collation, precision, the device) lives below
+both. And no module imports a private (underscore) name from another package.
+
+Below the packages, no module imports itself back through others: the module graph (every import statement, those
+inside functions and under TYPE_CHECKING too) has no cycle; an import inside a function is never a way around one."""
 
 from __future__ import annotations
 
@@ -52,7 +55,7 @@ def test_a_package_imports_only_the_layers_below_it(package: str):
 
 # Lowest first; "core" is rafd's top-level modules and the packages of CORE_PACKAGES. A sub-package may import those
 # before it, never one after it.
-RAFD_LAYERS = ("core", "assets", "data", "sim", "model", "runtime", "viz", "eval", "train", "cli")
+RAFD_LAYERS = ("core", "assets", "odometry", "data", "sim", "model", "runtime", "viz", "eval", "train", "cli")
 
 
 def rafd_imports(path: Path) -> list[tuple[str, str]]:
@@ -106,3 +109,113 @@ def test_every_package_folder_has_an_init(package: str):
     folders = {p.parent for p in (REPO / package).rglob("*.py") if "__pycache__" not in p.parts}
     missing = [str(f.relative_to(REPO)) for f in sorted(folders) if not (f / "__init__.py").is_file()]
     assert not missing, missing
+
+
+# ----------------------------------------------------------------------------- module cycles
+SOURCE_PACKAGES = ("rafd", "export", "service", "bench", "tools")
+
+
+def module_name(path: Path) -> str:
+    """rafd/data/reader.py -> rafd.data.reader; rafd/data/__init__.py -> rafd.data."""
+    parts = path.relative_to(REPO).with_suffix("").parts
+    return ".".join(parts[:-1] if parts[-1] == "__init__" else parts)
+
+
+def module_graph() -> dict[str, set[str]]:
+    """Module -> the project's modules it imports: `import a.b` and `from a import b` name module a.b where it exists,
+    else `from a.b import name` names a.b; relative imports resolved against the importing module's package."""
+    paths = {module_name(p): p for package in SOURCE_PACKAGES for p in (REPO / package).rglob("*.py")}
+    graph: dict[str, set[str]] = {}
+    for name, path in paths.items():
+        package = name if path.name == "__init__.py" else name.rpartition(".")[0]
+        edges: set[str] = set()
+        for node in ast.walk(ast.parse(path.read_text(), filename=str(path))):
+            if isinstance(node, ast.Import):
+                edges.update(alias.name for alias in node.names if alias.name in paths)
+            elif isinstance(node, ast.ImportFrom):
+                base = node.module or ""
+                if node.level:
+                    anchor = package.rsplit(".", node.level - 1)[0] if node.level > 1 else package
+                    base = f"{anchor}.{base}" if base else anchor
+                for alias in node.names:
+                    target = f"{base}.{alias.name}"
+                    edges.add(target if target in paths else base)
+        graph[name] = {edge for edge in edges if edge in paths and edge != name}
+    return graph
+
+
+def cycles(graph: dict[str, set[str]]) -> list[list[str]]:
+    """The strongly connected components of more than one module (Tarjan's algorithm, iterative), each as one cycle
+    through its modules, in import order."""
+    index: dict[str, int] = {}
+    low: dict[str, int] = {}
+    stack: list[str] = []
+    on_stack: set[str] = set()
+    found: list[list[str]] = []
+    for root in sorted(graph):
+        if root in index:
+            continue
+        work = [(root, iter(sorted(graph[root])))]
+        index[root] = low[root] = len(index)
+        stack.append(root)
+        on_stack.add(root)
+        while work:
+            node, children = work[-1]
+            child = next(children, None)
+            if child is not None:
+                if child not in index:
+                    index[child] = low[child] = len(index)
+                    stack.append(child)
+                    on_stack.add(child)
+                    work.append((child, iter(sorted(graph[child]))))
+                elif child in on_stack:
+                    low[node] = min(low[node], index[child])
+                continue
+            work.pop()
+            if work:
+                low[work[-1][0]] = min(low[work[-1][0]], low[node])
+            if low[node] == index[node]:
+                component = []
+                while True:
+                    member = stack.pop()
+                    on_stack.discard(member)
+                    component.append(member)
+                    if member == node:
+                        break
+                if len(component) > 1:
+                    found.append(cycle_through(graph, set(component)))
+    return found
+
+
+def cycle_through(graph: dict[str, set[str]], component: set[str]) -> list[str]:
+    """One cycle inside a strongly connected component, from its first module back to it (breadth first)."""
+    start = min(component)
+    previous: dict[str, str] = {}
+    frontier = [start]
+    while frontier:
+        following = []
+        for node in frontier:
+            for child in sorted(graph[node] & component):
+                if child == start:
+                    path = [node]
+                    while path[-1] != start:
+                        path.append(previous[path[-1]])
+                    return [*reversed(path), start]
+                if child not in previous:
+                    previous[child] = node
+                    following.append(child)
+        frontier = following
+    raise AssertionError(f"{sorted(component)} holds no cycle")
+
+
+def test_the_cycle_finder_names_a_cycle():
+    graph = {"a": {"b"}, "b": {"c"}, "c": {"a", "d"}, "d": set(), "e": {"e2"}, "e2": set()}
+    assert cycles(graph) == [["a", "b", "c", "a"]]
+
+
+def test_no_module_imports_itself_back():
+    """Per module, imports inside functions included: a cycle hidden by a lazy import is still a cycle."""
+    graph = module_graph()
+    assert "export.gate" in graph and "rafd.cli.main" in graph  # the graph holds the modules
+    found = cycles(graph)
+    assert not found, "import cycles:\n" + "\n".join(" -> ".join(cycle) for cycle in found)

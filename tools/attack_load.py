@@ -39,6 +39,7 @@ import numpy as np
 from bench.server import cpu_seconds, free_port, serve_command, wait_ready
 from bench.timing import percentile
 from rafd import detect_client
+from rafd.cpu import usable_cpus
 from service.body.png import png_chunk
 
 if TYPE_CHECKING:  # the classes behind multiprocessing.Event() and multiprocessing.Queue()
@@ -404,8 +405,7 @@ def main(argv: list[str] | None = None) -> int:
         print(
             f"rafd-serve on {url}; normal stream: {args.frames} {kind} at {args.rate_hz} Hz"
             f" ({'RADIATE sample' if args.sample else 'speckle stand-ins'}); flood: {args.flood_connections} "
-            f"connections posting a {len(request) / 1e6:.1f} MB padded PNG; {os.cpu_count()} CPUs, "
-            f"{len(os.sched_getaffinity(0))} usable"
+            f"connections posting a {len(request) / 1e6:.1f} MB padded PNG; {usable_cpus()} usable CPUs"
         )
         period, with_pose = 1.0 / args.rate_hz, args.stream == "crops"
         if with_pose:

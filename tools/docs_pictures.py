@@ -764,7 +764,8 @@ def make_odometry(run: Run, wanted: set[str], sim_root: Path | None) -> None:
 def write_manifest(run: Run, load_average: float) -> Path:
     """OUT/manifest.json: per picture what made it; pictures not made this time keep their entry while their file
     is there."""
-    from bench.machine import machine_description, usable_cores
+    from bench.machine import machine_description
+    from rafd.cpu import usable_cpus
 
     path = run.out / "manifest.json"
     previous: dict[str, Any] = {}
@@ -774,7 +775,7 @@ def write_manifest(run: Run, load_average: float) -> Path:
     common = {
         "command": run.command,
         "date": datetime.datetime.now(datetime.timezone.utc).strftime("%Y-%m-%d"),
-        "cpu": machine_description(usable_cores()),
+        "cpu": machine_description(usable_cpus()),
         "load_average_at_start": round(load_average, 2),  # other work on the CPU bends the timings
         "commit": _commit(),
     }

@@ -57,6 +57,7 @@ import numpy as np
 from bench.server import free_port, rss_bytes, serve_command, wait_ready
 from bench.timing import percentile
 from rafd import detect_client
+from rafd.cpu import usable_cpus
 from service.body.png import PNG_SIGNATURE, png_chunk
 from tools.attack_load import multipart_request, padded_png, scans_from
 
@@ -467,7 +468,7 @@ def main(argv: list[str] | None = None) -> int:
         print(
             f"rafd-serve on {url}; {args.streams} normal streams of full scans at {args.rate_hz} Hz "
             f"({'RADIATE sample' if args.sample else 'speckle stand-ins'}); attacks {attacks} from {ATTACKER}; "
-            f"{args.block_seconds:g} s blocks for {args.minutes:g} min; {os.cpu_count()} CPUs"
+            f"{args.block_seconds:g} s blocks for {args.minutes:g} min; {usable_cpus()} usable CPUs"
         )
         loader = multiprocessing.Process(
             target=normal_streams, args=(url, args.sample, args.streams, 1.0 / args.rate_hz, stop, normal_q)

@@ -30,9 +30,10 @@ from pathlib import Path
 
 import numpy as np
 
-FINETUNE_FLAGS = (
-    "--window-frames 1 --mix-share 0.5 --max-rotation-deg 180 --shift-max-m 20 --shift-probability 0.5 "
-    "--lr 1e-3 --epochs 100 --batch-size 4 --seed 0 --workers 0 --quiet"
+FINETUNE_SETTINGS = (
+    "model.num_frames=1 data.mix_share=0.5 data.augment.max_rotation_deg=180 data.augment.shift_max_m=20 "
+    "data.augment.shift_probability=0.5 train.lr=1e-3 train.epochs=100 train.batch_size=4 train.seed=0 "
+    "train.num_workers=0 --quiet"
 ).split()
 SCORING_FLAGS = ["--full-scan", "--warm-up-windows", "--quiet"]
 
@@ -129,8 +130,8 @@ def run_fold(args: argparse.Namespace, held: str, training: list[str]) -> list[S
             + ["train", str(args.real), "--split", ",".join(training), "--config", args.config, "--init"]
             + [str(args.single), "--mix-data", str(args.mix_data), "--mix-split", "train", "--out", str(single)]
             + (["--mix-cache", str(args.mix_cache)] if args.mix_cache else [])
-            + FINETUNE_FLAGS
-            + threads,
+            + FINETUNE_SETTINGS
+            + [f"train.threads={args.threads}"],
             log,
         )
     _run([sys.executable, "-m", "tools.assemble_model", str(single), str(args.multi), "--out", str(model)], log)

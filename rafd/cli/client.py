@@ -45,7 +45,6 @@ from rafd import progress
 from rafd.cli import flags
 from rafd.data.frames import RadarFrame
 from rafd.detect_client import (
-    STREAM_ID_MAX_LENGTH,
     FrameFields,
     api_key_header,
     base64_png,
@@ -55,9 +54,9 @@ from rafd.detect_client import (
     pose_of,
     post,
     stream_header,
-    stream_id_from,
 )
 from rafd.geometry import RADIATE_RESOLUTION, RADIATE_SCAN_SIZE
+from rafd.protocol import STREAM_ID_MAX_LENGTH, stream_id_from
 from rafd.scans.cartesian import png_size
 from rafd.scans.native import NativeSource
 from rafd.scans.polar import RADIATE_AZIMUTHS, RADIATE_RANGE_BINS

@@ -16,7 +16,7 @@ from rafd.eval.run import EvalRun
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog=flags.prog("eval"), description=__doc__)
     flags.add_checkpoint(parser)
-    parser.add_argument("data", nargs="?", type=Path, metavar="ROOT", help="data root holding sequence folders")
+    parser.add_argument("data", type=Path, metavar="ROOT", help="data root holding sequence folders")
     flags.add_split(parser, "the splits to evaluate, e.g. test", required=True)
     parser.add_argument("--cache", type=Path, help="scan cache written by rafd prepare (default: decode the PNGs)")
     parser.add_argument(
@@ -89,19 +89,12 @@ def build_parser() -> argparse.ArgumentParser:
     )
     flags.add_threads(parser, None, "torch's CPU threads (default: torch's)")
     flags.add_quiet(parser)
-    flags.deprecated(parser, "--data", "the positional ROOT", "data_option", type=Path, metavar="ROOT")
-    flags.deprecated(
-        parser, "--mcap", "--mcap-dir (--mcap names one file, in rafd client)", "mcap", type=Path, metavar="DIR"
-    )
-    flags.deprecated(parser, "--no-progress", "--quiet", "quiet", kind="store_true")
     return parser
 
 
 def parse(argv: Sequence[str] | None = None) -> argparse.Namespace:
     parser = build_parser()
-    args = parser.parse_args(argv)
-    flags.resolve_data_root(parser, args)
-    return args
+    return parser.parse_args(argv)
 
 
 def eval_run(args: argparse.Namespace) -> EvalRun:

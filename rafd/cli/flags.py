@@ -7,27 +7,24 @@ The vocabulary (docs/cli.md, "Shared flags", lists it with the commands that tak
   outputs are named for what they hold (`--json FILE`, `--plots DIR`, `--mcap FILE`, `--mcap-dir DIR`);
 - `--split` is repeatable and comma-separable everywhere;
 - `--workers N` parallel worker processes, `--threads N` CPU threads of the model, `--device`, `--config`;
-- `--window-frames N` frames per window (the model's T) and `--sequence-frames N` frames per sequence are two
-  names for two things;
+- `--sequence-frames N` frames per sequence (a window's frames are the model's: `rafd train ...
+  model.num_frames=N`);
 - `--resume` has one meaning: continue the unfinished run in `--out` from its last finished epoch;
 - `--quiet` silences the progress bars (rafd.progress).
-
-Old spellings that changed keep working for one release: `deprecated(...)` adds them in a "deprecated spellings"
-group; using one prints a warning on stderr naming the new spelling, then acts like it.
 """
 
 from __future__ import annotations
 
 import argparse
 import signal
-import sys
-import types
-import typing
 from collections.abc import Callable, Iterable, Sequence
 from pathlib import Path
 from typing import Any
 
 from rafd import progress
+
+# `X | None` -> X, for the flags made from typed fields (service.serve_flags: one per Settings field)
+from rafd.config_tree import without_none as without_none
 
 # Set by `rafd` (rafd.cli.main) while it runs a command: usage lines then read `rafd serve`, not `rafd-serve`.
 _dispatched = False
@@ -39,95 +36,14 @@ def set_dispatched(value: bool) -> None:
 
 
 def prog(command: str) -> str:
-    """The program name in usage lines: `rafd COMMAND` under the `rafd` dispatcher, else the `rafd-COMMAND` alias."""
-    return f"rafd {command}" if _dispatched else "rafd-" + command.replace(" ", "-")
+    """The program name in usage lines: `rafd COMMAND` under the `rafd` dispatcher or for a command of a group (`rafd
+    bench speed`, which has no alias), else the `rafd-COMMAND` alias."""
+    return f"rafd {command}" if _dispatched or " " in command else f"rafd-{command}"
 
 
 def split_names(values: Sequence[str] | None) -> tuple[str, ...]:
     """--split given repeated and/or comma-separated -> the split names in order."""
     return tuple(name.strip() for value in values or () for name in value.split(",") if name.strip())
-
-
-def warn(program: str, message: str) -> None:
-    print(f"{program}: warning: {message}", file=sys.stderr)
-
-
-# ----------------------------------------------------------------------------- deprecated spellings
-class DeprecatedOption(argparse.Action):
-    """An old option string kept for one release: warns naming the new one, then acts like it.
-
-    `kind`: "store" (takes a value), "store_true" / "store_false", or "append" (repeatable, like --split)."""
-
-    def __init__(self, option_strings: list[str], dest: str, new: str = "", kind: str = "store", **kwargs: Any):
-        self.new, self.kind = new, kind
-        if kind in ("store_true", "store_false"):
-            kwargs["nargs"] = 0
-            kwargs.setdefault("default", kind == "store_false")
-        super().__init__(option_strings, dest, **kwargs)
-
-    def __call__(
-        self,
-        parser: argparse.ArgumentParser,
-        namespace: argparse.Namespace,
-        values: Any,
-        option_string: str | None = None,
-    ) -> None:
-        warn(parser.prog, f"{option_string} is deprecated, use {self.new} (the old spelling goes in the next release)")
-        if self.kind == "store_true":
-            setattr(namespace, self.dest, True)
-        elif self.kind == "store_false":
-            setattr(namespace, self.dest, False)
-        elif self.kind == "append":
-            setattr(namespace, self.dest, [*(getattr(namespace, self.dest, None) or []), values])
-        else:
-            setattr(namespace, self.dest, values)
-
-
-def deprecated_group(parser: argparse.ArgumentParser) -> argparse._ArgumentGroup:
-    """The parser's group of old spellings (made once)."""
-    for group in parser._action_groups:
-        if group.title == DEPRECATED_TITLE:
-            return group
-    return parser.add_argument_group(DEPRECATED_TITLE)
-
-
-DEPRECATED_TITLE = "deprecated spellings (still work for one release, with a warning naming the new one)"
-
-
-def deprecated(
-    parser: argparse.ArgumentParser,
-    old: str,
-    new: str,
-    dest: str,
-    kind: str = "store",
-    type: Callable[[str], Any] | None = None,
-    metavar: str | None = None,
-) -> None:
-    """Keep `old` working for one release as a synonym of `new` (same dest)."""
-    options: dict[str, Any] = {
-        "dest": dest,
-        "new": new,
-        "kind": kind,
-        "help": f"use {new}",
-        "default": argparse.SUPPRESS,
-    }
-    if kind in ("store", "append"):
-        options.update(type=type, metavar=metavar)
-    deprecated_group(parser).add_argument(old, action=DeprecatedOption, **options)
-
-
-def deprecated_positional(
-    parser: argparse.ArgumentParser, args: argparse.Namespace, positional: str, option: str, dest: str
-) -> None:
-    """An output that used to be positional (`positional` = its dest, nargs='?'): warn and move it to `dest` (the
-    --out flag); both given is an error."""
-    value = getattr(args, positional, None)
-    if value is None:
-        return
-    if getattr(args, dest, None) is not None:
-        parser.error(f"give the output once: {option} (the positional output is deprecated)")
-    warn(parser.prog, f"the output as a positional argument is deprecated, use {option} {value}")
-    setattr(args, dest, value)
 
 
 # ----------------------------------------------------------------------------- the shared flags
@@ -189,24 +105,10 @@ def add_config(
     )
 
 
-def add_window_frames(
-    parser: argparse.ArgumentParser | argparse._ArgumentGroup, choices: Sequence[int] | None = None
-) -> None:
-    """--window-frames N: frames per window, the model's T (old spelling in rafd train: --frames)."""
-    parser.add_argument(
-        "--window-frames",
-        dest="frames",
-        type=int,
-        choices=choices,
-        metavar="N",
-        help="frames per window: the model sees the newest frame and N-1 earlier ones (1, 2 or 4)",
-    )
-
-
 def add_sequence_frames(
     parser: argparse.ArgumentParser | argparse._ArgumentGroup, default: int | None, what: str = ""
 ) -> None:
-    """--sequence-frames N: frames per simulated sequence (old spelling: --frames)."""
+    """--sequence-frames N: frames per simulated sequence."""
     parser.add_argument(
         "--sequence-frames",
         dest="frames",
@@ -224,33 +126,6 @@ def add_resume(parser: argparse.ArgumentParser | argparse._ArgumentGroup, what: 
         action="store_true",
         help=f"continue the unfinished run in --out from its last finished epoch: {what}",
     )
-
-
-def resolve_data_root(parser: argparse.ArgumentParser, args: argparse.Namespace) -> None:
-    """args.data from the positional ROOT or the deprecated --data (stored as data_option); exit 2 when both or
-    neither are given."""
-    option = getattr(args, "data_option", None)
-    if option is not None and args.data is not None:
-        parser.error("give the data root once: as the positional ROOT")
-    args.data = args.data or option
-    if args.data is None:
-        parser.error("the data root ROOT is required")
-
-
-def legacy_resume_path(argv: Sequence[str], program: str) -> tuple[list[str], Path | None]:
-    """The old `--resume PATH` of rafd train (a checkpoint file, not a directory: a data root is one), kept for one
-    release: -> (argv without PATH, PATH), with a warning; else (argv, None)."""
-    args = list(argv)
-    for i, token in enumerate(args[:-1]):
-        following = args[i + 1]
-        if token == "--resume" and not following.startswith("-") and not Path(following).is_dir():
-            warn(
-                program,
-                f"--resume {following} is deprecated: --resume takes no value and continues the run in --out "
-                "(the old spelling goes in the next release)",
-            )
-            return args[: i + 1] + args[i + 2 :], Path(following)
-    return args, None
 
 
 def add_warm_up_windows(parser: argparse.ArgumentParser | argparse._ArgumentGroup) -> None:
@@ -311,15 +186,6 @@ def exit_on_sigterm() -> None:
 
 
 # ----------------------------------------------------------------------------- value types
-def without_none(annotation: Any) -> Any:
-    """`X | None` / Optional[X] -> X (None is a generated flag not given); any other annotation as it is."""
-    if typing.get_origin(annotation) in (typing.Union, types.UnionType):
-        args = [a for a in typing.get_args(annotation) if a is not type(None)]
-        if len(args) == 1:
-            return args[0]
-    return annotation
-
-
 def positive_int(text: str) -> int:
     value = int(text)
     if value < 1:

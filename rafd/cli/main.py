@@ -2,8 +2,10 @@
 
 `COMMANDS` is the one table of the commands: name, "module:function", summary. A command's module is imported only
 when that command runs, so `rafd --help` stays fast and this package imports none of the layers above it (export,
-service). `rafd bench NAME` runs the command `bench-NAME`. Each `rafd-*` script is an alias of its command
-(`rafd-serve` = `rafd serve`; pyproject.toml's [project.scripts], which a test checks against this table).
+service). `rafd bench NAME` runs the command `bench-NAME`. Each command outside a group has a `rafd-*` script, an
+alias of it (`rafd-serve` = `rafd serve`; pyproject.toml's [project.scripts], which a test checks against this
+table); the benchmarks are `rafd bench NAME` only. Experiments whose findings the docs record are scripts in tools/
+(`python -m tools.NAME`), not commands.
 
 Another package adds a command by declaring an entry point of the group `rafd.commands` (found with
 importlib.metadata); a name of this table stays this table's.
@@ -48,27 +50,10 @@ COMMANDS = (
     Command("bench-accuracy", "bench.accuracy_cli:main", "the synthetic accuracy benchmark: data, run, compare"),
     Command("bench-training", "bench.training_cli:main", "training speed: input pipeline, fp32 against bf16"),
     Command("bench-capacity", "bench.capacity_cli:main", "streams per replica at 4 Hz within a p99 budget"),
-    Command("bench-batch", "bench.batch:main", "model cost per frame against batch size and threads (RAFD_MAX_BATCH)"),
-    Command("bench-steps", "bench.steps:main", "two exported step graphs' speed side by side"),
-    Command("bench-bf16-modules", "bench.bf16_modules:main", "which module bf16 hurts: one at a time in bf16 vs fp32"),
-    Command("bench-precision-marks", "bench.precision_marks:main", "whether OpenVINO keeps fp32-marked nodes in fp32"),
-    Command(
-        "bench-decode", "bench.decode:main", "decoding each posted form (Cartesian, polar, native, crop) side by side"
-    ),
-    Command("bench-decode-memory", "bench.decode_memory:main", "time and peak memory of the largest accepted image"),
-    Command(
-        "bench-odometry", "bench.odometry:main", "the service's odometry: accuracy and CPU, against a baseline copy"
-    ),
-    Command(
-        "bench-odometry-prior", "bench.odometry_prior:main", "odometry per frame: each pair from scratch vs the prior"
-    ),
-    Command("bench-server", "bench.server_overhead:main", "the HTTP server layer's cost per request (a stub model)"),
-    Command("bench-memory", "bench.stream_memory:main", "resident memory as streams come and expire"),
-    Command("bench-scaleout", "bench.scaleout:main", "frames per second through nginx to 1 and to 3 replicas"),
 )
 SUMMARIES = {c.name: c.summary for c in COMMANDS}
 GROUPS = {
-    "bench": "benchmarks (package bench/): what a frame, a stream and a replica cost, and how accurate a model is"
+    "bench": "benchmarks (package bench/): what a frame and a replica cost, how accurate a model is, training's speed"
 }
 
 
@@ -97,7 +82,7 @@ def usage(commands: dict[str, str]) -> str:
         "",
         "RaFD: radar object detection, from training to the HTTP service. `rafd COMMAND --help` shows a command's "
         "flags;",
-        "every command is also installed as `rafd-COMMAND` (`rafd bench speed` as `rafd-bench-speed`).",
+        "every command outside `rafd bench` is also installed as `rafd-COMMAND` (`rafd serve` as `rafd-serve`).",
         "",
         "commands:",
     ]

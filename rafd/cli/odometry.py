@@ -5,7 +5,8 @@ Writes ego_poses.csv into every sequence folder at or under each ROOT that has n
 elsewhere. --evaluate compares the estimates with each sequence's ego_poses.csv (e.g. the simulator's true poses):
 per-pair translation (m) and yaw (deg) errors and ms per pair; it writes nothing.
 
-Training and evaluation never run odometry themselves (unless asked with --estimate-poses): prepare once here.
+Training and evaluation never run odometry themselves (unless asked: `rafd eval --estimate-poses`, `rafd train ...
+data.estimate_poses=true`): prepare once here.
 Exit status 0 on success, 2 on bad input, 1 when a sequence failed (the others are still written).
 """
 
@@ -20,9 +21,9 @@ from pathlib import Path
 import numpy as np
 
 from rafd.cli import flags
+from rafd.cpu import usable_cpus
 from rafd.data.dataset import select_sequences
 from rafd.data.ego_motion import consecutive_pairs, error_summary, estimate, signed_errors, write_poses
-from rafd.data.parallel import default_workers
 from rafd.data.poses import POSES_FILE
 from rafd.progress import track
 
@@ -39,7 +40,7 @@ def _parser() -> argparse.ArgumentParser:
         help="data root(s) or sequence folder(s) (Navtech_Cartesian/ + .txt)",
     )
     flags.add_split(parser, "only sequences of these splits")
-    flags.add_workers(parser, default_workers(), "sequences estimated at once (default: the CPUs)")
+    flags.add_workers(parser, usable_cpus(), "sequences estimated at once (default: the CPUs)")
     flags.add_out(parser, "CSV", f"the poses of one sequence to this CSV (default SEQ_DIR/{POSES_FILE})")
     parser.add_argument("--force", action="store_true", help="re-estimate sequences that already have poses")
     parser.add_argument(

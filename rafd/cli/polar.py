@@ -95,7 +95,6 @@ def build_parser() -> argparse.ArgumentParser:
     )
     parser.add_argument("--repeats", type=int, default=20, help="conversions timed per run (median reported)")
     flags.add_quiet(parser)
-    flags.deprecated(parser, "--size", "--scan-size", "scan_size", type=int, metavar="PX")
     return parser
 
 

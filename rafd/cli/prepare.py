@@ -14,8 +14,8 @@ import sys
 from pathlib import Path
 
 from rafd.cli import flags
+from rafd.cpu import usable_cpus
 from rafd.data.cache import DEFAULT_CROP
-from rafd.data.parallel import default_workers
 from rafd.data.prepare import prepare_root
 
 
@@ -26,7 +26,7 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument(
         "root", type=Path, metavar="ROOT", help="data root holding RADIATE sequence folders (or one sequence)"
     )
-    flags.add_out(parser, "CACHE", "cache root to write (mirrors the sequence folders)")
+    flags.add_out(parser, "CACHE", "cache root to write (mirrors the sequence folders)", required=True)
     flags.add_split(parser, "only sequences of these splits")
     parser.add_argument(
         "--crop-size",
@@ -35,20 +35,15 @@ def build_parser() -> argparse.ArgumentParser:
         metavar="PX",
         help=f"side in pixels of the cached centre crop (default {DEFAULT_CROP}: a 256 px input turned by any angle)",
     )
-    flags.add_workers(parser, default_workers(), "sequences prepared at once (default: the CPUs)")
+    flags.add_workers(parser, usable_cpus(), "sequences prepared at once (default: the CPUs)")
     parser.add_argument("--force", action="store_true", help="rebuild complete caches too")
     flags.add_quiet(parser)
-    parser.add_argument("cache", nargs="?", type=Path, metavar="CACHE", help="deprecated: use --out CACHE")
-    flags.deprecated(parser, "--crop", "--crop-size", "crop_size", type=int, metavar="PX")
     return parser
 
 
 def main(argv: list[str] | None = None) -> int:
     parser = build_parser()
     args = parser.parse_args(argv)
-    flags.deprecated_positional(parser, args, "cache", "--out", "out")
-    if args.out is None:
-        parser.error("the cache to write is required: --out CACHE")
     flags.apply_quiet(args)
     logging.basicConfig(level=logging.WARNING, format="%(levelname)s %(name)s: %(message)s")
     try:

@@ -94,24 +94,11 @@ def _parser() -> argparse.ArgumentParser:
         help="real RADIATE sequence for --preview (default $RAFD_RADIATE_SAMPLE)",
     )
     flags.add_quiet(parser)
-    parser.add_argument("out_dir", nargs="?", type=Path, metavar="OUT_DIR", help="deprecated: use --out DIR")
-    flags.deprecated(parser, "--frames", "--sequence-frames", "frames", type=int, metavar="N")
-    flags.deprecated(parser, "--size", "--scan-size", "scan_size", type=int, metavar="PX")
     return parser
 
 
 def parse(argv: list[str] | None = None) -> argparse.Namespace:
-    """The flags, old spellings moved to the new ones: OUT_DIR -> --out, --preview FILE -> --preview --out FILE."""
-    parser = _parser()
-    argv = list(sys.argv[1:] if argv is None else argv)
-    for i, token in enumerate(argv[:-1]):  # the old `--preview FILE.png`: --preview took the file
-        if token == "--preview" and not argv[i + 1].startswith("-"):
-            flags.warn(parser.prog, f"--preview {argv[i + 1]} is deprecated, use --preview --out {argv[i + 1]}")
-            argv = [*argv[:i], "--preview", "--out", argv[i + 1], *argv[i + 2 :]]
-            break
-    args = parser.parse_args(argv)
-    flags.deprecated_positional(parser, args, "out_dir", "--out", "out")
-    return args
+    return _parser().parse_args(argv)
 
 
 def _fail(message: str) -> int:

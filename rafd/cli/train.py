@@ -1,170 +1,150 @@
 """rafd train: train RaFD on a RADIATE-layout data root (one process, or several under torchrun).
 
-`--config NAME` picks a recipe (rafd.train.recipes: `paper` = the paper's setting, `tiny` = the CPU-sized one);
-every flag given overrides the recipe's value, and the checkpoint records the result. Prepare the data once first:
-`rafd odometry ROOT` (ego poses) and `rafd prepare ROOT --out CACHE` (decoded crops; then pass --cache CACHE).
-`--batch-size` is the global batch (over all processes), as in the paper. An interrupted run goes on with the same
-command and `--resume`.
+The run config (rafd.train.config) is one tree: `model.*` the network, `data.*` how windows are drawn and augmented,
+`loss.*` the loss weights, `train.*` the optimisation and how it runs. `--config NAME` starts from a recipe
+(rafd.train.recipes) and every KEY=VALUE after it sets one field by its dotted key; `--show-config` prints them all.
+The flags say where: the data, the checkpoint, where the weights start, the validation and mixed-in roots. The
+checkpoint records the recipe and the whole config. Prepare the data once first: `rafd odometry ROOT` (ego poses) and
+`rafd prepare ROOT --out CACHE` (decoded crops; then pass --cache CACHE). `train.batch_size` is the global batch
+(over all processes), as in the paper. An interrupted run goes on with the same command and `--resume`.
 """
 
 from __future__ import annotations
 
 import argparse
-import dataclasses
 import json
 import logging
+import re
 import sys
-import typing
-from collections.abc import Callable, Sequence
-from functools import lru_cache
+from collections.abc import Sequence
 from pathlib import Path
-from typing import Any
 
 from rafd.cli import flags
-from rafd.config import BOX_ENCODINGS, FREEZABLE
-from rafd.train.run import TRAIN_CONFIG_NAMES, TrainRun
+from rafd.config_tree import dotted_items, parse_overrides
+from rafd.train.recipes import RECIPES, recipe_config
+from rafd.train.run import DataSource, TrainRun
 
-Group = argparse.ArgumentParser | argparse._ArgumentGroup
-# Fields whose flag is a shared one (rafd.cli.flags: one meaning and help in every command), given the field's help
-# where the shared flag takes one. Every other field becomes --FIELD-NAME, made by field_flag.
-SHARED: dict[str, Callable[[Group, dataclasses.Field[Any]], object]] = {
-    "data": lambda group, field: group.add_argument(
-        "data", nargs="?", type=Path, metavar=field.metadata["metavar"], help=field.metadata["help"]
-    ),
-    "split": lambda group, field: flags.add_split(group, field.metadata["help"], required=True),
-    "val_split": lambda group, field: flags.add_split(group, field.metadata["help"], flag="--val-split"),
-    "mix_split": lambda group, field: flags.add_split(group, field.metadata["help"], flag="--mix-split"),
-    "out": lambda group, field: flags.add_out(group, field.metadata["metavar"], field.metadata["help"], required=True),
-    "frames": lambda group, field: flags.add_window_frames(group, choices=(1, 2, 4)),
-    "num_workers": lambda group, field: flags.add_workers(group, None, field.metadata["help"]),
-    "threads": lambda group, field: flags.add_threads(group, None, field.metadata["help"]),
-    "device": lambda group, field: flags.add_device(group),
-    "progress": lambda group, field: flags.add_quiet(group),
-    "resume": lambda group, field: flags.add_resume(group, field.metadata["help"]),
-    "warm_up_windows": lambda group, field: flags.add_warm_up_windows(group),
-}
+# KEY=VALUE: a dotted key of the run config (a data root is a positional that is not one)
+SETTING = re.compile(r"^[a-z_][a-z0-9_]*(\.[a-z_][a-z0-9_]*)+=")
+
+EXAMPLES = """settings (KEY=VALUE, any field of the run config; `--show-config` lists them with their values):
+  model.num_frames=1                      a single-frame model (frames per window: 1, 2 or 4)
+  model.input_size=256                    the model's input crop in pixels
+  model.flow.local_radius=2 model.flow.channels=8
+  model.enhance.enabled=false             ablation: no window self-attention
+  model.propagation.flow_guided=false     ablation: vanilla deformable attention
+  loss.flow_weight=0                      ablation: no flow supervision
+  train.lr=1e-3 train.epochs=20 train.batch_size=8 train.precision=bf16 train.device=cpu train.threads=2
+  train.freeze=encoder,head               parts that do not train (with --init)
+  data.augment.enabled=false              no augmentation; data.augment.shift_max_m=20: crops up to 20 m away
+"""
 
 
 def build_parser() -> argparse.ArgumentParser:
-    """One flag per TrainRun field, in the field's group, with the field's help and default, as `rafd serve`'s flags
-    are made from the service's Settings: a field added to TrainRun is a flag at once."""
     parser = argparse.ArgumentParser(
-        prog=flags.prog("train"), description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
+        prog=flags.prog("train"),
+        description=__doc__,
+        epilog=EXAMPLES,
+        formatter_class=argparse.RawDescriptionHelpFormatter,
     )
-    groups: dict[str | None, Group] = {None: parser}
-    adders = {**SHARED, "config": add_config}
-    for field in dataclasses.fields(TrainRun):
-        title = field.metadata["group"]
-        if title not in groups:
-            groups[title] = parser.add_argument_group(title)
-        adders.get(field.name, field_flag)(groups[title], field)
-    flags.deprecated(parser, "--data", "the positional ROOT", "data_option", type=Path, metavar="ROOT")
-    flags.deprecated(parser, "--frames", "--window-frames", "frames", type=int, metavar="N")
-    flags.deprecated(parser, "--num-workers", "--workers", "workers", type=int, metavar="N")
-    flags.deprecated(parser, "--no-progress", "--quiet", "quiet", kind="store_true")
+    parser.add_argument(
+        "arguments",
+        nargs="*",
+        metavar="ROOT|KEY=VALUE",
+        help="the data root holding sequence folders, then the settings of the run config",
+    )
+    flags.add_split(parser, "the splits to train on")
+    flags.add_out(parser, "CKPT", "checkpoint to write (+ .optim.pt, .history.json)")
+    recipes = "; ".join(f"{r.name}: {r.description}" for r in RECIPES.values())
+    flags.add_config(parser, RECIPES, "tiny", f"the recipe the config starts from; {recipes}")
+    parser.add_argument("--cache", type=Path, help="scan cache of ROOT written by rafd prepare (default: the PNGs)")
+    flags.add_resume(parser, "the same command again after an interruption (the config must be the run's)")
+    parser.add_argument(
+        "--init",
+        type=Path,
+        metavar="CKPT",
+        help="start from this checkpoint's weights where names and shapes match (e.g. a single-frame model under a "
+        "4-frame run); optimizer, schedule and epochs start fresh",
+    )
+    parser.add_argument(
+        "--show-config", action="store_true", help="print the config's every KEY=VALUE (recipe and settings) and exit"
+    )
+    flags.add_quiet(parser)
+    validation = parser.add_argument_group("validation every train.val_every epochs (default: none)")
+    validation.add_argument("--val-data", type=Path, metavar="ROOT", help="validation data root (default: ROOT)")
+    flags.add_split(validation, "validation splits (default: test)", flag="--val-split")
+    validation.add_argument(
+        "--val-cache", type=Path, metavar="CACHE", help="scan cache of the validation root (default: --cache)"
+    )
+    mix = parser.add_argument_group(
+        "a second data root mixed into every epoch (e.g. simulated drives replayed while fine-tuning on real scans)"
+    )
+    mix.add_argument(
+        "--mix-data",
+        type=Path,
+        metavar="ROOT2",
+        help="every epoch holds each window of ROOT once plus windows of ROOT2 up to data.mix_share of the epoch "
+        "(ROOT2's windows in turn over the epochs, augmented as data.mix_augment says: the recipe's)",
+    )
+    flags.add_split(mix, "ROOT2's splits (default: --split)", flag="--mix-split")
+    mix.add_argument("--mix-cache", type=Path, metavar="CACHE", help="scan cache of ROOT2 (rafd prepare)")
     return parser
 
 
-def add_config(group: Group, field: dataclasses.Field[Any]) -> None:
-    from rafd.train.recipes import RECIPES
-
-    recipes = "; ".join(f"{r.name}: {r.description}" for r in RECIPES.values())
-    flags.add_config(group, RECIPES, str(field.default), f"{field.metadata['help']}; {recipes}")
-
-
-@lru_cache(maxsize=1)
-def choices() -> dict[str, Sequence[str]]:
-    """The values a field may take, from the code that checks them."""
-    from rafd.model.precision import PRECISIONS
-    from rafd.train.trainer import OPTIMIZERS, SCHEDULES
-
-    return {
-        "optimizer": OPTIMIZERS,
-        "lr_schedule": SCHEDULES,
-        "precision": PRECISIONS,
-        "box_encoding": BOX_ENCODINGS,
-        "propagation_norm": ("post", "pre"),
-        "freeze": FREEZABLE,
-    }
-
-
-def field_flag(group: Group, field: dataclasses.Field[Any]) -> None:
-    """--FIELD-NAME from the field's type: a flag for a bool (--x / --no-x for a bool that may be None), one or more
-    values for a tuple, else one value of the type."""
-    kind = field_types()[field.name]
-    options: dict[str, Any] = {"dest": field.name, "default": field.default, "help": help_text(field)}
-    if kind is bool:
-        options["action"] = "store_true" if field.default is False else argparse.BooleanOptionalAction
-    elif typing.get_origin(kind) is tuple:
-        options.update(nargs="+", type=typing.get_args(kind)[0])
-    else:
-        options["type"] = kind
-    if field.name in choices():
-        options["choices"] = choices()[field.name]
-    if field.metadata["metavar"]:
-        options["metavar"] = field.metadata["metavar"]
-        if "choices" in options:  # the metavar hides them in the usage line
-            options["help"] += f" (choices: {', '.join(options['choices'])})"
-    group.add_argument("--" + field.name.replace("_", "-"), **options)
-
-
-def help_text(field: dataclasses.Field[Any]) -> str:
-    """The field's help and its default: its own, else (None) the training default every recipe keeps."""
-    default = field.default if field.default is not None else recipe_default(field.name)
-    unset = default is None or isinstance(default, bool) or default == ()  # nothing to show: off, none
-    shown = "" if unset else f" (default: {default})"
-    return f"{field.metadata['help']}{shown}".replace("%", "%%")
-
-
-def recipe_default(name: str) -> Any:
-    """The value of the TrainConfig field `name` overrides when every recipe has the same one, else None."""
-    from rafd.train.recipes import RECIPES
-
-    config_name = TRAIN_CONFIG_NAMES.get(name, name)
-    values = {getattr(recipe.train, config_name, None) for recipe in RECIPES.values()}
-    return values.pop() if len(values) == 1 else None
-
-
-@lru_cache(maxsize=1)
-def field_types() -> dict[str, Any]:
-    """Field name -> its type, `X | None` read as X (None is the flag not given)."""
-    found = {}
-    for name, hint in typing.get_type_hints(TrainRun).items():
-        found[name] = flags.without_none(hint)
-    return found
-
-
 def parse(argv: Sequence[str] | None = None) -> argparse.Namespace:
-    """The flags, old spellings moved to the new ones (ROOT from --data; --resume continues --out)."""
+    """The flags; args.root the data root (None with --show-config alone) and args.settings {key: text}."""
     parser = build_parser()
-    argv, legacy_resume = flags.legacy_resume_path(sys.argv[1:] if argv is None else argv, parser.prog)
-    args = parser.parse_args(argv)
-    args.resume = legacy_resume or args.resume
-    flags.resolve_data_root(parser, args)
+    args = parser.parse_intermixed_args(argv)
+    settings = [a for a in args.arguments if SETTING.match(a)]
+    roots = [a for a in args.arguments if not SETTING.match(a)]
+    if len(roots) > 1:
+        parser.error(f"one data root, got {roots} (a setting is KEY=VALUE with a dotted key, e.g. train.lr=1e-3)")
+    args.root = Path(roots[0]) if roots else None
+    try:
+        args.settings = parse_overrides(settings)
+        args.run_config = recipe_config(args.config).overridden(args.settings)
+    except ValueError as error:
+        parser.error(str(error))
+    if not args.show_config:
+        given = {"ROOT": args.root, "--split": args.split, "--out": args.out}
+        missing = [what for what, value in given.items() if not value]
+        if missing:
+            parser.error(f"the following arguments are required: {', '.join(missing)}")
+        if args.mix_data is None and (args.mix_split or args.mix_cache):
+            parser.error("--mix-split and --mix-cache describe --mix-data ROOT2: give it too")
     return args
 
 
 def train_run(args: argparse.Namespace) -> TrainRun:
-    """The flags as a TrainRun (one flag per field); repeated or comma-separated splits as one tuple."""
-    renamed = {"num_workers": "workers", "progress": None, "resume": None}
-    values = {
-        f.name: getattr(args, renamed.get(f.name) or f.name)
-        for f in dataclasses.fields(TrainRun)
-        if f.name not in renamed or renamed[f.name]
-    }
-    values["split"] = flags.split_names(args.split)
-    values["val_split"] = flags.split_names(args.val_split) if args.val_split else None
-    values["mix_split"] = flags.split_names(args.mix_split) if args.mix_split else None
-    values["freeze"] = tuple(args.freeze)
-    values["progress"] = not args.quiet
-    # --resume continues --out; the deprecated --resume PATH continues PATH
-    values["resume"] = args.resume if isinstance(args.resume, Path) else (args.out if args.resume else None)
-    return TrainRun(**values)
+    """The parsed command line as a TrainRun: repeated or comma-separated splits as one tuple; validation on ROOT
+    (and its cache) unless --val-data names another root."""
+    splits = flags.split_names(args.split)
+    val = None
+    if args.val_data is not None or args.val_split:
+        val_root = args.val_data if args.val_data is not None else args.root
+        val_cache = args.val_cache if args.val_cache is not None else (args.cache if val_root == args.root else None)
+        val = DataSource(val_root, flags.split_names(args.val_split) or ("test",), val_cache)
+    mix = None
+    if args.mix_data is not None:
+        mix = DataSource(args.mix_data, flags.split_names(args.mix_split) or splits, args.mix_cache)
+    return TrainRun(
+        config=args.run_config,
+        data=DataSource(args.root, splits, args.cache),
+        out=args.out,
+        recipe=args.config,
+        resume=args.resume,
+        init=args.init,
+        val=val,
+        mix=mix,
+    )
 
 
 def main(argv: Sequence[str] | None = None) -> int:
     args = parse(argv)
     flags.apply_quiet(args)
+    if args.show_config:
+        print("\n".join(f"{key}={_text(value)}" for key, value in dotted_items(args.run_config)))
+        return 0
     from rafd.train.run import TrainSetupError, process_rank, train
 
     rank = process_rank()
@@ -176,12 +156,23 @@ def main(argv: Sequence[str] | None = None) -> int:
     try:
         history = train(run)
     except TrainSetupError as error:
-        print(f"rafd-train: error: {error}", file=sys.stderr)
+        print(f"{flags.prog('train')}: error: {error}", file=sys.stderr)
         return 2
     if rank == 0:
         last = {k: v for k, v in history[-1].items() if k != "curve"} if history else None
         print(json.dumps({"checkpoint": str(run.out), "last_epoch": last}, indent=2))
     return 0
+
+
+def _text(value: object) -> str:
+    """A value as a setting is written: a tuple comma-separated, None as none, a bool as true / false."""
+    if isinstance(value, tuple):
+        return ",".join(str(v) for v in value)
+    if value is None:
+        return "none"
+    if isinstance(value, bool):
+        return str(value).lower()
+    return str(value)
 
 
 if __name__ == "__main__":

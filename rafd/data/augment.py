@@ -45,6 +45,7 @@ from rafd.preprocess import model_crop, rotation_crop
 
 @dataclass(frozen=True)
 class AugmentConfig:
+    enabled: bool = True  # False: every window as recorded (the values below are then unused)
     flip_probability: float = 0.5  # chance of mirroring x -> -x
     max_rotation_deg: float = 15.0  # rotation angle uniform in +-this (0 disables rotation)
     intensity_probability: float = 0.0  # chance a window's intensities change (0: geometry only)

@@ -14,8 +14,8 @@ an error naming that command, unless estimate_poses=True asks for radar odometry
 Scans: from a prepared cache (`rafd prepare ROOT --out CACHE`, rafd.data.cache: centre crops in one memory-mapped array
 per sequence, no PNG decode per window) when `cache` is given, else decoded from the PNGs per window (slow).
 
-Augmentation (augment=True or an AugmentConfig): one rafd.data.augment.Augmentation per window, applied to the scans
-before the crop and to boxes and poses; the crop protocol is applied to the augmented boxes. It is drawn from a
+Augmentation (augment=True or an enabled AugmentConfig): one rafd.data.augment.Augmentation per window, applied to the
+scans before the crop and to boxes and poses; the crop protocol is applied to the augmented boxes. It is drawn from a
 generator seeded by (seed, epoch, window index): ask for dataset[(epoch, index)] (rafd.train.distributed's
 EpochSampler yields those keys) and the result depends on nothing else -- not on DataLoader workers, their number,
 or where a run was resumed. dataset[index] draws as epoch 0.
@@ -159,16 +159,16 @@ class RadarWindowDataset(_Base):
         warm_up: bool = False,
     ) -> None:
         """`warm_up`: also the windows of each sequence's first T-1 frames, their old end padded by repeating the
-        oldest frame with its pose, as the service answers a stream's first frames (rafd.runtime.window_from_history):
+        oldest frame with its pose, as the service answers a stream's first frames (rafd.model.RaFD.step):
         every frame of a short sequence is scored (or trained on) by a T-frame model."""
         if cfg is None:
             raise ValueError("RadarWindowDataset needs cfg (input_size, num_frames, resolution)")
         if stride < 1:
             raise ValueError(f"stride must be >= 1, got {stride}")
         self.cfg, self.stride, self.seed = cfg, int(stride), int(seed)
-        self.augment_config: AugmentConfig | None = (
-            augment if isinstance(augment, AugmentConfig) else (AugmentConfig() if augment else None)
-        )
+        if not isinstance(augment, AugmentConfig):
+            augment = AugmentConfig(enabled=bool(augment))
+        self.augment_config: AugmentConfig | None = augment if augment.enabled else None
         self.cache_root = None if cache is None else Path(cache)
         folders, seen_splits = select_sequences(root, split)
         if split is not None and not folders:
@@ -182,7 +182,7 @@ class RadarWindowDataset(_Base):
             raise MissingPosesError(
                 f"{len(missing)} of {len(sequences)} sequences have no {POSES_FILE} ({names}): prepare them once with "
                 f"`rafd-odometry {root}` (radar odometry, in parallel, resumable), or ask for odometry now "
-                "with --estimate-poses (slow)"
+                "with `rafd eval --estimate-poses` or `rafd train ... data.estimate_poses=true` (slow)"
             )
         self.sequences: list[_SequenceMeta] = [self._meta(sequence, Path(root)) for sequence in sequences]
         self.windows: list[tuple[int, int]] = []  # (sequence index, first frame position)

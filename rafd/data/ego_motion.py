@@ -1,7 +1,8 @@
 """Ego poses of whole sequences by radar odometry: estimate them, write ego_poses.csv, compare with true poses.
 
 `rafd-odometry` runs these over a data root (in parallel processes, rafd.data.parallel); training and evaluation
-read the written files and never run odometry themselves unless asked (--estimate-poses).
+read the written files and never run odometry themselves unless asked (`rafd eval --estimate-poses`, `rafd train
+... data.estimate_poses=true`).
 """
 
 from __future__ import annotations
@@ -14,11 +15,11 @@ from pathlib import Path
 import numpy as np
 
 from rafd.data.folders import FrameList, list_frames
-from rafd.data.odometry import GAP_PERIODS, OdometryStream, SweepTiming
 from rafd.data.parallel import run_per_sequence
 from rafd.data.poses import POSES_FILE, write_ego_poses
 from rafd.data.reader import read_sequence
 from rafd.geometry import compose_poses, relative_pose, wrap_angle
+from rafd.odometry.registration import GAP_PERIODS, OdometryStream, SweepTiming
 from rafd.scans.native import NativeSource, read_native_scan, to_cartesian
 
 
@@ -33,7 +34,7 @@ def scan_and_timing(listing: FrameList, index: int) -> tuple[np.ndarray, SweepTi
 
 def estimate(seq_dir: Path) -> tuple[list[int], list[str], np.ndarray, np.ndarray, list[float]]:
     """-> (frame numbers, canonical timestamp texts, world poses [N, 3], relative poses [N-1, 3], seconds per pair).
-    Motion-compensated from the scans' timestamps (rafd.data.odometry.OdometryStream)."""
+    Motion-compensated from the scans' timestamps (rafd.odometry.registration.OdometryStream)."""
     listing = list_frames(seq_dir)
     if len(listing.numbers) < 2:
         raise ValueError(f"{seq_dir} has {len(listing.numbers)} frame(s); odometry needs at least 2")

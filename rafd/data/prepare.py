@@ -11,9 +11,10 @@ from pathlib import Path
 
 import numpy as np
 
+from rafd.cpu import usable_cpus
 from rafd.data.cache import DEFAULT_CROP, CacheError, cache_folder, read_cached, write_cached
 from rafd.data.dataset import select_sequences
-from rafd.data.parallel import default_workers, run_per_sequence
+from rafd.data.parallel import run_per_sequence
 from rafd.data.reader import read_sequence
 
 
@@ -57,7 +58,7 @@ def prepare_root(
 ) -> Prepared:
     """Cache every sequence of `splits` (all when None) under `root` into `cache`, in `workers` processes.
     ValueError for a bad crop or worker count, or when no sequence is selected; FileNotFoundError for a bad root."""
-    workers = default_workers() if workers is None else workers
+    workers = usable_cpus() if workers is None else workers
     if crop < 16 or crop % 2:
         raise ValueError(f"--crop-size must be an even number of pixels >= 16, got {crop}")
     if workers < 1:

@@ -79,7 +79,9 @@ def read_sequence(path: str | Path, estimate_poses: bool = True) -> RadarSequenc
         microseconds = [text_microseconds(text) for text in listing.timestamp_texts]
         poses, pose_source = read_ground_truth_odometry(ground_truth, microseconds), "file"
     elif estimate_poses:
-        from rafd.data.odometry import estimate_sequence_poses  # opencv only; imported here to keep the reader light
+        from rafd.odometry.registration import (
+            estimate_sequence_poses,  # opencv only; imported here to keep the reader light
+        )
 
         start = time.perf_counter()
         poses = estimate_sequence_poses((frame.load() for frame in frames), resolution)

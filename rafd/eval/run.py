@@ -29,7 +29,7 @@ class EvalRun:
     score_threshold: float | None = None  # None: the checkpoint's operating threshold (rafd.protocol)
     calibrate: float | None = None  # choose and write the operating threshold at this many FP per frame
     json: Path | None = None
-    detections: Path | None = None  # every frame's detections and GT, for rafd-bench-accuracy compare
+    detections: Path | None = None  # every frame's detections and GT, for rafd bench accuracy compare
     plots: Path | None = None
     examples: int = 4
     mcap: Path | None = None

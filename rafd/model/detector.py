@@ -133,7 +133,9 @@ class RaFD(nn.Module):
             shapes["flows"] = (T - 2, 2, *features.shape[2:])  # the last T-2 pair flows, oldest first
         return {name: torch.zeros(batch, *shape, device=device) for name, shape in shapes.items()}
 
-    def step(self, frame: Tensor, pose: Tensor, cache: dict[str, Tensor]) -> tuple[dict[str, Tensor], dict[str, Tensor]]:
+    def step(
+        self, frame: Tensor, pose: Tensor, cache: dict[str, Tensor]
+    ) -> tuple[dict[str, Tensor], dict[str, Tensor]]:
         """One new frame of a stream: frame [B, 1, S, S], pose [B, 3] (this frame's pose in the previous frame's ego
         frame, geometry.relative_pose(current, previous); anything on a stream's first frame), the cache of the
         previous step (empty_cache's on the first) -> (outputs for the window ending at this frame, the new cache).
@@ -153,27 +155,31 @@ class RaFD(nn.Module):
         started = seen > 0  # [B]
 
         def continued(cached: Tensor, fresh: Tensor) -> Tensor:
-            """The cache where the stream has started, else this frame's own `fresh` padding."""
+            """The cache where the stream has started, else this frame's own `fresh` padding (broadcast over the
+            cache's frames: never materialised)."""
             return torch.where(started.reshape(-1, *[1] * (cached.dim() - 1)), cached, fresh)
 
-        past = continued(cache["features"], features[:, None].expand_as(cache["features"]))  # [B, T-1, C, Hf, Wf]
+        past = continued(cache["features"], features[:, None])  # [B, T-1, C, Hf, Wf]
         encoded = self.flow_encode(features)  # [B, Cm, Hm, Wm]
         past_encoded = continued(cache["flow_features"], encoded)  # [B, Cm, Hm, Wm]
         # the window's poses in this frame's ego frame (this frame's is the origin): the past ones moved by `pose`
         here = torch.zeros_like(pose)[:, None]  # [B, 1, 3]
         moved = relative_pose_torch(cache["poses"], pose[:, None])  # [B, T-1, 3]
-        poses = torch.cat([continued(moved, here.expand_as(moved)), here], 1)  # [B, T, 3]
-        newest = self.flow_match(past_encoded, encoded, relative_pose_torch(poses[:, -2], poses[:, -1]))  # [B, 2, Hf, Wf]
+        poses = torch.cat([continued(moved, here), here], 1)  # [B, T, 3]
+        newest = self.flow_match(
+            past_encoded, encoded, relative_pose_torch(poses[:, -2], poses[:, -1])
+        )  # [B, 2, Hf, Wf]
         flows = newest[:, None]  # [B, 1, 2, Hf, Wf]
         if T > 2:
-            flows = torch.cat([continued(cache["flows"], flows.expand_as(cache["flows"])), flows], 1)  # [B, T-1, ...]
+            flows = torch.cat([continued(cache["flows"], flows), flows], 1)  # [B, T-1, 2, Hf, Wf]
         outputs = self.detect_newest(past, features, flows, poses)
         frames_used = torch.clamp(seen + 1, max=T)  # [B]
         new_cache = {
             "features": torch.cat([past[:, 1:], features[:, None]], 1),
             "flow_features": encoded,
             "poses": poses[:, 1:],
-            "frames": frames_used,
+            # the same count as frames_used, computed apart: one value cannot be two graph outputs
+            "frames": torch.clamp(seen + 1, max=T),
         }
         if T > 2:
             new_cache["flows"] = flows[:, 1:]

@@ -54,4 +54,6 @@ def check_step_graph(
     if missing:
         problems.append(f"outputs {missing} are missing")
     if problems:
-        raise ValueError(f"{where} is not a RaFD step graph: {'; '.join(problems)} (inputs {inputs}, outputs {output_names})")
+        raise ValueError(
+            f"{where} is not a RaFD step graph: {'; '.join(problems)} (inputs {inputs}, outputs {output_names})"
+        )

@@ -14,9 +14,10 @@ from typing import Any, cast
 
 import numpy as np
 
+from rafd.cpu import usable_cpus
 from rafd.model_files import checkpoint_given_for_onnx, file_sha256, int8_model_path, islands_dir, islands_sha256
 from rafd.protocol import GATE_MIN_FRAMES, GATE_MIN_REFERENCE_DETECTIONS
-from rafd.runtime.backend import DYNAMIC, PRECISIONS, RUNTIMES, default_threads
+from rafd.runtime.backend import DYNAMIC, PRECISIONS, RUNTIMES
 from rafd.runtime.ort_backend import OrtBackend
 from rafd.runtime.streaming import StreamRunner
 
@@ -162,7 +163,7 @@ class OnnxRunner(StreamRunner):
     def __init__(
         self, model_path: str | os.PathLike[str], threads: int | None = None, concurrent_runs: int = 1
     ) -> None:
-        threads = threads or default_threads()
+        threads = threads or usable_cpus()
         shared = crowd_threads(threads, concurrent_runs)
         # With overlapping runs, a finished run's pool threads must not spin on the cores the others need.
         spinning = concurrent_runs == 1
@@ -196,7 +197,7 @@ class OpenVinoRunner(StreamRunner):
 
         if islands is not None and precision != "bf16":
             raise ValueError(f"float32 islands are a form of bf16, not of {precision!r}")
-        threads = threads or default_threads()
+        threads = threads or usable_cpus()
         shared = crowd_threads(threads, concurrent_runs)
 
         def backend(threads: int, runs: int) -> OpenVinoBackend | OpenVinoIslandsBackend:

@@ -65,7 +65,11 @@ class StepResult:
 
     def view(self, v: int) -> StepResult:
         return StepResult(
-            self.heatmap[v], self.boxes[v], self.scores[v], None if self.flow is None else self.flow[v], self.frames_used
+            self.heatmap[v],
+            self.boxes[v],
+            self.scores[v],
+            None if self.flow is None else self.flow[v],
+            self.frames_used,
         )
 
 
@@ -167,7 +171,9 @@ class StreamRunner:
     def run(self, feeds: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
         """One raw graph run -> {output name: array}; a graph of static batch 1 runs a batch view by view."""
         if self.batch != DYNAMIC and len(feeds["frame"]) != self.batch:
-            runs = [self.run({name: value[v : v + 1] for name, value in feeds.items()}) for v in range(len(feeds["frame"]))]
+            runs = [
+                self.run({name: value[v : v + 1] for name, value in feeds.items()}) for v in range(len(feeds["frame"]))
+            ]
             return {name: np.concatenate([out[name] for out in runs]) for name in runs[0]}
         with self._slots:
             with self._in_flight_lock:

@@ -8,9 +8,8 @@ Five kinds of measure, each a row of `realism_table` (real value, simulated valu
 - azimuth striping: the relative spread of the per-azimuth mean grey level after removing its slow trend (how much
   whole beams differ from their neighbours), 10-60 m;
 - scan-to-scan stability: how much the bright returns of one scan are still there in the next, once the previous
-  scan is aligned to the current one by radar odometry (rafd.data.odometry, the same estimator for both kinds): walls
-  and
-  kerbs persist, spray and multipath flicker;
+  scan is aligned to the current one by radar odometry (rafd.odometry.registration, the same estimator for both
+  kinds): walls and kerbs persist, spray and multipath flicker;
 - a real-vs-simulated patch classifier: a small CNN trained on 48 x 48 px patches of half the frames of each kind and
   tested on patches of the other half, and the other way round (2-fold); held-out accuracy 50% = indistinguishable,
   100% = trivially told apart.
@@ -125,7 +124,7 @@ def scan_to_scan_stability(sequences: Sequence[Sequence[np.ndarray]], resolution
     one pixel (odometry errors of a pixel should not count as flicker), and the grey levels of the brightest
     BRIGHT_SHARE of the 5-40 m pixels, ranked by the pair's mean, are correlated: 1 = every bright return persists,
     0 = bright returns are redrawn every scan."""
-    from rafd.data.odometry import estimate_relative_pose, pose_to_warp
+    from rafd.odometry.registration import estimate_relative_pose, pose_to_warp
 
     values, in_band = [], {}  # in_band: scan size -> the 5-40 m ring's pixels
     for scans in sequences:

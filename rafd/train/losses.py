@@ -2,28 +2,14 @@
 
 from __future__ import annotations
 
-from dataclasses import dataclass
-
 import torch
 from torch import Tensor, nn
 from torch.nn import functional as F
 
+from rafd.train.config import LossConfig
+
 # The terms RaFDLoss returns, in a fixed order (the trainer stacks them into one tensor).
 LOSS_TERMS = ("total", "det", "heatmap", "offset", "size", "rotation", "flow")
-
-
-@dataclass(frozen=True)
-class LossConfig:
-    # Weights of the detection terms (CenterNet/CenterFormer use 1 for the heatmap and the offsets).
-    heatmap_weight: float = 1.0
-    offset_weight: float = 1.0
-    size_weight: float = 1.0
-    rotation_weight: float = 1.0
-    # Weight of the flow term; 0 is the "without flow supervision" ablation (paper: L = L_det + L_flow).
-    flow_weight: float = 1.0
-    # CornerNet focal loss exponents: alpha on (1 - p) / p, beta on (1 - Gaussian) for negatives.
-    focal_alpha: float = 2.0
-    focal_beta: float = 4.0
 
 
 def focal_loss(

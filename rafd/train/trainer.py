@@ -31,13 +31,13 @@ import torch
 from torch import nn
 from torch.utils.data import DataLoader, Dataset
 
-from rafd.config import FREEZABLE, RaFDConfig
+from rafd.config import RaFDConfig
+from rafd.cpu import usable_cpus
 from rafd.data.collate import Batch, Collator
-from rafd.data.parallel import default_workers as available_cpus
 from rafd.model.precision import autocast, check_precision, grad_scaler
 from rafd.progress import bar as progress_bar
+from rafd.train.config import RunConfig, TrainConfig
 from rafd.train.distributed import (
-    DEFAULT_TIMEOUT_MINUTES,
     DistContext,
     all_reduce_mean,
     barrier,
@@ -47,54 +47,9 @@ from rafd.train.distributed import (
     shard_indices,
     wrap_model,
 )
-from rafd.train.losses import LOSS_TERMS, LossConfig, RaFDLoss
+from rafd.train.losses import LOSS_TERMS, RaFDLoss
 
 log = logging.getLogger(__name__)
-
-OPTIMIZERS = ("adamw", "adam")
-SCHEDULES = ("constant", "cosine")
-
-
-@dataclass(frozen=True)
-class TrainConfig:
-    """The optimisation and how it runs; its defaults are the training defaults, written here only (a recipe sets
-    some, a TrainRun field or `rafd train` flag left unset keeps the recipe's: rafd.train.run.train_config)."""
-
-    epochs: int = 10  # paper: 10 epochs
-    batch_size: int = 8  # GLOBAL windows per optimizer step, over all ranks and accumulation steps; paper: 8
-    micro_batch_size: int | None = None  # windows per rank per forward; None = batch_size / world_size
-    lr: float = 2e-4  # paper
-    weight_decay: float = 1e-2  # paper
-    # "adam": torch.optim.Adam with L2 weight decay, as the paper says ("the Adam", wd 1e-2).
-    # "adamw": decoupled weight decay (what CenterFormer's det3d "adam" with fixed_wd=True does).
-    optimizer: str = "adam"
-    lr_schedule: str = "constant"  # the paper states no schedule; "cosine" decays per step to 0
-    grad_clip: float = 35.0  # max gradient norm (CenterFormer's 35); 0 disables
-    seed: int = 0
-    device: str = "auto"
-    precision: str = "fp32"  # fp32 | bf16 (autocast) | fp16 (autocast + gradient scaler; CUDA)
-    num_workers: int | None = None  # DataLoader workers per rank; None = default_workers()
-    val_every: int = 1  # validate every N epochs (needs a validation set); 0 disables
-    max_steps_per_epoch: int | None = None  # cap (smoke runs); None = the whole epoch
-    log_every: int = 20  # optimizer steps between host synchronisations (loss log, NaN check)
-    dist_timeout_minutes: float = DEFAULT_TIMEOUT_MINUTES  # a collective waiting longer fails instead of hanging
-    progress: bool = True  # tqdm bar on rank 0
-    # Parts of the network that do not train (FREEZABLE): weights fixed and BatchNorm statistics kept, e.g. a
-    # single-frame model's encoder under a two-stage 4-frame run, so the second stage learns only what the past adds.
-    freeze: tuple[str, ...] = ()
-
-    def __post_init__(self) -> None:
-        if self.optimizer not in OPTIMIZERS:
-            raise ValueError(f"optimizer must be one of {OPTIMIZERS}, got {self.optimizer!r}")
-        if self.lr_schedule not in SCHEDULES:
-            raise ValueError(f"lr_schedule must be one of {SCHEDULES}, got {self.lr_schedule!r}")
-        if self.epochs < 1 or self.batch_size < 1 or (self.micro_batch_size is not None and self.micro_batch_size < 1):
-            raise ValueError("epochs, batch_size and micro_batch_size must be >= 1")
-        if self.log_every < 1:
-            raise ValueError("log_every must be >= 1")
-        unknown = sorted(set(self.freeze) - set(FREEZABLE))
-        if unknown:
-            raise ValueError(f"freeze: {unknown} are not parts of the network; choose from {FREEZABLE}")
 
 
 @dataclass(frozen=True)
@@ -127,11 +82,11 @@ def plan_batches(batch_size: int, world_size: int, micro_batch_size: int | None 
 
 def default_workers(device: torch.device, local_world_size: int = 1) -> int:
     """DataLoader workers per rank: on CUDA up to 4 (one prepared-cache worker feeds ~100+ windows/s, see
-    `rafd-train-bench loader`), leaving a CPU per rank for the training process; on the CPU none (the model
+    `rafd bench training loader`), leaving a CPU per rank for the training process; on the CPU none (the model
     needs the cores far more than the prepared windows do)."""
     if device.type != "cuda":
         return 0
-    return max(1, min(4, available_cpus() // max(1, local_world_size) - 1))
+    return max(1, min(4, usable_cpus() // max(1, local_world_size) - 1))
 
 
 def optimizer_state_path(checkpoint: Path) -> Path:
@@ -183,12 +138,10 @@ class Trainer:
 
     def __init__(
         self,
-        model_cfg: RaFDConfig,
-        train_cfg: TrainConfig,
+        config: RunConfig,
         train_set: Dataset,
         out: Path | None,
         ctx: DistContext,
-        loss_cfg: LossConfig | None = None,
         val_set: Dataset | None = None,
         run_meta: dict[str, Any] | None = None,
     ) -> None:
@@ -196,16 +149,18 @@ class Trainer:
 
         if len(train_set) == 0:  # type: ignore[arg-type]
             raise ValueError("the training dataset holds no windows")
+        model_cfg, train_cfg = config.model, config.train
         check_precision(train_cfg.precision, ctx.device)
         self.plan = plan_batches(train_cfg.batch_size, ctx.world_size, train_cfg.micro_batch_size)
-        self.model_cfg = model_cfg
-        self.cfg = train_cfg
-        self.loss_cfg = loss_cfg or LossConfig()
+        self.config = config  # recorded whole in every checkpoint (meta "run_config")
+        self.model_cfg: RaFDConfig = model_cfg
+        self.cfg: TrainConfig = train_cfg
+        self.loss_cfg = config.loss
         self.ctx = ctx
         self.train_set = train_set
         self.val_set = val_set
         self.out = Path(out) if out is not None else None
-        self.run_meta = dict(run_meta or {})  # recorded in the checkpoint (recipe, splits, augmentation, ...)
+        self.run_meta = dict(run_meta or {})  # recorded in the checkpoint beside the config (recipe, data, splits, ...)
         self.num_workers = (
             default_workers(ctx.device, ctx.local_world_size)
             if train_cfg.num_workers is None
@@ -403,8 +358,7 @@ class Trainer:
             **self.run_meta,
             "epoch": self.epoch,
             "step": self.step,
-            "train_config": dataclasses.asdict(self.cfg),
-            "loss_config": dataclasses.asdict(self.loss_cfg),
+            "run_config": self.config.to_dict(),
             "world_size": self.ctx.world_size,
             "batch_plan": dataclasses.asdict(self.plan),
             "metrics": {

@@ -10,8 +10,8 @@ import cv2
 import numpy as np
 
 from rafd.data.candidates import Candidate
-from rafd.data.odometry import pose_to_warp
 from rafd.geometry import RADIATE_RESOLUTION, box_polygons_pixels, metres_to_pixels, relative_pose
+from rafd.odometry.registration import pose_to_warp
 
 GRID_M = 5.0  # a grid line every 5 m
 CANDIDATE_COLOUR = (0, 200, 255)  # BGR: amber

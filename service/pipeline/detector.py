@@ -268,7 +268,9 @@ class DetectService:
             clock.lap("wait")
             located = await self._locate(fields, decoded, chain)
             clock.lap("odometry")
-            result, state = await self.executors.model.run(self.runner.step, chain.state, frame[None], located.pose[None])
+            result, state = await self.executors.model.run(
+                self.runner.step, chain.state, frame[None], located.pose[None]
+            )
             clock.lap("model")
             self.store.commit(
                 ticket, state, fields.timestamp, located.memory, located.pose, located.source, digest, chain.broken

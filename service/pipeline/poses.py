@@ -7,7 +7,7 @@ odometry world frame anchored at its first frame (pose 0, 0, 0), so a later requ
 unrelated frame: that is refused with 409 (delete the stream to switch).
 
 Each stream keeps an OdometryMemory of its last accepted frame. By default it holds the stream's
-rafd.data.odometry.OdometryStream: each scan is prepared (levels, de-skew over the sweep) once and the previous
+rafd.odometry.registration.OdometryStream: each scan is prepared (levels, de-skew over the sweep) once and the previous
 pair's motion narrows the next search, about half the CPU of registering every pair from scratch, and the sweep
 is motion-compensated (the posted timestamps give the period; a native scan carries its own azimuth times). A
 custom pairwise Odometry (tests, or a caller's own) registers (previous view, current view) instead.
@@ -26,7 +26,7 @@ from rafd.geometry import centre_crop, compose_poses
 from service.http.errors import ApiError
 
 if TYPE_CHECKING:
-    from rafd.data.odometry import OdometryStream, SweepTiming
+    from rafd.odometry.registration import OdometryStream, SweepTiming
 
 # (previous [S, S], current [S, S], resolution m/px) -> [3] current ego pose in the previous ego frame
 Odometry = Callable[[np.ndarray, np.ndarray, float], np.ndarray]
@@ -129,14 +129,14 @@ def odometry_pose(
 
 
 def _tracker_module() -> ModuleType:
-    """rafd.data.odometry, imported on first use (never at service import)."""
+    """rafd.odometry.registration, imported on first use (never at service import)."""
     try:
-        from rafd.data import odometry
+        from rafd.odometry import registration
     except ImportError as exc:
         raise ApiError(
             "odometry_unavailable", f"this build cannot estimate ego motion ({exc}); send a pose with every frame"
         ) from exc
-    return odometry
+    return registration
 
 
 def _timing(sweep: Sweep | None) -> SweepTiming | None:

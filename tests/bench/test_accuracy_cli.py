@@ -1,4 +1,4 @@
-"""rafd-bench-accuracy: a scaled-down benchmark simulates, trains two variants and writes the tables."""
+"""rafd bench accuracy: a scaled-down benchmark simulates, trains two variants and writes the tables."""
 
 from __future__ import annotations
 

@@ -1,4 +1,4 @@
-"""rafd-bench-speed on the shipped model, model paths only (the service itself is exercised by the service tests):
+"""rafd bench speed on the shipped model, model paths only (the service itself is exercised by the service tests):
 every runtime and precision side by side, the matmul peaks, the concurrency comparison and the accuracy gate."""
 
 from __future__ import annotations
@@ -33,12 +33,12 @@ def test_bench_reports_every_runtime_side_by_side_and_writes_json(
                 "2",
                 "--gate-sequences",
                 "1",
-                "--gate-frames",
+                "--gate-sequence-frames",
                 "6",
                 "--islands",
                 "/head/",
                 "--islands",
-                "/flow/*,/head/heatmap/",
+                "/flow_match/*,/head/heatmap/",
                 "--json",
                 str(out),
             ]
@@ -47,13 +47,11 @@ def test_bench_reports_every_runtime_side_by_side_and_writes_json(
     )
     table = capsys.readouterr().out
     choices = [f"{r}/{p}" for r, p in supported_choices()]
-    for path in ["pytorch eager, full window", "onnxruntime fp32, full window"] + [
-        f"streaming step, {c}" for c in choices
-    ]:
+    for path in ["pytorch eager, full window"] + [f"streaming step, {c}" for c in choices]:
         assert f"| default | {path} |" in table
     # bf16 and int8 with float32 islands (export/islands.py, export/quantize.py), a row per set and precision, where
     # the CPU runs them
-    sets = ["/head/", "/flow/* /head/heatmap/"]
+    sets = ["/head/", "/flow_match/* /head/heatmap/"]
     islands = {
         f"openvino/{p}, float32 islands {s}" for s in sets for p in ("bf16", "int8") if f"openvino/{p}" in choices
     }

@@ -40,6 +40,7 @@ if shutil.which("docker") is None or subprocess.run(["docker", "info"], capture_
     )
 
 from bench.server import free_port, http_get  # noqa: E402
+from rafd.cpu import usable_cpus  # noqa: E402
 
 pytestmark = pytest.mark.docker
 
@@ -166,7 +167,7 @@ def test_image_answers_detect_as_the_in_process_service(container: Container, ra
 @pytest.mark.parametrize("cpus", [1, 2])
 def test_image_threads_follow_cpus(image: str, cpus: int):
     """`docker run --cpus N` (a CFS quota, not a cpuset): the model's threads and concurrent runs become N."""
-    host_cpus = len(os.sched_getaffinity(0))
+    host_cpus = usable_cpus()
     if cpus > host_cpus:
         pytest.skip(f"this machine has {host_cpus} CPUs")
     limited = Container(image, "--cpus", str(cpus), env=PINNED)
@@ -177,7 +178,7 @@ def test_image_threads_follow_cpus(image: str, cpus: int):
         runtime = json.loads(body)["runtime"]
         assert runtime["threads"] == cpus and runtime["concurrent_runs"] == cpus, runtime
         # what the service read: the cgroup's CFS quota (v1 or v2), not the host's CPU count
-        quota = limited.exec("python", "-c", "from service.settings import cgroup_cpu_limit; print(cgroup_cpu_limit())")
+        quota = limited.exec("python", "-c", "from rafd.cpu import cgroup_cpu_limit; print(cgroup_cpu_limit())")
         assert quota == str(cpus)
     finally:
         limited.remove()

@@ -49,9 +49,9 @@ def test_cpu_network_matches_onnxruntime(tmp_path) -> None:
 
 
 def test_cpu_recipe_is_the_reshaped_default() -> None:
-    from rafd.train.recipes import RECIPES
+    from rafd.train.recipes import recipe_model
 
-    cpu, default = RECIPES["cpu"].model, RECIPES["default"].model
+    cpu, default = recipe_model("cpu"), recipe_model("default")
     assert (cpu.enhance.kind, cpu.flow.local_radius, cpu.propagation.mode) == ("conv", 3, "joint")
     assert (cpu.backbone, cpu.neck, cpu.head, cpu.input) == (
         default.backbone,
@@ -59,4 +59,4 @@ def test_cpu_recipe_is_the_reshaped_default() -> None:
         default.head,
         default.input,
     )
-    assert RECIPES["paper"].model.propagation.mode == "chain" and RECIPES["paper"].model.flow.local_radius == 0
+    assert recipe_model("paper").propagation.mode == "chain" and recipe_model("paper").flow.local_radius == 0

@@ -8,15 +8,10 @@ import json
 import numpy as np
 import pytest
 
-from export.gate import (
-    DEFAULT_SEED,
-    GateOptions,
-    GateThresholds,
-    gate_metadata,
-    gate_model,
-    run_gate,
-    simulated_sequences,
-)
+from export.gate import gate_metadata
+from export.gate_drives import simulated_sequences
+from export.gate_options import DEFAULT_SEED, GateThresholds
+from export.gate_run import gate_model, run_gate
 from rafd.runtime import OnnxRunner, StepResult, supported_choices
 from rafd.runtime.runners import gate_passed
 
@@ -210,11 +205,11 @@ def test_export_records_the_gate_verdict(tmp_path, capsys, monkeypatch):
 
 def test_kept_drives_are_simulated_once_and_judged_alike(shipped_onnx, monkeypatch):
     """A search gates many candidates on the same short drives: kept in `drives`, they are simulated once."""
-    import export.gate
+    import export.gate_run
 
     simulated = []
     monkeypatch.setattr(
-        export.gate, "simulated_sequences", lambda *args: simulated.append(args) or simulated_sequences(*args)
+        export.gate_run, "simulated_sequences", lambda *args: simulated.append(args) or simulated_sequences(*args)
     )
     drives: dict = {}
     same = ("onnxruntime", "fp32")

@@ -9,7 +9,9 @@ import shutil
 
 import pytest
 
-from export.gate import GateReport, GateThresholds, SourceFigures, record_gates
+from export.gate import record_gates
+from export.gate_options import GateThresholds
+from export.gate_report import GateReport, SourceFigures
 from rafd.runtime import OnnxRunner, supported_choices
 from rafd.runtime.runners import gate_passed, gate_record
 

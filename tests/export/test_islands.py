@@ -25,7 +25,7 @@ from rafd.model_files import ISLANDS_MANIFEST, islands_dir, islands_sha256
 onnx = pytest.importorskip("onnx")
 ort = pytest.importorskip("onnxruntime")
 
-SCOPES = ["/encoder/", "/flow/", "/propagation/", "/head/"]
+SCOPES = ["/encoder/", "/flow_encode/", "/flow_match/", "/propagation/", "/head/"]
 
 
 @pytest.fixture(scope="module")
@@ -50,7 +50,7 @@ def _feeds(session):
     return {i.name: rng.random(shape(i), dtype=np.float32) for i in session.get_inputs()}
 
 
-UNITS = ["/flow/*", "/head/heatmap/"]  # a scope's own nodes and a module under a scope
+UNITS = ["/flow_match/*", "/head/heatmap/"]  # a scope's own nodes and a module under a scope
 
 
 def test_an_island_is_a_subtree_or_a_scopes_own_nodes():
@@ -69,9 +69,9 @@ def test_an_island_is_a_subtree_or_a_scopes_own_nodes():
 def test_the_search_units_part_the_graph_by_matrix_work(proto):
     assert module_scopes(proto) == SCOPES
     matrix_free, matrix = search_units(proto)
-    assert matrix_free == ["/encoder/normalise/", "/flow/*", "/*", "/propagation/*", "/head/*"]
+    assert matrix_free == ["/encoder/normalise/", "/*", "/flow_encode/*", "/propagation/*", "/head/*"]
     assert matrix[:3] == ["/encoder/backbone/", "/encoder/neck/", "/encoder/enhancement/"]
-    assert matrix[3:5] == ["/flow/encode/", "/flow/match/"]
+    assert matrix[3:5] == ["/flow_encode/encoder/", "/flow_match/*"]
     constant = constant_values(proto)
     for node in proto.graph.node:
         if set(node.output) <= constant:
@@ -85,7 +85,7 @@ def test_the_search_units_part_the_graph_by_matrix_work(proto):
     "islands, precisions",
     [
         (("/propagation/", "/head/"), ["bf16", "fp32"]),
-        (("/flow/",), ["bf16", "fp32", "bf16"]),
+        (("/flow_match/",), ["bf16", "fp32", "bf16"]),
         (("/encoder/", "/head/"), ["fp32", "bf16", "fp32"]),
         (tuple(UNITS), ["bf16", "fp32", "bf16", "fp32", "bf16"]),
     ],
@@ -105,7 +105,9 @@ def test_every_node_lies_in_one_segment_of_its_precision(proto, islands, precisi
     assert {o.name for o in proto.graph.output} <= produced
 
 
-@pytest.mark.parametrize("islands", [("/propagation/", "/head/"), ("/flow/",), ("/encoder/", "/head/"), tuple(UNITS)])
+@pytest.mark.parametrize(
+    "islands", [("/propagation/", "/head/"), ("/flow_match/",), ("/encoder/", "/head/"), tuple(UNITS)]
+)
 def test_the_segments_chained_give_the_whole_graphs_outputs(shipped, proto, islands):
     whole = ort.InferenceSession(str(shipped), providers=["CPUExecutionProvider"])
     feeds = _feeds(whole)
@@ -148,8 +150,8 @@ def test_the_folder_holds_the_segments_and_its_digest_follows_them(shipped):
     with open(folder / "segment_1.onnx", "ab") as file:  # a segment changed after the gate
         file.write(b"\0")
     assert islands_sha256(folder) != digest
-    again = write_islands(shipped, ("/flow/",))  # a new set replaces the folder whole
-    assert json.loads((again / ISLANDS_MANIFEST).read_text())["islands"] == ["/flow/"]
+    again = write_islands(shipped, ("/flow_match/",))  # a new set replaces the folder whole
+    assert json.loads((again / ISLANDS_MANIFEST).read_text())["islands"] == ["/flow_match/"]
     assert sorted(p.name for p in again.iterdir()) == sorted(
         [ISLANDS_MANIFEST] + [f"segment_{k}.onnx" for k in range(3)]
     )
@@ -167,11 +169,13 @@ def test_a_static_batch_graphs_segments_have_every_cut_shape_and_compile_in_open
     from tests.utils.export_testing import make_checkpoint, small_config
 
     model = tmp_path / "static.onnx"
-    export_onnx(make_checkpoint(tmp_path / "m.pt", small_config(4)), model, verify=False, log=lambda _: None)
+    export_onnx(
+        make_checkpoint(tmp_path / "m.pt", small_config(4)), model, batch="static", verify=False, log=lambda _: None
+    )
     whole = ort.InferenceSession(str(model), providers=["CPUExecutionProvider"])
     feeds = _feeds(whole)
     expected = dict(zip([o.name for o in whole.get_outputs()], whole.run(None, feeds)))
-    for scope in ("/flow/",):  # bf16, fp32, bf16: cuts both ways (every single scope: 17 s, not 5)
+    for scope in ("/flow_match/",):  # bf16, fp32, bf16: cuts both ways (every single scope: 17 s, not 5)
         folder = write_islands(model, (scope,))
         manifest = json.loads((folder / ISLANDS_MANIFEST).read_text())
         values = dict(feeds)

@@ -11,7 +11,9 @@ import shutil
 import pytest
 
 from export import gate as gate_module
-from export.gate import GateOptions, GateReport, GateThresholds, SourceFigures, gate_metadata
+from export.gate import gate_metadata
+from export.gate_options import GateOptions, GateThresholds
+from export.gate_report import GateReport, SourceFigures
 from export.islands import search_units
 from export.islands_gate import SEARCH_SEED, excess, perturbation, rank, search_islands
 from rafd.model_files import ISLANDS_MANIFEST, file_sha256, int8_model_path, islands_dir, islands_sha256
@@ -42,8 +44,8 @@ def _report(changed: int, frames: int = 699, detections: int = 1909, score: floa
     return GateReport("onnxruntime/fp32", "openvino/bf16", GateThresholds(), {"simulated": figures})
 
 
-MATRIX_FREE = ("/encoder/normalise/", "/flow/*", "/*", "/propagation/*", "/head/*")  # the shipped model's units
-HEATMAP, MATCH = "/head/heatmap/", "/flow/match/"
+MATRIX_FREE = ("/encoder/normalise/", "/*", "/flow_encode/*", "/propagation/*", "/head/*")  # the shipped model's units
+HEATMAP, MATCH = "/head/heatmap/", "/flow_match/*"
 
 
 class FakeGate:
@@ -162,13 +164,12 @@ def test_when_no_set_short_of_all_the_matrix_work_passes_bf16_stays_failed(model
 def test_the_search_runs_only_where_the_plain_precision_failed_on_enough_evidence(
     model, monkeypatch, fake_quantize, precision, plain, searched
 ):
-    import export.islands_gate
     import rafd.runtime
 
     monkeypatch.setattr(rafd.runtime, "supported_choices", lambda: [("onnxruntime", "fp32"), ("openvino", precision)])
     monkeypatch.setattr(gate_module, "gate_model", lambda *args, **kwargs: plain)
     searches = []
-    monkeypatch.setattr(export.islands_gate, "search_islands", lambda *args, **kwargs: searches.append(kwargs) or plain)
+    monkeypatch.setattr(gate_module, "search_islands", lambda *args, **kwargs: searches.append(kwargs) or plain)
     gate_module.run_export_gates(model, OPTIONS, log=lambda _: None)
     assert bool(searches) is searched
     if searched:  # int8's search quantizes with the calibration the plain model was quantized with
@@ -180,7 +181,7 @@ def test_the_search_runs_only_where_the_plain_precision_failed_on_enough_evidenc
     assert not searches
 
 
-INT8_STEM, INT8_HEATMAP, MATCH_INT8 = "/encoder/backbone/stem/", "/head/heatmap/net/", "/flow/match/*"
+INT8_STEM, INT8_HEATMAP, MATCH_INT8 = "/encoder/backbone/stem/", "/head/heatmap/net/", "/flow_match/*"
 
 
 @pytest.fixture
@@ -312,7 +313,7 @@ def test_export_gate_puts_the_judged_files_beside_the_output(tmp_path, monkeypat
 
 def test_a_real_islands_gate_judges_the_segments(model):
     """The gate of one islands set on this CPU's OpenVINO bf16 (a small sample: its verdict is not what is tested)."""
-    from export.gate import gate_model
+    from export.gate_run import gate_model
     from export.islands import write_islands
     from rafd.runtime.openvino_backend import openvino_supports_bf16
 

@@ -40,7 +40,7 @@ def _assert_close(report: Report, cases: int) -> None:
 
 
 def test_graph_inputs_and_outputs_follow_the_contract(exported, runner):
-    cfg, T = exported.cfg, exported.cfg.num_frames
+    cfg = exported.cfg
     S, F, K = cfg.input_size, cfg.feature_size, cfg.head.num_queries
     inputs = {i.name: i.shape for i in runner.backend.session.get_inputs()}
     assert list(inputs)[:2] == ["frame", "pose"]

@@ -16,7 +16,7 @@ from tests.utils.export_testing import make_checkpoint, small_config
 onnx = pytest.importorskip("onnx")
 
 
-ISLANDS = ("/head/", "/flow/match/")  # kept float32 in the quantized copy the tests read
+ISLANDS = ("/head/", "/flow_match/")  # kept float32 in the quantized copy the tests read
 
 
 @pytest.fixture(scope="module")
@@ -76,7 +76,7 @@ def test_every_matrix_operation_outside_the_islands_is_quantized_and_nothing_els
     outside = {name for name in weighted if not any(in_scope(name, island) for island in ISLANDS)}
     kernels = set(_int8_kernels(path))
     assert kernels == outside and weighted - outside, sorted(kernels ^ outside)
-    assert any(name.startswith("/encoder/") for name in kernels) and any(name.startswith("/flow/") for name in kernels)
+    assert any(name.startswith("/encoder/") for name in kernels) and any(name.startswith("/flow_") for name in kernels)
 
 
 def test_one_calibration_quantizes_any_set_as_a_fresh_one_would_and_only_its_own_model(quantized, tmp_path):
@@ -125,8 +125,8 @@ def test_without_the_quantized_file_int8_says_how_to_make_it(tmp_path):
 @pytest.mark.parametrize("which", ["small", "shipped"])
 def test_the_graph_prepared_for_quantization_has_no_no_op_nodes_and_computes_the_same(quantized, which):
     """The exporter's Identity nodes (a shared weight: the small model) and Casts to a value's own type (the shipped
-    model's graph output flow_features is one, which NNCF 3.4's own pass fails on) go; every node keeps its name and
-    the graph its outputs and results."""
+    model's output new_cache.flow_features is one, which NNCF 3.4's own pass fails on) go; every node keeps its
+    name and the graph its outputs and results."""
     import onnxruntime as ort
 
     from export.quantize import prepared_for_quantization
@@ -140,7 +140,8 @@ def test_the_graph_prepared_for_quantization_has_no_no_op_nodes_and_computes_the
         n.op_type == "Identity" for n in prepared.graph.node
     )
     if which == "shipped":
-        assert producer[0]["flow_features"] == "Cast" and producer[1]["flow_features"] == "Conv"
+        cached = "new_cache.flow_features"
+        assert producer[0][cached] == "Cast" and producer[1][cached] == "Conv"
     assert {n.name for n in prepared.graph.node} <= {n.name for n in proto.graph.node}
     assert [o.name for o in prepared.graph.output] == [o.name for o in proto.graph.output]
     sessions = [

@@ -1,5 +1,5 @@
-"""rafd.detect_client: its stream-id rule is the service's, and every request form it builds is one the service takes
-and answers with the fields it was given."""
+"""rafd.detect_client: every request form it builds is one the service takes and answers with the fields it was
+given (the stream-id rule both follow: tests/rafd/test_protocol.py)."""
 
 from __future__ import annotations
 
@@ -7,21 +7,17 @@ from collections.abc import Iterator
 
 import pytest
 from fastapi.testclient import TestClient
-from pydantic import TypeAdapter, ValidationError
 
-from rafd import detect_client
 from rafd.detect_client import (
-    STREAM_ID_MAX_LENGTH,
     DetectRequest,
     FrameFields,
     base64_png,
     detect_request,
-    is_stream_id,
     json_body,
     multipart_body,
     png_bytes,
-    stream_id_from,
 )
+from rafd.protocol import stream_id_from
 from service import schemas
 from service.app import create_app
 from service.settings import Settings
@@ -30,71 +26,6 @@ from tests.utils.service_testing import FakeOdometry, blob_frame, wait_ready
 
 KEY = "detect-client-key-0123456789"
 PNG = png_bytes(blob_frame(128, [(60, 60, 200)]))
-SERVER_STREAM_ID = TypeAdapter(schemas.StreamId)
-
-# (stream id, whether the service takes it): the edges of each part of the rule.
-STREAM_IDS = [
-    ("a", True),
-    ("car-7", True),
-    ("A.b_c~d:e@f+g-h0", True),
-    ("x" * STREAM_ID_MAX_LENGTH, True),
-    ("x" * (STREAM_ID_MAX_LENGTH + 1), False),
-    ("", False),
-    (".", False),
-    ("..", False),
-    ("...", True),
-    (".a", True),
-    ("..a", True),
-    ("a.", True),
-    ("-", True),
-    ("." + "x" * (STREAM_ID_MAX_LENGTH - 1), True),
-    ("." + "x" * STREAM_ID_MAX_LENGTH, False),
-    (".." + "x" * (STREAM_ID_MAX_LENGTH - 2), True),
-    (".." + "x" * (STREAM_ID_MAX_LENGTH - 1), False),
-    ("../detect", False),
-    ("a b", False),
-    ("a\tb", False),
-    ("a\n", False),
-    ("a%2F", False),
-    ("a?b", False),
-    ("a#b", False),
-    ("ä", False),
-    ("\u0661", False),  # an Arabic-Indic digit: "0-9" is ASCII on both sides
-]
-
-
-def server_takes(stream_id: str) -> bool:
-    try:
-        SERVER_STREAM_ID.validate_python(stream_id)
-    except ValidationError:
-        return False
-    return True
-
-
-@pytest.mark.parametrize(("stream_id", "valid"), STREAM_IDS)
-def test_the_stream_id_rule_refuses_what_the_server_refuses(stream_id: str, valid: bool):
-    assert is_stream_id(stream_id) is valid
-    assert server_takes(stream_id) is valid
-
-
-def test_the_service_schema_is_built_from_the_rule_defined_here():
-    assert schemas.STREAM_ID_PATTERN is detect_client.STREAM_ID_PATTERN
-    published = SERVER_STREAM_ID.json_schema()
-    assert published["maxLength"] == STREAM_ID_MAX_LENGTH and published["pattern"] == detect_client.STREAM_ID_PATTERN
-    assert published["description"] == detect_client.STREAM_ID_RULE
-    # the pattern the API has published since the rule was written (OpenAPI clients compiled it)
-    assert detect_client.STREAM_ID_PATTERN == (
-        r"^(?:[A-Za-z0-9_~:@+\-][A-Za-z0-9._~:@+\-]{0,127}"
-        r"|\.[A-Za-z0-9_~:@+\-][A-Za-z0-9._~:@+\-]{0,126}"
-        r"|\.\.[A-Za-z0-9._~:@+\-]{1,126})$"
-    )
-
-
-@pytest.mark.parametrize("name", ["city 7/0", "ä-ö", "", ".", "..", "x" * 200])
-def test_a_name_becomes_a_stream_id_with_a_suffix(name: str):
-    safe = stream_id_from(name)
-    assert len(safe) == len(name) and all(is_stream_id("a" + c) for c in safe)
-    assert is_stream_id(safe[: STREAM_ID_MAX_LENGTH - 7] + "-3fa9c2")  # as `rafd client` names a run's stream
 
 
 def test_json_bodies_are_what_the_service_schema_takes():

@@ -21,9 +21,9 @@ def test_runtime_and_precision_from_the_environment(monkeypatch):
 
 
 def test_concurrent_runs_default_to_one_per_cpu(monkeypatch):
-    from service.settings import available_cpus
+    from rafd.cpu import usable_cpus
 
-    assert Settings().threads == Settings().concurrent_runs == available_cpus()
+    assert Settings().threads == Settings().concurrent_runs == usable_cpus()
     monkeypatch.setenv("RAFD_CONCURRENT_RUNS", "1")
     assert Settings().concurrent_runs == 1
 

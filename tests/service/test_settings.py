@@ -1,14 +1,11 @@
-"""Settings: RAFD_* environment, CPU count from the affinity mask and the cgroup quota."""
+"""Settings: RAFD_* environment; threads from the one CPU count (rafd.cpu)."""
 
 from __future__ import annotations
-
-import os
 
 import pytest
 from pydantic import ValidationError
 
-from service import settings as settings_module
-from service.settings import Settings, available_cpus, cgroup_cpu_limit, get_settings
+from service.settings import Settings, get_settings
 
 
 def test_environment_variables_with_the_rafd_prefix(monkeypatch, tmp_path):
@@ -40,32 +37,9 @@ def test_get_settings_is_cached():
         get_settings.cache_clear()
 
 
-def test_cgroup_v2_quota(tmp_path):
-    cpu_max = tmp_path / "cpu.max"
-    cpu_max.write_text("150000 100000\n")
-    assert cgroup_cpu_limit(cpu_max, tmp_path / "none", tmp_path / "none") == 2
-    cpu_max.write_text("50000 100000\n")
-    assert cgroup_cpu_limit(cpu_max, tmp_path / "none", tmp_path / "none") == 1
-    cpu_max.write_text("max 100000\n")
-    assert cgroup_cpu_limit(cpu_max, tmp_path / "none", tmp_path / "none") is None
-    cpu_max.write_text("garbage")
-    assert cgroup_cpu_limit(cpu_max, tmp_path / "none", tmp_path / "none") is None
+def test_threads_and_concurrent_runs_default_to_the_usable_cpus(monkeypatch):
+    """The one CPU count (rafd.cpu.usable_cpus: the affinity mask capped by the cgroup quota)."""
+    import rafd.cpu
 
-
-def test_cgroup_v1_quota(tmp_path):
-    quota, period = tmp_path / "quota", tmp_path / "period"
-    quota.write_text("300000\n")
-    period.write_text("100000\n")
-    assert cgroup_cpu_limit(tmp_path / "none", quota, period) == 3
-    quota.write_text("-1\n")
-    assert cgroup_cpu_limit(tmp_path / "none", quota, period) is None
-
-
-def test_threads_default_is_the_affinity_mask_capped_by_the_quota(monkeypatch):
-    affinity = len(os.sched_getaffinity(0))
-    monkeypatch.setattr(settings_module, "cgroup_cpu_limit", lambda: None)
-    assert available_cpus() == affinity == Settings().threads
-    monkeypatch.setattr(settings_module, "cgroup_cpu_limit", lambda: 1)
-    assert available_cpus() == 1 == Settings().threads
-    monkeypatch.setattr(settings_module, "cgroup_cpu_limit", lambda: affinity + 8)
-    assert available_cpus() == affinity
+    monkeypatch.setattr(rafd.cpu, "cgroup_cpu_limit", lambda: 1)
+    assert Settings().threads == Settings().concurrent_runs == 1

@@ -50,7 +50,7 @@ def test_writes_metrics_json_and_plots(trained_checkpoint: Path, sim_root: Path,
     assert sum(s["frames"] for s in report["per_sequence"].values()) == overall["frames"] > 0
     # the simulated drives' meta.json name their weather: the figures are pooled per condition too
     assert report["per_condition"] and sum(c["frames"] for c in report["per_condition"].values()) == overall["frames"]
-    # the saved detections give back the same figures (what rafd-bench-accuracy compare starts from)
+    # the saved detections give back the same figures (what rafd bench accuracy compare starts from)
     from rafd.eval.compare import _Scored, load_detections
 
     frames = load_detections(detections)

@@ -1,7 +1,7 @@
 """One toolkit: `rafd COMMAND` reaches every tool (rafd.cli.main.COMMANDS, and other packages' "rafd.commands" entry
 points), the command table and the version are written once, the shared flags
-mean one thing everywhere (rafd.cli.flags), every flag has help, usage lines are argparse's own, old spellings warn
-and still work for one release, and docs/cli.md lists every command and the shared flags as the parsers have them."""
+mean one thing everywhere (rafd.cli.flags), every flag has help, usage lines are argparse's own, no old
+spelling is kept, and docs/cli.md lists every command and the shared flags as the parsers have them."""
 
 from __future__ import annotations
 
@@ -20,6 +20,9 @@ from rafd.cli.main import COMMANDS
 
 REPO = Path(__file__).resolve().parents[3]
 TYPED = {c.name: c.name.replace("-", " ", 1) if c.name.startswith("bench-") else c.name for c in COMMANDS}
+GROUPED = {c.name for c in COMMANDS if c.name.startswith("bench-")}  # `rafd bench NAME` only: no rafd-* alias
+# rafd, an alias per command outside a group (issue 57: what is installed is what users run)
+MAX_SCRIPTS = 16
 
 
 def parser_of(command: str) -> argparse.ArgumentParser:
@@ -46,16 +49,8 @@ def all_parsers(command: str) -> list[argparse.ArgumentParser]:
     return out
 
 
-def options_of(command: str, include_deprecated: bool = False) -> set[str]:
-    found = set()
-    for parser in all_parsers(command):
-        deprecated = {
-            id(a) for g in parser._action_groups if g.title == flags.DEPRECATED_TITLE for a in g._group_actions
-        }
-        for action in parser._actions:
-            if include_deprecated or id(action) not in deprecated:
-                found.update(action.option_strings)
-    return found
+def options_of(command: str) -> set[str]:
+    return {option for parser in all_parsers(command) for action in parser._actions for option in action.option_strings}
 
 
 def pyproject() -> dict:
@@ -66,17 +61,16 @@ def pyproject() -> dict:
 # ----------------------------------------------------------------------------- the one command
 def test_the_command_table_is_written_once_and_every_alias_runs_the_same_function():
     """rafd.cli.main.COMMANDS is the one table; pyproject.toml holds only what packaging needs: the `rafd` script and
-    each command's `rafd-NAME` alias, running what `rafd NAME` runs, and the old names kept for one release."""
+    each command's `rafd-NAME` alias (none for `rafd bench NAME`), running what `rafd NAME` runs, and nothing else."""
     project = pyproject()["project"]
     assert "rafd.commands" not in project.get("entry-points", {})  # not a second table
     scripts = dict(project["scripts"])
     assert scripts.pop("rafd") == "rafd.cli.main:main"
     for command in COMMANDS:
-        assert scripts.pop(f"rafd-{command.name}", None) == command.target, command.name
-    modules = {c.target.split(":")[0] for c in COMMANDS}
-    for name, target in scripts.items():  # the rest: old names, which warn and run a command of the table
-        module, _, function = target.partition(":")
-        assert function == "legacy_main" and module in modules, name
+        alias = scripts.pop(f"rafd-{command.name}", None)
+        assert alias == (None if command.name in GROUPED else command.target), command.name
+    assert not scripts, f"scripts that run no command of the table: {sorted(scripts)}"
+    assert len(project["scripts"]) <= MAX_SCRIPTS
 
 
 def test_the_version_is_written_once():
@@ -189,7 +183,7 @@ def test_the_shared_vocabulary_holds_in_every_command():
         assert out.metavar == metavar, command
     for command in (c.name for c in COMMANDS):
         options = options_of(command)
-        # the old, ambiguous spellings exist only as deprecated synonyms
+        # the old, ambiguous spellings are gone
         for old in ("--frames", "--num-workers", "--size", "--crop", "--no-progress", "--data", "--gate-frames"):
             assert old not in options, f"rafd {TYPED[command]} still has {old} as a flag of its own"
         for parser in all_parsers(command):
@@ -205,62 +199,6 @@ def test_the_shared_vocabulary_holds_in_every_command():
 
 def run_parse(module: str, function: str, argv: list[str]) -> argparse.Namespace:
     return getattr(importlib.import_module(module), function)(argv)
-
-
-def test_old_spellings_warn_naming_the_new_one_and_still_work(tmp_path, capsys):
-    ckpt = tmp_path / "m.pt"
-    args = run_parse(
-        "rafd.cli.train",
-        "parse",
-        ["--data", "ROOT", "--split", "a", "--out", str(ckpt), "--frames", "2", "--num-workers", "3", "--no-progress"],
-    )
-    assert (str(args.data), args.frames, args.workers, args.quiet) == ("ROOT", 2, 3, True)
-    err = capsys.readouterr().err
-    for old, new in (
-        ("--data", "the positional ROOT"),
-        ("--frames", "--window-frames"),
-        ("--num-workers", "--workers"),
-        ("--no-progress", "--quiet"),
-    ):
-        assert f"{old} is deprecated, use {new}" in err
-    # --resume: bare, it continues --out; the old --resume PATH still continues PATH, with a warning
-    from rafd.cli.train import train_run
-
-    args = run_parse("rafd.cli.train", "parse", ["ROOT", "--split", "a", "--out", str(ckpt), "--resume"])
-    assert train_run(args).resume == ckpt and "deprecated" not in capsys.readouterr().err
-    args = run_parse("rafd.cli.train", "parse", ["ROOT", "--split", "a", "--out", str(ckpt), "--resume", "old.pt"])
-    assert train_run(args).resume == Path("old.pt") and str(args.data) == "ROOT"
-    assert "--resume old.pt is deprecated" in capsys.readouterr().err
-
-    args = run_parse("rafd.cli.simulate", "parse", [str(tmp_path / "sim"), "--frames", "3", "--size", "64"])
-    assert (args.out, args.frames, args.scan_size) == (tmp_path / "sim", 3, 64)
-    err = capsys.readouterr().err
-    assert "use --out" in err and "use --sequence-frames" in err and "use --scan-size" in err
-    args = run_parse("rafd.cli.simulate", "parse", ["--preview", str(tmp_path / "p.png")])
-    assert args.preview and args.out == tmp_path / "p.png"
-    assert "use --preview --out" in capsys.readouterr().err
-
-    args = run_parse("rafd.cli.evaluate", "parse", ["ck.pt", "--data", "R", "--split", "test", "--mcap", "logs"])
-    assert (str(args.data), str(args.mcap)) == ("R", "logs")
-    assert "--mcap is deprecated, use --mcap-dir" in capsys.readouterr().err
-
-    from rafd.cli.prepare import build_parser as prepare_parser
-
-    parser = prepare_parser()
-    args = parser.parse_args(["ROOT", "CACHE", "--crop", "192"])
-    flags.deprecated_positional(parser, args, "cache", "--out", "out")
-    assert (str(args.out), args.crop_size) == ("CACHE", 192)
-    err = capsys.readouterr().err
-    assert "use --out CACHE" in err and "--crop is deprecated, use --crop-size" in err
-
-    from export.cli import build_parser as export_parser
-
-    args = export_parser().parse_args(["ck.pt", "m.onnx", "--gate-frames", "30"])
-    assert args.gate_frames == 30 and "use --gate-sequence-frames" in capsys.readouterr().err
-    from bench.speed_cli import build_parser as speed_parser
-
-    args = speed_parser().parse_args(["--checkpoint", "ck.pt"])
-    assert str(args.checkpoint_option) == "ck.pt" and "use the positional CHECKPOINT" in capsys.readouterr().err
 
 
 def test_the_export_output_is_positional_or_out_once(capsys):
@@ -295,7 +233,8 @@ def test_the_cli_page_lists_every_command():
     page = cli_page()
     for command in COMMANDS:
         assert f"`rafd {TYPED[command.name]}`" in page, command.name
-        assert f"`rafd-{command.name}`" in page, command.name
+        if command.name not in GROUPED:
+            assert f"`rafd-{command.name}`" in page, command.name
 
 
 def test_the_shared_flags_table_matches_the_parsers():

@@ -21,37 +21,29 @@ def test_tiny_run_writes_checkpoint_optimizer_state_and_history(trained_checkpoi
     assert (cfg.num_frames, cfg.input_size) == (2, 64)
 
 
-def test_ablation_flags_reach_the_model_config(sim_root: Path, tmp_path: Path) -> None:
+# a run as short as one can be: 2 frames of 64 px, one step of 2 windows, on the CPU
+SHORT = [
+    "model.num_frames=2",
+    "model.input_size=64",
+    "train.epochs=1",
+    "train.batch_size=2",
+    "train.max_steps_per_epoch=1",
+    "train.device=cpu",
+]
+
+
+def test_ablation_settings_reach_the_config_the_checkpoint_stores(sim_root: Path, tmp_path: Path) -> None:
     from rafd.model.checkpoint import load_checkpoint
+    from rafd.train.config import RunConfig
 
     out = tmp_path / "ablation.pt"
-    argv = [
-        str(sim_root),
-        "--split",
-        "train",
-        "--window-frames",
-        "2",
-        "--input-size",
-        "64",
-        "--out",
-        str(out),
-        "--epochs",
-        "1",
-        "--batch-size",
-        "2",
-        "--max-steps-per-epoch",
-        "1",
-        "--device",
-        "cpu",
-        "--quiet",
-        "--no-enhancement",
-        "--no-flow-guidance",
-        "--no-flow-supervision",
-    ]
-    assert main(argv) == 0
+    argv = [str(sim_root), "--split", "train", "--out", str(out), "--quiet", *SHORT]
+    ablations = ["model.enhance.enabled=false", "model.propagation.flow_guided=false", "loss.flow_weight=0"]
+    assert main([*argv, *ablations]) == 0
     _, cfg, meta = load_checkpoint(out, map_location="cpu")
     assert cfg.enhance.enabled is False and cfg.propagation.flow_guided is False
-    assert meta["loss_config"]["flow_weight"] == 0.0
+    stored = RunConfig.from_dict(meta["run_config"])  # the whole config, rebuilt from the checkpoint alone
+    assert stored.loss.flow_weight == 0.0 and stored.model == cfg and meta["recipe"] == "tiny"
 
 
 def test_missing_data_root_fails_clearly(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
@@ -78,9 +70,8 @@ def test_missing_resume_checkpoint_fails_clearly(
         "--split",
         "train",
         "--out",
-        str(tmp_path / "m.pt"),
-        "--resume",
         str(tmp_path / "x.pt"),
+        "--resume",
     ]
     assert main(argv) != 0
     assert "x.pt" in capsys.readouterr().err
@@ -96,11 +87,10 @@ def test_init_and_resume_together_are_refused(
         "--split",
         "train",
         "--out",
-        str(tmp_path / "m.pt"),
+        str(some),
         "--init",
         str(some),
         "--resume",
-        str(some),
     ]
     assert main(argv) != 0
     assert "--init" in capsys.readouterr().err
@@ -117,52 +107,35 @@ def test_init_and_resume_together_are_refused(
     assert "no.pt" in capsys.readouterr().err
 
 
-def test_propagation_norm_flag_reaches_the_model_config(sim_root: Path, tmp_path: Path) -> None:
+def test_the_flow_modules_settings_reach_the_model(sim_root: Path, tmp_path: Path) -> None:
+    """flow.local_radius and flow.channels, which no flag set before the one config, and a recipe's own settings
+    overridden after it."""
     from rafd.model.checkpoint import load_checkpoint
 
-    out = tmp_path / "post.pt"
-    argv = [
-        str(sim_root),
-        "--split",
-        "train",
-        "--config",
-        "default",
-        "--window-frames",
-        "2",
-        "--input-size",
-        "64",
-        "--out",
-        str(out),
-        "--epochs",
-        "1",
-        "--batch-size",
-        "2",
-        "--max-steps-per-epoch",
-        "1",
-        "--device",
-        "cpu",
-        "--quiet",
-        "--no-augment",
-        "--propagation-norm",
-        "post",
-    ]
-    assert main(argv) == 0
+    out = tmp_path / "flow.pt"
+    argv = [str(sim_root), "--split", "train", "--config", "cpu", "--out", str(out), "--quiet", *SHORT]
+    settings = ["model.flow.local_radius=2", "model.flow.channels=4", "model.propagation.norm=post"]
+    assert main([*argv, "data.augment.enabled=false", *settings]) == 0
     _, cfg, _ = load_checkpoint(out, map_location="cpu")
-    assert cfg.propagation.norm == "post"
+    assert (cfg.flow.local_radius, cfg.flow.channels, cfg.propagation.norm) == (2, 4, "post")
+    assert cfg.propagation.mode == "joint"  # the cpu recipe's
 
 
 @pytest.mark.parametrize(
     ("extra", "message"),
     [
         (["--mix-split", "train"], "--mix-split and --mix-cache describe --mix-data"),
-        (["--mix-data", "ROOT", "--mix-share", "1"], "--mix-share is the share"),
-        (["--no-augment", "--max-rotation-deg", "90"], "--no-augment contradicts"),
+        (["--mix-data", "ROOT", "data.mix_share=1"], "data.mix_share is a share"),
+        (["train.lr=fast"], "train.lr takes float"),
+        (["model.flow.radius=2"], "did you mean model.flow.local_radius"),
+        (["ROOT"], "one data root"),
     ],
 )
-def test_mix_and_augmentation_flags_that_contradict_fail_clearly(
+def test_settings_and_flags_that_cannot_hold_fail_clearly(
     sim_root: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str], extra: list[str], message: str
 ) -> None:
-    argv = [str(sim_root), "--split", "train", "--out", str(tmp_path / "m.pt"), "--device", "cpu", "--quiet"]
-    assert main(argv + [str(sim_root) if a == "ROOT" else a for a in extra]) == 2
-    assert message in capsys.readouterr().err
+    argv = [str(sim_root), "--split", "train", "--out", str(tmp_path / "m.pt"), "--quiet", "train.device=cpu"]
+    with pytest.raises(SystemExit) as exit_info:
+        main(argv + [str(sim_root) if a == "ROOT" else a for a in extra])
+    assert exit_info.value.code == 2 and message in capsys.readouterr().err
     assert not (tmp_path / "m.pt").exists()

@@ -263,14 +263,14 @@ def test_a_shifted_crop_shows_its_boxes_where_the_scan_has_them() -> None:
 
 def test_the_shipped_recipe_augmentation_always_fits_a_radiate_scan() -> None:
     """Shifted (full-scan tile) and turned crops of 256 px must fit inside a 1152 px scan for every draw."""
-    from rafd.train.recipes import RECIPES
+    from rafd.train.recipes import recipe_config
 
-    recipe = RECIPES["default"]
+    recipe = recipe_config("default")
     scan = np.zeros((1152, 1152), np.uint8)
     rng = np.random.default_rng(0)
     shifted = 0
     for _ in range(300):
-        augmentation = Augmentation.sample(rng, recipe.augment, RES)
+        augmentation = Augmentation.sample(rng, recipe.data.augment, RES)
         assert augmentation.image(scan, recipe.model.input_size).shape == (256, 256)
         shifted += augmentation.shift_px != (0, 0)
     assert 120 < shifted < 240  # about 60% of the windows are cut away from the radar

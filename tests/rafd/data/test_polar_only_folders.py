@@ -89,7 +89,7 @@ def test_real_polar_scans_read_as_radiates_cartesian_frames(radiate_polar_sample
         assert mad < 3.5 and correlation > 0.97
     # Odometry on the converted scans agrees with odometry on RADIATE's own Cartesian scans.
     assert sequence.pose_source == "odometry"
-    from rafd.data.odometry import estimate_relative_pose
+    from rafd.odometry.registration import estimate_relative_pose
 
     reference_step = estimate_relative_pose(
         *(cv2.imread(str(radiate_sample / "Navtech_Cartesian" / f"{n:06d}.png"), cv2.IMREAD_GRAYSCALE) for n in (1, 2)),

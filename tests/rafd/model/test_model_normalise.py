@@ -5,6 +5,7 @@ from __future__ import annotations
 import json
 
 import numpy as np
+import pytest
 import torch
 
 from rafd.config import RaFDConfig
@@ -80,7 +81,7 @@ def test_local_contrast_survives_a_runtime_that_computes_it_in_bf16(tmp_path) ->
     assert np.quantile(error, 0.99) < 0.1 and error.max() < 0.5, (np.quantile(error, 0.99), error.max())
 
 
-def test_models_with_the_normalisation_build_and_old_configs_keep_none() -> None:
+def test_models_with_the_normalisation_build_and_a_config_without_it_is_refused() -> None:
     from rafd.config import InputConfig
 
     cfg = RaFDConfig.tiny(input_size=64, num_frames=2, input=InputConfig("local_contrast", 15))
@@ -90,4 +91,5 @@ def test_models_with_the_normalisation_build_and_old_configs_keep_none() -> None
     assert RaFDConfig.from_json(cfg.to_json()) == cfg
     legacy = json.loads(RaFDConfig.tiny().to_json())
     del legacy["input"]
-    assert RaFDConfig.from_dict(legacy).input.normalisation == "none"
+    with pytest.raises(ValueError, match="missing"):
+        RaFDConfig.from_dict(legacy)

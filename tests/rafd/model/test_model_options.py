@@ -159,6 +159,7 @@ def test_bad_options_are_refused(make_config, change) -> None:
 def test_options_survive_the_config_json(make_config) -> None:
     cfg = options_config(make_config)
     assert RaFDConfig.from_json(cfg.to_json()) == cfg
-    legacy = cfg.to_dict()  # a config written before the options existed reads as the paper's mathematics
-    del legacy["flow"]["stride"], legacy["enhance"]["window"]
-    assert RaFDConfig.from_dict(legacy) == make_config(4)
+    partial = cfg.to_dict()  # a stored config names every field: one lacking a field is refused, never defaulted
+    del partial["flow"]["stride"], partial["enhance"]["window"]
+    with pytest.raises(ValueError, match="missing"):
+        RaFDConfig.from_dict(partial)

@@ -99,8 +99,8 @@ def test_the_islands_run_in_float32_and_the_rest_in_bf16(islands_model):
     size = reference.config.input_size
     for k in range(5):
         frame, pose = (rng.random((size, size)) * 0.4).astype(np.float32), np.array([1.0 * k, 0.0, 0.01 * k])
-        ref, states[0] = reference.step(states[0], frame, pose)
-        got, states[1] = runner.step(states[1], frame, pose)
+        ref, states[0] = reference.step(states[0], frame[None], pose[None])
+        got, states[1] = runner.step(states[1], frame[None], pose[None])
     assert np.abs(got.scores - ref.scores).max() < 0.05 and np.isfinite(got.boxes).all()
     plain = open_runner(islands_model, "openvino", "bf16", threads=1, islands=False)
     assert plain.islands == () and len(plain.describe()["float32_islands"]) == 0

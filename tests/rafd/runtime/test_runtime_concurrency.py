@@ -27,15 +27,9 @@ class RecordingBackend:
             log,
             counter,
         )
-        self.metadata = {"config": cfg.to_json(), "form": "step"}
-        f = cfg.feature_size
-        self.input_shapes = {
-            "frame": (1, 1, 16, 16),
-            "poses": (1, 2, 3),
-            "past_features": (1, 1, 4, f, f),
-            "past_flow_features": (1, 2, f, f),
-        }
-        self.output_names = ("heatmap", "scores", "boxes", "flow", "features", "flow_features")
+        self.metadata = {"config": cfg.to_json()}
+        self.input_shapes = {"frame": (1, 1, 16, 16), "pose": (1, 3), "cache.state": (1, 4)}
+        self.output_names = ("heatmap", "scores", "boxes", "flow", "frames_used", "new_cache.state")
 
     def run(self, feeds):
         with self.counter["lock"]:
@@ -48,6 +42,9 @@ class RecordingBackend:
         return {}
 
 
+ONE = {"frame": np.zeros((1, 1, 16, 16), np.float32)}  # a batch of one
+
+
 @pytest.fixture
 def runner_and_log():
     log, counter = [], {"lock": threading.Lock(), "now": 0, "max": 0}
@@ -58,14 +55,14 @@ def runner_and_log():
 def test_a_lone_run_uses_all_threads(runner_and_log):
     runner, log, _ = runner_and_log
     for _ in range(3):
-        runner.run({})
+        runner.run(ONE)
     assert log == ["alone"] * 3
     assert runner.describe()["threads"] == 2 and runner.describe()["threads_per_concurrent_run"] == 1
 
 
 def test_overlapping_runs_share_the_cores_and_are_capped(runner_and_log):
     runner, log, counter = runner_and_log
-    threads = [threading.Thread(target=runner.run, args=({},)) for _ in range(8)]
+    threads = [threading.Thread(target=runner.run, args=(ONE,)) for _ in range(8)]
     for thread in threads:
         thread.start()
     for thread in threads:
@@ -93,7 +90,7 @@ def test_real_runner_gives_the_same_results_alone_and_in_a_crowd(shipped_onnx):
     def stream():
         state, out = runner.new_state(), []
         for frame, pose in zip(frames, poses):
-            result, state = runner.step(state, frame, pose)
+            result, state = runner.step(state, frame[None], pose[None])
             out.append(result)
         return out
 

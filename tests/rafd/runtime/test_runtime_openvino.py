@@ -25,7 +25,7 @@ def _sequence(cfg, n: int, seed: int = 0):
 def _stream(runner, frames, poses):
     state, results = runner.new_state(), []
     for frame, pose in zip(frames, poses):
-        result, state = runner.step(state, frame, pose)
+        result, state = runner.step(state, frame[None], pose[None])
         results.append(result)
     return results
 
@@ -33,7 +33,7 @@ def _stream(runner, frames, poses):
 def test_backends_share_the_interface_and_metadata(shipped_onnx):
     ort, ov = OnnxRunner(shipped_onnx, threads=1), OpenVinoRunner(shipped_onnx, "fp32", threads=1)
     assert (ort.runtime, ort.precision, ov.runtime, ov.precision) == ("onnxruntime", "fp32", "openvino", "fp32")
-    assert ov.metadata == ort.metadata and ov.config == ort.config and ov.form == ort.form
+    assert ov.metadata == ort.metadata and ov.config == ort.config and ov.cache_names == ort.cache_names
     assert ov.backend.input_shapes == ort.backend.input_shapes
     assert ov.backend.output_names == ort.backend.output_names
     assert ov.describe() == {

@@ -139,7 +139,7 @@ def _motion_signs(sample: Path, transform) -> list[tuple[float, float]]:
     """(estimated forward m, truth forward m), (estimated yaw, truth yaw) per consecutive pair, scans read through
     `transform` (the candidate convention), 512 px around the radar."""
     from rafd.data import read_sequence
-    from rafd.data.odometry import estimate_relative_pose
+    from rafd.odometry.registration import estimate_relative_pose
 
     sequence = read_sequence(sample, estimate_poses=False)
     scans = [transform(frame.load())[320:832, 320:832] for frame in sequence.frames[:6]]

@@ -16,8 +16,9 @@ import torch.multiprocessing as mp
 
 from rafd.config import RaFDConfig
 from rafd.data.windows import open_windows
+from rafd.train.config import RunConfig, TrainConfig
 from rafd.train.distributed import DistContext, cleanup_distributed, init_distributed, shard_indices, wrap_model
-from rafd.train.trainer import TrainConfig, Trainer, plan_batches
+from rafd.train.trainer import Trainer, plan_batches
 
 # One optimizer step over a global batch of 4 windows, micro-batches of 1 (BatchNorm sees the same batches).
 STEP = dict(
@@ -35,7 +36,7 @@ def _run(root: str, cfg_json: str, out: Path, ctx: DistContext, tag: str) -> Non
     """One optimizer step (parameters saved), then validation of the reference weights (the same on every rank)."""
     cfg = RaFDConfig.from_json(cfg_json)
     dataset = open_windows(root, "train", cfg)
-    trainer = Trainer(cfg, TrainConfig(**STEP), dataset, out / f"{tag}.pt", ctx, val_set=dataset)
+    trainer = Trainer(RunConfig(model=cfg, train=TrainConfig(**STEP)), dataset, out / f"{tag}.pt", ctx, val_set=dataset)
     trainer.fit()
     params = {name: p.detach().clone() for name, p in trainer.model.named_parameters()}
     trainer.model.load_state_dict(torch.load(out / "reference.pt", weights_only=True))
@@ -66,8 +67,7 @@ def runs(tiny_root: Path, tiny_cfg: RaFDConfig, tmp_path_factory: pytest.TempPat
     # Reference weights for validation: a few steps of training, so the detections are not trivial.
     cfg = RaFDConfig.from_json(tiny_cfg.to_json())
     reference = Trainer(
-        cfg,
-        TrainConfig(**{**STEP, "max_steps_per_epoch": 4, "lr": 3e-3}),
+        RunConfig(model=cfg, train=TrainConfig(**{**STEP, "max_steps_per_epoch": 4, "lr": 3e-3})),
         open_windows(tiny_root, "train", cfg),
         None,
         DistContext(),
@@ -144,7 +144,8 @@ def test_sync_batchnorm_only_under_ddp_on_cuda_and_checkpoints_keep_their_keys(t
 def test_every_parameter_gets_a_gradient_so_ddp_needs_no_unused_parameter_search(tiny_cfg: RaFDConfig, variant) -> None:
     from rafd import build_model
     from rafd.data.collate import Collator
-    from rafd.train.losses import LossConfig, RaFDLoss
+    from rafd.train.config import LossConfig
+    from rafd.train.losses import RaFDLoss
 
     if variant == "no_guidance":
         cfg = tiny_cfg.replace(propagation=dataclasses.replace(tiny_cfg.propagation, flow_guided=False))
@@ -190,29 +191,20 @@ def test_rafd_train_runs_under_torchrun_with_bf16(tiny_root: Path, tmp_path: Pat
         "train",
         "--config",
         "tiny",
-        "--window-frames",
-        "2",
-        "--input-size",
-        "64",
         "--out",
         str(out),
-        "--epochs",
-        "1",
-        "--batch-size",
-        "2",
-        "--max-steps-per-epoch",
-        "2",
-        "--precision",
-        "bf16",
-        "--device",
-        "cpu",
-        "--threads",
-        "1",
         "--quiet",
         "--val-split",
         "train",
-        "--max-val-windows",
-        "3",
+        "model.num_frames=2",
+        "model.input_size=64",
+        "train.epochs=1",
+        "train.batch_size=2",
+        "train.max_steps_per_epoch=2",
+        "train.precision=bf16",
+        "train.device=cpu",
+        "train.threads=1",
+        "data.max_val_windows=3",
     ]
     done = subprocess.run(command, capture_output=True, text=True, timeout=300)
     assert done.returncode == 0, done.stderr[-3000:]

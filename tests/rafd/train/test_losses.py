@@ -7,7 +7,8 @@ import math
 import pytest
 import torch
 
-from rafd.train.losses import LossConfig, RaFDLoss, flow_l1, focal_loss, masked_l1
+from rafd.train.config import LossConfig
+from rafd.train.losses import RaFDLoss, flow_l1, focal_loss, masked_l1
 
 
 def test_focal_loss_matches_hand_computation() -> None:

@@ -77,32 +77,33 @@ def test_a_training_run_mixes_a_second_root_and_records_it(tiny_root: Path, tmp_
     """Two roots through train(): each epoch holds ROOT's windows and the mix root's share; the checkpoint records
     the mix, and the augmentation overrides change ROOT's augmentation only."""
     from rafd.model.checkpoint import read_checkpoint
-    from rafd.train.run import TrainRun, train
+    from rafd.train.config import RunConfig
+    from rafd.train.recipes import recipe_config
+    from rafd.train.run import DataSource, TrainRun, train
 
     out = tmp_path / "mixed.pt"
-    run = TrainRun(
-        data=tiny_root,
-        split=("train",),
-        out=out,
-        config="tiny",
-        frames=2,
-        input_size=64,
-        epochs=1,
-        batch_size=2,
-        max_windows=2,
-        device="cpu",
-        progress=False,
-        threads=1,
-        num_workers=0,
-        max_rotation_deg=180.0,
-        shift_max_m=3.0,
-        shift_probability=0.5,
-        mix_data=tiny_root,
-        mix_share=0.6,
+    config = recipe_config("tiny").overridden(
+        {
+            "model.num_frames": 2,
+            "model.input_size": 64,
+            "train.epochs": 1,
+            "train.batch_size": 2,
+            "train.device": "cpu",
+            "train.progress": False,
+            "train.threads": 1,
+            "train.num_workers": 0,
+            "data.max_windows": 2,
+            "data.mix_share": 0.6,
+            "data.augment.max_rotation_deg": 180.0,
+            "data.augment.shift_max_m": 3.0,
+            "data.augment.shift_probability": 0.5,
+        }
     )
+    run = TrainRun(config, DataSource(tiny_root, ("train",)), out, mix=DataSource(tiny_root, ("train",)))
     history = train(run)
     assert history[0]["windows"] == 2 + 3  # 2 primary windows and round(2 * 0.6 / 0.4) = 3 mix windows
     _, _, meta = read_checkpoint(out)
-    assert meta["mix"]["windows_per_epoch"] == 3 and meta["mix"]["share"] == 0.6
-    assert meta["augment"]["max_rotation_deg"] == 180.0 and meta["augment"]["shift_max_m"] == 3.0
-    assert meta["mix"]["augment"]["max_rotation_deg"] == 15.0 and meta["mix"]["augment"]["shift_max_m"] == 0.0
+    stored = RunConfig.from_dict(meta["run_config"])
+    assert meta["mix"]["windows_per_epoch"] == 3 and stored.data.mix_share == 0.6
+    assert stored.data.augment.max_rotation_deg == 180.0 and stored.data.augment.shift_max_m == 3.0
+    assert stored.data.mix_augment.max_rotation_deg == 15.0 and stored.data.mix_augment.shift_max_m == 0.0

@@ -10,9 +10,10 @@ import torch
 from rafd.config import RaFDConfig
 from rafd.data.collate import Collator
 from rafd.data.windows import open_windows
+from rafd.train.config import RunConfig, TrainConfig
 from rafd.train.distributed import DistContext
 from rafd.train.losses import LOSS_TERMS
-from rafd.train.trainer import TrainConfig, Trainer, optimizer_state_path
+from rafd.train.trainer import Trainer, optimizer_state_path
 
 CPU = DistContext()
 
@@ -35,7 +36,7 @@ def _assert_same(a: dict[str, torch.Tensor], b: dict[str, torch.Tensor]) -> None
 
 def test_a_few_steps_reduce_the_loss_on_a_fixed_batch(tiny_root: Path, tiny_cfg: RaFDConfig) -> None:
     dataset = open_windows(tiny_root, "train", tiny_cfg)
-    trainer = Trainer(tiny_cfg, _train_cfg(lr=2e-3), dataset, None, CPU)
+    trainer = Trainer(RunConfig(model=tiny_cfg, train=_train_cfg(lr=2e-3)), dataset, None, CPU)
     batch = Collator(tiny_cfg)([dataset[i] for i in range(min(4, len(dataset)))])
     assert batch.targets["box_mask"].sum() > 0, "the fixture should hold objects"
     losses = [trainer.train_step(batch)[LOSS_TERMS.index("total")].item() for _ in range(12)]
@@ -47,7 +48,7 @@ def test_same_seed_gives_identical_weights(tiny_root: Path, tiny_cfg: RaFDConfig
     dataset = open_windows(tiny_root, "train", tiny_cfg)
     runs = []
     for seed in (3, 3, 4):
-        trainer = Trainer(tiny_cfg, _train_cfg(seed=seed), dataset, None, CPU)
+        trainer = Trainer(RunConfig(model=tiny_cfg, train=_train_cfg(seed=seed)), dataset, None, CPU)
         trainer.fit()
         runs.append(_weights(trainer))
     _assert_same(runs[0], runs[1])
@@ -56,13 +57,13 @@ def test_same_seed_gives_identical_weights(tiny_root: Path, tiny_cfg: RaFDConfig
 
 def test_resume_equals_uninterrupted_run(tiny_root: Path, tiny_cfg: RaFDConfig, tmp_path: Path) -> None:
     dataset = open_windows(tiny_root, "train", tiny_cfg)
-    full = Trainer(tiny_cfg, _train_cfg(epochs=2), dataset, tmp_path / "full.pt", CPU)
+    full = Trainer(RunConfig(model=tiny_cfg, train=_train_cfg(epochs=2)), dataset, tmp_path / "full.pt", CPU)
     full.fit()
 
-    first = Trainer(tiny_cfg, _train_cfg(epochs=1), dataset, tmp_path / "half.pt", CPU)
+    first = Trainer(RunConfig(model=tiny_cfg, train=_train_cfg(epochs=1)), dataset, tmp_path / "half.pt", CPU)
     first.fit()
     assert (tmp_path / "half.pt").is_file() and optimizer_state_path(tmp_path / "half.pt").is_file()
-    resumed = Trainer(tiny_cfg, _train_cfg(epochs=2), dataset, tmp_path / "resumed.pt", CPU)
+    resumed = Trainer(RunConfig(model=tiny_cfg, train=_train_cfg(epochs=2)), dataset, tmp_path / "resumed.pt", CPU)
     resumed.resume(tmp_path / "half.pt")
     assert (resumed.epoch, resumed.step) == (1, first.step)
     resumed.fit()
@@ -76,11 +77,11 @@ def test_resume_equals_uninterrupted_run(tiny_root: Path, tiny_cfg: RaFDConfig, 
 
 def test_resume_without_optimizer_state_is_a_clear_error(tiny_root: Path, tiny_cfg: RaFDConfig, tmp_path: Path) -> None:
     dataset = open_windows(tiny_root, "train", tiny_cfg)
-    trainer = Trainer(tiny_cfg, _train_cfg(), dataset, tmp_path / "a.pt", CPU)
+    trainer = Trainer(RunConfig(model=tiny_cfg, train=_train_cfg()), dataset, tmp_path / "a.pt", CPU)
     trainer.fit()
     optimizer_state_path(tmp_path / "a.pt").unlink()
     with pytest.raises(FileNotFoundError, match="optim.pt"):
-        Trainer(tiny_cfg, _train_cfg(), dataset, None, CPU).resume(tmp_path / "a.pt")
+        Trainer(RunConfig(model=tiny_cfg, train=_train_cfg()), dataset, None, CPU).resume(tmp_path / "a.pt")
 
 
 def test_init_from_a_single_frame_model_copies_its_encoder_and_head(tiny_root: Path, tmp_path: Path) -> None:
@@ -91,12 +92,15 @@ def test_init_from_a_single_frame_model_copies_its_encoder_and_head(tiny_root: P
     base = RaFDConfig.tiny(input_size=64, num_frames=1)
     single_cfg = base.replace(propagation=dataclasses.replace(base.propagation, norm="pre"))
     single = Trainer(
-        single_cfg, _train_cfg(), open_windows(tiny_root, "train", single_cfg), tmp_path / "single.pt", CPU
+        RunConfig(model=single_cfg, train=_train_cfg()),
+        open_windows(tiny_root, "train", single_cfg),
+        tmp_path / "single.pt",
+        CPU,
     )
     single.fit()
     multi_cfg = single_cfg.replace(num_frames=2)
     dataset = open_windows(tiny_root, "train", multi_cfg)
-    multi = Trainer(multi_cfg, _train_cfg(), dataset, tmp_path / "multi.pt", CPU)
+    multi = Trainer(RunConfig(model=multi_cfg, train=_train_cfg()), dataset, tmp_path / "multi.pt", CPU)
     report = multi.initialise_from(tmp_path / "single.pt")
     assert report["skipped"] == [] and report["copied"]
     assert {name.split(".")[0] for name in report["fresh"]} == {"flow", "propagation"}
@@ -116,8 +120,12 @@ def test_init_from_a_single_frame_model_copies_its_encoder_and_head(tiny_root: P
 
 def test_init_refuses_a_model_that_reads_other_input(tiny_root: Path, tiny_cfg: RaFDConfig, tmp_path: Path) -> None:
     other = tiny_cfg.replace(input_size=128)
-    Trainer(other, _train_cfg(), open_windows(tiny_root, "train", other), tmp_path / "other.pt", CPU).fit()
-    trainer = Trainer(tiny_cfg, _train_cfg(), open_windows(tiny_root, "train", tiny_cfg), None, CPU)
+    Trainer(
+        RunConfig(model=other, train=_train_cfg()), open_windows(tiny_root, "train", other), tmp_path / "other.pt", CPU
+    ).fit()
+    trainer = Trainer(
+        RunConfig(model=tiny_cfg, train=_train_cfg()), open_windows(tiny_root, "train", tiny_cfg), None, CPU
+    )
     before = _weights(trainer)
     with pytest.raises(ValueError, match="input_size"):
         trainer.initialise_from(tmp_path / "other.pt")
@@ -126,7 +134,7 @@ def test_init_refuses_a_model_that_reads_other_input(tiny_root: Path, tiny_cfg: 
 
 def test_a_frozen_encoder_keeps_its_weights_and_batchnorm_statistics(tiny_root: Path, tiny_cfg: RaFDConfig) -> None:
     dataset = open_windows(tiny_root, "train", tiny_cfg)
-    trainer = Trainer(tiny_cfg, _train_cfg(lr=2e-3, freeze=("encoder",)), dataset, None, CPU)
+    trainer = Trainer(RunConfig(model=tiny_cfg, train=_train_cfg(lr=2e-3, freeze=("encoder",))), dataset, None, CPU)
     before = _weights(trainer)
     assert any("running_mean" in key for key in before if key.startswith("encoder."))  # BatchNorm to keep
     trainer.fit()
@@ -143,13 +151,15 @@ def test_resuming_with_other_frozen_parts_is_a_clear_error(
     tiny_root: Path, tiny_cfg: RaFDConfig, tmp_path: Path
 ) -> None:
     dataset = open_windows(tiny_root, "train", tiny_cfg)
-    Trainer(tiny_cfg, _train_cfg(freeze=("encoder",)), dataset, tmp_path / "frozen.pt", CPU).fit()
-    other = Trainer(tiny_cfg, _train_cfg(epochs=2), dataset, None, CPU)
+    Trainer(
+        RunConfig(model=tiny_cfg, train=_train_cfg(freeze=("encoder",))), dataset, tmp_path / "frozen.pt", CPU
+    ).fit()
+    other = Trainer(RunConfig(model=tiny_cfg, train=_train_cfg(epochs=2)), dataset, None, CPU)
     before = _weights(other)
     with pytest.raises(ValueError, match="trained freezing encoder, this run freezes nothing"):
         other.resume(tmp_path / "frozen.pt")
     _assert_same(before, _weights(other))  # refused before any weight was copied
-    same = Trainer(tiny_cfg, _train_cfg(epochs=2, freeze=("encoder",)), dataset, None, CPU)
+    same = Trainer(RunConfig(model=tiny_cfg, train=_train_cfg(epochs=2, freeze=("encoder",))), dataset, None, CPU)
     same.resume(tmp_path / "frozen.pt")
     assert same.epoch == 1
 
@@ -159,4 +169,9 @@ def test_freeze_refuses_unknown_or_missing_parts(tiny_root: Path) -> None:
         _train_cfg(freeze=("backbone",))
     single = RaFDConfig.tiny(input_size=64, num_frames=1)
     with pytest.raises(ValueError, match="no flow"):
-        Trainer(single, _train_cfg(freeze=("flow",)), open_windows(tiny_root, "train", single), None, CPU)
+        Trainer(
+            RunConfig(model=single, train=_train_cfg(freeze=("flow",))),
+            open_windows(tiny_root, "train", single),
+            None,
+            CPU,
+        )

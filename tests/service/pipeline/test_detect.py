@@ -187,8 +187,8 @@ def test_score_threshold_setting_filters_boxes(settings):
 
 
 def test_real_odometry_on_the_radiate_sample(radiate_sample, settings):
-    """With no odometry injected the service uses rafd.data.odometry (when that module is present)."""
-    pytest.importorskip("rafd.data.odometry")
+    """With no odometry injected the service uses rafd.odometry.registration (when that module is present)."""
+    pytest.importorskip("rafd.odometry.registration")
     scans = sorted((radiate_sample / "Navtech_Cartesian").glob("*.png"))[:3]
     with TestClient(create_app(settings, runner=FakeRunner())) as client:
         wait_ready(client)

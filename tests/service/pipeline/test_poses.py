@@ -7,8 +7,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from rafd.data.odometry import OdometryStream
 from rafd.geometry import compose_poses
+from rafd.odometry.registration import OdometryStream
 from rafd.sim import Difficulty
 from rafd.sim.sequence import run_simulation
 from service.http.errors import ApiError

@@ -20,10 +20,10 @@ from tests.utils.service_testing import b64png, serve_in_thread, wait_ready
 
 torch = pytest.importorskip("torch", reason="the offline PyTorch reference needs the train extra")
 
+from export.verify import window_from_history  # noqa: E402
 from rafd.assets import default_checkpoint, default_onnx  # noqa: E402
 from rafd.detections import decode_detections  # noqa: E402
 from rafd.model.checkpoint import load_checkpoint  # noqa: E402
-from export.verify import window_from_history  # noqa: E402
 from rafd.runtime import OnnxRunner  # noqa: E402
 from service.app import create_app  # noqa: E402
 from service.settings import Settings  # noqa: E402
