@@ -16,7 +16,7 @@ import contextlib
 import logging
 import time
 from collections.abc import AsyncIterator, Callable
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import cv2
 from fastapi import FastAPI
@@ -26,7 +26,7 @@ from starlette.concurrency import run_in_threadpool
 from rafd import __version__
 from service.http.auth import OPEN_PATHS, ApiKeyMiddleware, load_api_keys
 from service.http.body_limit import BodySizeLimitMiddleware
-from service.http.errors import ERRORS, error_responses, expand_codes, install_error_handlers
+from service.http.errors import ANY, ERRORS, error_responses, install_error_handlers, route_codes
 from service.http.intake import IntakeMiddleware
 from service.http.penalty import RefusalPenalty
 from service.loading import check_buffer_length, open_runner, warm_up
@@ -36,6 +36,9 @@ from service.pipeline.poses import Odometry
 from service.pipeline.service_metrics import MetricsMiddleware, ServiceMetrics
 from service.pipeline.streams import StreamStore
 from service.routers import detect, health, metrics, model, streams
+
+if TYPE_CHECKING:
+    from rafd.runtime import Runner
 from service.settings import Settings, get_settings
 
 log = logging.getLogger(__name__)
@@ -43,34 +46,18 @@ log = logging.getLogger(__name__)
 # Errors any route can answer, before or besides its own (each route's responses list the rest).
 ANY_ROUTE_ERRORS = (
     'Every error is `{"error": {"code", "message"}}`. Besides each route\'s own errors, any route may answer: '
-    + "; ".join(
-        f"{ERRORS[code].status} `{code}`: {ERRORS[code].meaning}"
-        for code in expand_codes(
-            (
-                "unauthorized",
-                "not_found",
-                "method_not_allowed",
-                "request_header_timeout",
-                "body_too_slow",
-                "request_too_large",
-                "request_line_too_long",
-                "too_many_client_requests",
-                "request_header_too_large",
-                "http_error",
-            )
-        )
-    )
+    + "; ".join(f"{ERRORS[code].status} `{code}`: {ERRORS[code].meaning}" for code in route_codes(ANY))
     + "."
 )
 
 
 def create_app(
     settings: Settings | None = None,
-    runner: Any | None = None,
+    runner: Runner | None = None,
     odometry: Odometry | None = None,
     clock: Callable[[], float] = time.monotonic,
 ) -> FastAPI:
-    """Build the app; `runner` (an OnnxRunner-compatible object) and `odometry` can be injected for tests.
+    """Build the app; `runner` (any rafd.runtime.Runner) and `odometry` can be injected for tests.
 
     Raises ValueError at once when the configured API keys are malformed or their file cannot be read.
     """
@@ -86,7 +73,6 @@ def create_app(
             check_buffer_length(settings, loaded)
             await run_in_threadpool(warm_up, loaded)
             store = StreamStore(
-                loaded.new_state,
                 settings.max_streams,
                 settings.stream_ttl_s,
                 clock=clock,
@@ -151,7 +137,7 @@ def create_app(
     install_error_handlers(app)
     for router in (detect.router, streams.router, health.router, metrics.router):
         app.include_router(router)
-    app.include_router(model.router, responses=error_responses("unauthorized", "not_ready"))
+    app.include_router(model.router, responses=error_responses("model"))
     # Last added = outermost: metrics also count the 401s, 413s and 429s answered before the routes.
     app.add_middleware(BodySizeLimitMiddleware, max_bytes=settings.max_request_bytes)
     app.add_middleware(ApiKeyMiddleware, keys=api_keys)

@@ -4,11 +4,14 @@ from __future__ import annotations
 
 import logging
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING
 
 import numpy as np
 
 from service.settings import Settings
+
+if TYPE_CHECKING:  # the runtime (onnxruntime, OpenVINO) is imported when the model loads, never at service import
+    from rafd.runtime import Runner, StreamRunner
 
 log = logging.getLogger(__name__)
 
@@ -25,7 +28,7 @@ def resolve_model_path(settings: Settings) -> Path:
     return Path(default_onnx())
 
 
-def open_runner(settings: Settings) -> Any:
+def open_runner(settings: Settings) -> StreamRunner:
     """A rafd.runtime.StreamRunner on the configured runtime and precision (imported here, never at service
     import); "auto" picks the fastest this CPU supports for this model."""
     path = resolve_model_path(settings)
@@ -43,20 +46,19 @@ def open_runner(settings: Settings) -> Any:
         path, settings.runtime, settings.precision, threads=settings.threads, concurrent_runs=settings.concurrent_runs
     )
     log.info("serving on %s", runner.describe())
-    choice = getattr(runner, "precision_choice", None)
-    if choice:
-        log.info("precision: %s", choice["reason"])
+    if runner.precision_choice:
+        log.info("precision: %s", runner.precision_choice["reason"])
     return runner
 
 
-def check_buffer_length(settings: Settings, runner: Any) -> None:
+def check_buffer_length(settings: Settings, runner: Runner) -> None:
     """The per-stream buffer is the model's temporal window: the two must agree."""
     frames = runner.config.num_frames
     if settings.buffer_length is not None and settings.buffer_length != frames:
         raise ValueError(f"RAFD_BUFFER_LENGTH={settings.buffer_length} but the model takes {frames} frames")
 
 
-def warm_up(runner: Any) -> None:
+def warm_up(runner: Runner) -> None:
     """One step on a blank frame: first-run allocations and kernel choices happen before traffic."""
     size = runner.config.input_size
     runner.step(runner.new_state(), np.zeros((1, size, size), np.float32), np.zeros((1, 3)))

@@ -5,10 +5,10 @@ timestamp is a JSON number: "1.5" and true are refused). Bounded cost: a JSON bo
 counted as it streams in (`StructureCount`: a detect request has a few keys, one object in another and no long
 array), and a body with more is refused as soon as its count passes the bound, unparsed and unread past that piece
 (a body of 200k keys or numbers: after its first 64 KiB); the rest is parsed on the parse executor, off the event
-loop, by orjson (strict: UTF-8, no NaN / Infinity, no trailing data). Multipart: fields stream_id, timestamp, optional
-pose_x, pose_y, pose_yaw (all three or none), optional previous_timestamp and the file field `image`, each at most
-once; numbers are written as JSON numbers. Unknown fields are refused (a typo like `pose_yw` must not silently drop
-the pose).
+loop, by orjson (strict: UTF-8, no NaN / Infinity, no trailing data). Multipart: the JSON body's fields flattened
+(service.body.form: stream_id, timestamp, pose_x, pose_y, pose_yaw (all three or none), previous_timestamp) and the
+file field `image`, each at most once; numbers are written as JSON numbers. Unknown fields are refused (a typo like
+`pose_yw` must not silently drop the pose).
 The stream id may come from the body, the X-Stream-Id header or the path; all that are given must agree.
 """
 
@@ -25,6 +25,7 @@ import orjson
 from fastapi import Request
 from pydantic import BaseModel, ValidationError
 
+from service.body.form import FORM_FILES, form_field_names, form_fields, form_groups
 from service.body.images import PostedImage
 from service.body.multipart import Part, read_form
 from service.http.errors import MAX_LISTED_ERRORS, MAX_LOCATION_CHARS, ApiError, format_validation_errors
@@ -32,9 +33,6 @@ from service.schemas import DetectBody, DetectFields, DetectJson, Pose
 
 JSON = "application/json"
 MULTIPART = "multipart/form-data"
-POSE_FORM_FIELDS = ("pose_x", "pose_y", "pose_yaw")
-FORM_FIELDS = ("stream_id", "timestamp", *POSE_FORM_FIELDS, "previous_timestamp")
-FORM_FILES = ("image",)
 JSON_FIELDS = frozenset(DetectJson.model_fields)
 POSE_FIELDS = frozenset(Pose.model_fields)
 # RFC 8259's number grammar: what a multipart number field may hold (no "nan", "inf", " 1", "1_000", "0x1").
@@ -275,21 +273,22 @@ def _number(name: str, text: str) -> float:
 
 
 async def _parse_form(request: Request, inspect: dict[str, Callable[[bytes], None]]) -> tuple[DetectBody, bytes]:
-    parts = await read_form(request.stream(), request.headers.get("content-type", ""), FORM_FILES, FORM_FIELDS, inspect)
+    content_type = request.headers.get("content-type", "")
+    parts = await read_form(request.stream(), content_type, FORM_FILES, form_field_names(), inspect)
     if "image" not in parts:
         raise ApiError("validation_error", "form field 'image' (the PNG file) is missing")
+    for group, names in form_groups().items():
+        given = [name for name in names if name in parts]
+        if given and len(given) != len(names):
+            raise ApiError(
+                "validation_error", f"{group} form fields must come together: got {given}, need {list(names)}"
+            )
     values: dict[str, Any] = {}
-    if "stream_id" in parts:
-        values["stream_id"] = _text(parts["stream_id"])
-    if "timestamp" in parts:
-        values["timestamp"] = _number("timestamp", _text(parts["timestamp"]))
-    if "previous_timestamp" in parts:
-        values["previous_timestamp"] = _number("previous_timestamp", _text(parts["previous_timestamp"]))
-    given = [name for name in POSE_FORM_FIELDS if name in parts]
-    if given and len(given) != len(POSE_FORM_FIELDS):
-        raise ApiError(
-            "validation_error", f"pose form fields must come together: got {given}, need {list(POSE_FORM_FIELDS)}"
-        )
-    if given:
-        values["pose"] = {axis: _number(name, _text(parts[name])) for axis, name in zip(("x", "y", "yaw"), given)}
+    for field in form_fields():
+        if field.name in parts:
+            text = _text(parts[field.name])
+            place = values
+            for key in field.path[:-1]:
+                place = place.setdefault(key, {})
+            place[field.path[-1]] = _number(field.name, text) if field.kind == "number" else text
     return _validate(DetectBody, values), parts["image"].data

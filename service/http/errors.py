@@ -1,8 +1,8 @@
 """One error shape for every 4xx/5xx: {"error": {"code": str, "message": str}}, from one registry of codes.
 
-Every code the service can answer is in `ERRORS` (status and meaning); `ApiError` only takes a registered code,
-the OpenAPI responses are built from the registry (`error_responses`) and docs/api.md documents each code
-(a test checks all three agree). Messages are capped (`MAX_MESSAGE_CHARS`) so an error never grows with the input.
+Every code the service can answer is in `ERRORS`, one table (status, meaning, the routes answering it); `ApiError`
+only takes a registered code, and the OpenAPI responses of each route (`error_responses`) and docs/api.md's table
+(`error_table`) are made from it. Messages are capped (`MAX_MESSAGE_CHARS`) so an error never grows with the input.
 Middleware that refuses before any route runs answers the same shape with `send_refusal`. A client is known by its
 address (`client_of`), which the refusal penalty and the per-client limits count.
 """
@@ -39,90 +39,169 @@ CLIENT_CLOSED_REQUEST = 499
 @dataclass(frozen=True)
 class ErrorCode:
     status: int
-    meaning: str
+    meaning: str  # what docs/api.md's table and the OpenAPI responses say of it
+    routes: frozenset[str]  # the routes answering it (ROUTES), or {ANY}: any route may (before or besides its own)
 
 
+ANY = "any"
+ROUTES = ("detect", "list_streams", "delete_stream", "model", "metrics", "ready")
+_MODEL = frozenset({"detect", "list_streams", "delete_stream", "model", "ready"})  # the routes that need the model
+_PROTECTED = frozenset({"detect", "list_streams", "delete_stream", "model", "metrics"})  # behind the API keys
+_DETECT = frozenset({"detect"})
+_ANY = frozenset({ANY})
+
+# The one table of the codes: status, meaning and routes. The OpenAPI responses of each route (error_responses) and
+# the table of docs/api.md (`python -m tools.api_tables --write`, checked by a test) are made from it.
 ERRORS: Mapping[str, ErrorCode] = {
-    "empty_body": ErrorCode(400, "the request body is empty"),
-    "invalid_json": ErrorCode(400, "the body is not valid JSON (NaN, Infinity and out-of-range numbers included)"),
-    "invalid_multipart": ErrorCode(400, "the multipart/form-data body cannot be parsed (boundary, part headers)"),
-    "ambiguous_content_type": ErrorCode(400, "the request has more than one Content-Type header"),
-    "missing_api_key": ErrorCode(401, "API keys are configured and the request carries none"),
-    "invalid_api_key": ErrorCode(401, "API keys are configured and the request's key is not one of them"),
-    "not_found": ErrorCode(404, "no such route"),
-    "stream_not_found": ErrorCode(
-        404, "no such stream of this API key (never seen, deleted or expired; no frame of it accepted or in flight)"
+    "empty_body": ErrorCode(400, "the body is empty", _DETECT),
+    "invalid_json": ErrorCode(
+        400,
+        "not valid JSON (strict UTF-8, no byte-order mark, nothing after the value), including NaN, Infinity and "
+        "numbers out of a double's range (`1e400`, an integer of 400 digits)",
+        _DETECT,
     ),
-    "method_not_allowed": ErrorCode(405, "the route does not take this HTTP method"),
+    "invalid_multipart": ErrorCode(
+        400,
+        "the multipart body cannot be parsed: no boundary or more than one `boundary=` parameter, malformed or "
+        "nameless parts, no closing boundary",
+        _DETECT,
+    ),
+    "ambiguous_content_type": ErrorCode(
+        400,
+        "the request carries more than one `Content-Type` header (another parser could have read the other one)",
+        _DETECT,
+    ),
+    "missing_api_key": ErrorCode(
+        401,
+        "API keys are configured and the request carries none (neither `X-API-Key` nor `Authorization: Bearer`; "
+        "`WWW-Authenticate: Bearer`)",
+        _ANY | _PROTECTED,
+    ),
+    "invalid_api_key": ErrorCode(
+        401,
+        "API keys are configured and the request's key is not one of them (`WWW-Authenticate: Bearer`); the message "
+        "says nothing about which keys exist",
+        _ANY | _PROTECTED,
+    ),
+    "not_found": ErrorCode(
+        404, "no such route (a trailing slash is not redirected: `DELETE /streams/` is 404, not a 307)", _ANY
+    ),
+    "stream_not_found": ErrorCode(
+        404,
+        "DELETE of a stream this key has not (never seen, deleted or expired; no frame of it accepted or in flight)",
+        frozenset({"delete_stream"}),
+    ),
+    "method_not_allowed": ErrorCode(405, "the route does not take this method", _ANY),
     "body_timeout": ErrorCode(
-        408, "the body did not arrive within RAFD_BODY_TIMEOUT_S (its frame held its stream's place meanwhile)"
+        408,
+        "the body did not arrive within `RAFD_BODY_TIMEOUT_S` (the frame held its stream's place meanwhile)",
+        _DETECT,
     ),
     "body_too_slow": ErrorCode(
         408,
-        "after its first RAFD_BODY_RATE_GRACE_S seconds the body arrived slower than RAFD_MIN_BODY_BYTES_PER_S "
-        "bytes per second on average",
+        "after its first `RAFD_BODY_RATE_GRACE_S` (1 s) the body fell behind `RAFD_MIN_BODY_BYTES_PER_S` (64 KiB/s) on "
+        "average since the request arrived; the connection is closed",
+        _ANY | _DETECT,
     ),
     "request_header_timeout": ErrorCode(
-        408, "the request line and headers did not arrive within RAFD_HEADER_TIMEOUT_S (the connection is closed)"
+        408,
+        "the request line and headers did not arrive within `RAFD_HEADER_TIMEOUT_S` (10 s) of the connection (or of "
+        "the request's first byte on a kept-alive connection); answered by the HTTP server, the connection closed",
+        _ANY,
     ),
     "timestamp_not_increasing": ErrorCode(
         409,
-        "the frame's timestamp is not after the stream's last accepted frame, or after a frame of that "
-        "stream that arrived earlier and is still queued",
+        "not after the stream's last accepted frame, or after an earlier-arrived queued frame; or the last accepted "
+        "frame's timestamp with another image or pose (the same frame again is answered again)",
+        _DETECT,
     ),
-    "pose_source_conflict": ErrorCode(409, "a request pose on a stream whose world frame was anchored by odometry"),
+    "pose_source_conflict": ErrorCode(409, "a request pose on a stream started without poses", _DETECT),
     "stream_reset": ErrorCode(
         409,
-        "the stream was deleted (reset) while this frame waited or ran; the frame belongs to the ended "
-        "chain and was not used: send it again to start the new chain",
+        "the stream was deleted while this frame waited or ran: the frame belonged to the ended chain and was not "
+        "used; send it again to start the new chain",
+        _DETECT,
     ),
-    "request_too_large": ErrorCode(413, "the body exceeds RAFD_MAX_REQUEST_BYTES"),
+    "request_too_large": ErrorCode(
+        413,
+        "body over `RAFD_MAX_REQUEST_BYTES` (from Content-Length, and again while it streams)",
+        _ANY | _DETECT,
+    ),
     "request_line_too_long": ErrorCode(
-        414, "the request line exceeds RAFD_MAX_REQUEST_LINE_BYTES (the connection is closed)"
+        414,
+        "the request line over `RAFD_MAX_REQUEST_LINE_BYTES` (8 KiB); answered by the HTTP server, the connection "
+        "closed",
+        _ANY,
     ),
-    "unsupported_media_type": ErrorCode(415, "Content-Type is neither application/json nor multipart/form-data"),
+    "unsupported_media_type": ErrorCode(415, "neither `application/json` nor `multipart/form-data`", _DETECT),
     "validation_error": ErrorCode(
         422,
-        "a field is missing, unknown, duplicated or of the wrong type (no coercion: a JSON timestamp must be "
-        "a number, not a string or a boolean), or a path, query or header value is invalid",
+        "a field missing, unknown, duplicated, of the wrong type or out of range; a bad path, query or header value; "
+        "no stream id anywhere; a JSON body with more structure than a detect request can have "
+        "([Limits](#limits)), refused unparsed",
+        frozenset({"detect", "delete_stream"}),
     ),
-    "stream_id_mismatch": ErrorCode(
-        422, "the stream id in the X-Stream-Id header, the URL path and the body do not all agree"
-    ),
+    "stream_id_mismatch": ErrorCode(422, "the body's `stream_id`, `X-Stream-Id` and the path disagree", _DETECT),
     "invalid_image": ErrorCode(
         422,
-        "the image is not valid base64 / not a PNG / corrupt, or its chunk structure is refused before "
-        "decoding (too many or too large ancillary chunks, image data that inflates beyond its header's size)",
+        "not base64 / not a PNG / truncated or corrupt, or refused by the chunk check (too many or too large "
+        "ancillary chunks, image data inflating past its header's size, bytes after IEND, ...)",
+        _DETECT,
     ),
     "timestamp_gap_too_small": ErrorCode(
-        422, "the frame follows the stream's last accepted frame by less than RAFD_MIN_FRAME_GAP_S seconds"
+        422,
+        "the frame follows the stream's last accepted frame by less than `RAFD_MIN_FRAME_GAP_S` (0.01 s; rule "
+        "`min_frame_gap`); the stream is unchanged",
+        _DETECT,
     ),
     "implausible_motion": ErrorCode(
         422,
-        "the frame's pose (the request's or odometry's) moved faster than RAFD_MAX_SPEED_MPS since the stream's last "
-        "accepted frame; the frame is refused and the stream keeps its last pose",
+        "the frame's pose (the request's or odometry's) moved faster than `RAFD_MAX_SPEED_MPS` (70 m/s) since the "
+        "stream's last accepted frame (rule `max_speed`); the frame is refused and the stream keeps its last pose",
+        _DETECT,
     ),
-    "unsupported_image_size": ErrorCode(422, "the PNG is not one of the accepted square sizes"),
-    "unsupported_image_format": ErrorCode(422, "the PNG is not 8-bit greyscale (colour type 0, bit depth 8)"),
-    "stream_queue_full": ErrorCode(429, "RAFD_STREAM_QUEUE_LIMIT frames of this stream are already queued"),
+    "unsupported_image_size": ErrorCode(
+        422,
+        "not one of the accepted square sizes nor the polar scan's 400x576 nor a native scan's accepted shape (the "
+        "message names them)",
+        _DETECT,
+    ),
+    "unsupported_image_format": ErrorCode(
+        422, "not 8-bit greyscale (e.g. 1-bit, 16-bit, RGB, palette, alpha)", _DETECT
+    ),
+    "stream_queue_full": ErrorCode(429, "`RAFD_STREAM_QUEUE_LIMIT` frames of this stream are already queued", _DETECT),
     "too_many_client_requests": ErrorCode(
-        429, "RAFD_MAX_REQUESTS_PER_CLIENT requests of this client (by address) are already unfinished"
+        429,
+        "the client (by address) already has `RAFD_MAX_REQUESTS_PER_CLIENT` (16) unfinished requests; any route but "
+        "the health probes, before the API key is checked",
+        _ANY | _PROTECTED,
     ),
     "request_header_too_large": ErrorCode(
         431,
-        "more than RAFD_MAX_HEADERS header fields or more than RAFD_MAX_HEADER_BYTES bytes of them (the connection "
-        "is closed)",
+        "more than `RAFD_MAX_HEADERS` (100) header fields or more than `RAFD_MAX_HEADER_BYTES` (32 KiB) of them; "
+        "answered by the HTTP server, the connection closed",
+        _ANY,
     ),
-    "internal_error": ErrorCode(500, "the model or the service failed; no stream changed"),
-    "odometry_failed": ErrorCode(500, "odometry returned no finite ego motion; no stream changed"),
-    "not_ready": ErrorCode(503, "the model is loading or warming up, or failed to load"),
+    "internal_error": ErrorCode(
+        500,
+        "the model or the service failed; no stream changed",
+        _ANY | _DETECT,
+    ),
+    "odometry_failed": ErrorCode(500, "odometry gave no finite motion; no stream changed", _DETECT),
+    "not_ready": ErrorCode(
+        503, "the model is loading or warming up, or failed to load (the message says which)", _MODEL
+    ),
     "overloaded": ErrorCode(
         503,
-        "too many requests receiving their body or in flight, or the parse / decode / odometry / model queue is "
-        "full; retry after the Retry-After header's seconds",
+        "`RAFD_MAX_RECEIVING_REQUESTS` requests receiving their body (refused before the body is read), "
+        "`RAFD_MAX_INFLIGHT_REQUESTS` requests whose body has arrived, or the parse / decode / odometry / model "
+        "queue is full; retry after the Retry-After header's seconds",
+        _DETECT,
     ),
-    "odometry_unavailable": ErrorCode(503, "this build cannot estimate ego motion: send a pose with every frame"),
-    "http_error": ErrorCode(400, "any other refusal by the HTTP framework (not expected)"),
+    "odometry_unavailable": ErrorCode(503, "this build cannot estimate ego motion: send poses", _DETECT),
+    "http_error": ErrorCode(
+        400, "any other refusal by the HTTP framework (not expected; listed so every code is documented)", _ANY
+    ),
 }
 
 
@@ -188,21 +267,19 @@ def format_validation_errors(errors: Sequence[Mapping[str, Any]]) -> str:
     return "; ".join(parts)
 
 
-# A name for codes answered by one check, usable in a route's `responses`: the API key middleware answers either.
-CODE_GROUPS: Mapping[str, tuple[str, ...]] = {"unauthorized": ("missing_api_key", "invalid_api_key")}
+def route_codes(route: str) -> list[str]:
+    """The codes `route` answers (its own, not ANY's), in the table's order."""
+    if route not in ROUTES and route != ANY:
+        raise KeyError(f"unknown route {route!r}: one of {ROUTES} or {ANY!r}")
+    return [code for code, error in ERRORS.items() if route in error.routes]
 
 
-def expand_codes(codes: Sequence[str]) -> list[str]:
-    """Codes with every group name (CODE_GROUPS) replaced by its codes."""
-    return [member for code in codes for member in CODE_GROUPS.get(code, (code,))]
-
-
-def error_responses(*codes: str) -> dict[int | str, dict[str, Any]]:
+def error_responses(route: str) -> dict[int | str, dict[str, Any]]:
     """OpenAPI `responses` for a route: one entry per status, its description listing the codes it can carry."""
     from service.schemas import ErrorResponse  # schemas imports nothing from here; keep the import local anyway
 
     by_status: dict[int, list[str]] = {}
-    for code in expand_codes(codes):
+    for code in route_codes(route):
         by_status.setdefault(ERRORS[code].status, []).append(code)
     return {
         status: {
@@ -211,6 +288,12 @@ def error_responses(*codes: str) -> dict[int | str, dict[str, Any]]:
         }
         for status, names in sorted(by_status.items())
     }
+
+
+def error_table() -> str:
+    """docs/api.md's table of the codes, made from ERRORS."""
+    rows = [f"| {e.status} | `{code}` | {e.meaning} |" for code, e in ERRORS.items()]
+    return "\n".join(["| status | code | when |", "|---|---|---|", *rows])
 
 
 # Refusals of what a client sent that a flood repeats (service/http/penalty.py slows their answers): the body, its

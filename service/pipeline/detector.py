@@ -51,7 +51,7 @@ from service.pipeline import poses
 from service.pipeline.executors import AdmissionLimit, BoundedExecutor
 from service.pipeline.ordering import ArrivalOrder, Unresolved
 from service.pipeline.service_metrics import ServiceMetrics
-from service.pipeline.streams import ArrivalKey, StreamEntry, StreamStore, Ticket
+from service.pipeline.streams import ArrivalKey, Chain, StreamEntry, StreamStore, Ticket
 from service.schemas import (
     BoxOut,
     DetectBody,
@@ -68,7 +68,7 @@ from service.schemas import (
 from service.settings import Settings
 
 if TYPE_CHECKING:
-    from rafd.runtime.streaming import Runner
+    from rafd.runtime.streaming import Runner, StepResult
 
 FlowFormat = Literal["list", "base64"]
 CELL_RULE = (
@@ -142,18 +142,6 @@ class Arrival:
     @classmethod
     def of(cls, request: Request, caller: str | None) -> Arrival:
         return cls(caller, arrival_of(request.scope), client_of(request.scope))
-
-
-@dataclass(frozen=True)
-class Chain:
-    """What a frame continues: the chain its stream holds, or a new one (`broken`: why the held one is not)."""
-
-    state: Any  # the runner's StreamState
-    odometry: poses.OdometryMemory | None
-    last_pose: np.ndarray | None
-    pose_source: str | None
-    last_timestamp: float | None
-    broken: RestartReason | None = None
 
 
 @dataclass(frozen=True)
@@ -264,17 +252,16 @@ class DetectService:
             replay = _replay_or_refuse(entry, fields.timestamp, digest)
             if replay is not None:  # a retry of the last accepted frame: its answer again, the stream unchanged
                 return replay.model_copy(update={"replayed": True})
-            chain = self._chain(entry, fields)
+            chain, broken = self._chain(entry, fields)
             clock.lap("wait")
             located = await self._locate(fields, decoded, chain)
             clock.lap("odometry")
             result, state = await self.executors.model.run(
-                self.runner.step, chain.state, frame[None], located.pose[None]
+                self.runner.step, chain.model, frame[None], located.pose[None]
             )
             clock.lap("model")
-            self.store.commit(
-                ticket, state, fields.timestamp, located.memory, located.pose, located.source, digest, chain.broken
-            )
+            advanced = chain.advanced(state, located.memory, located.pose, located.source, fields.timestamp)
+            self.store.commit(ticket, advanced, digest, broken)
         self.metrics.frames.inc()
         self.metrics.model_latency.observe(clock.seconds["model"])
         answer = self._answer(fields, decoded, result.view(0), located, chain, options, ticket.restarted, clock)
@@ -352,20 +339,20 @@ class DetectService:
     async def _turn(self, request: Request, ticket: Ticket, arrival: Arrival) -> StreamEntry:
         """Once the same client's earlier frames still being parsed are placed (RAFD_ORDER_HOLD_S at most) and the
         stream's earlier frames are done: the stream's entry, still this chain's."""
-        await self.order.wait_for_earlier(arrival.client, arrival.key)
+        await self.order.wait_for_unresolved(arrival.client)
         await self.store.wait_turn(ticket)
         if await request.is_disconnected():
             raise ClientDisconnect()  # nobody to answer: the frame is dropped before it changes the stream
         return self.store.check_turn(ticket)  # the chain may have ended while the disconnect was checked
 
-    def _chain(self, entry: StreamEntry, fields: DetectFields) -> Chain:
+    def _chain(self, entry: StreamEntry, fields: DetectFields) -> tuple[Chain, RestartReason | None]:
         """The chain the frame continues: the stream's, or a new one when the stream's is not to be continued
-        (`chain_break`); 422 when the frame follows the stream's last one too closely."""
+        (`chain_break`: why); 422 when the frame follows the stream's last one too closely."""
         broken = self.chain_break(entry, fields)
         poses.check_gap(entry.last_timestamp, fields.timestamp, self.settings.min_frame_gap_s)
-        if broken is not None:  # a new buffer, odometry world frame and pose source, from this frame
-            return Chain(self.runner.new_state(), None, None, None, None, broken)
-        return Chain(entry.state, entry.odometry, entry.last_pose, entry.pose_source, entry.last_timestamp)
+        if broken is not None:  # a new model state, odometry world frame and pose source, from this frame
+            return Chain(), broken
+        return entry.chain, None
 
     def chain_break(self, entry: StreamEntry, fields: DetectFields) -> RestartReason | None:
         """Why the chain held here must not be continued by this frame, from the stream's own evidence; None to
@@ -385,18 +372,16 @@ class DetectService:
         """The frame's world pose; 422 when it is further from the chain's last pose than a road vehicle goes (a
         forged pose, a degenerate scan), which would bend the chain for good."""
         located = await self._pose(fields, decoded, chain)
-        poses.check_motion(
-            chain.last_pose, chain.last_timestamp, located.pose, fields.timestamp, self.settings.max_speed_mps
-        )
+        poses.check_motion(chain.pose, chain.timestamp, located.pose, fields.timestamp, self.settings.max_speed_mps)
         return located
 
     async def _pose(self, fields: DetectFields, decoded: DecodedFrame, chain: Chain) -> FramePose:
         """The request's pose; without one, the origin on a chain's first frame (it anchors the chain's odometry world
         frame), else odometry's from the chain's last frame (odometry executor)."""
-        if fields.pose is None and chain.odometry is not None and chain.last_pose is not None:
+        if fields.pose is None and chain.odometry is not None and chain.pose is not None:
             pose, memory = await self.executors.odometry.run(
                 poses.odometry_pose,
-                chain.last_pose,
+                chain.pose,
                 chain.odometry,
                 decoded.odometry_view,
                 fields.timestamp,
@@ -416,7 +401,7 @@ class DetectService:
         self,
         fields: DetectFields,
         decoded: DecodedFrame,
-        result: Any,
+        result: StepResult,
         located: FramePose,
         chain: Chain,
         options: DetectOptions,
@@ -459,7 +444,7 @@ class DetectService:
             precision=self.runner.precision,
         )
 
-    def _boxes(self, result: Any, posted_size: int) -> list[BoxOut]:
+    def _boxes(self, result: StepResult, posted_size: int) -> list[BoxOut]:
         detections = decode_detections(result.boxes, result.scores, self.score_threshold)
         polygons = box_polygons_pixels(detections.boxes, posted_size, self.config.resolution)  # [N, 4, 2]
         names = self.config.class_names
@@ -488,7 +473,7 @@ class DetectService:
 
     def _flow(
         self,
-        result: Any,
+        result: StepResult,
         decoded: DecodedFrame,
         chain: Chain,
         located: FramePose,
@@ -501,7 +486,7 @@ class DetectService:
             return None
         flow = np.asarray(result.flow)  # [2, Hf, Wf] the newest pair
         _, height, width = flow.shape
-        steps = self.validity_steps(chain.last_pose, located.pose, result.frames_used, height)  # [Hf, Wf] of k / 100
+        steps = self.validity_steps(chain.pose, located.pose, result.frames_used, height)  # [Hf, Wf] of k / 100
         if options.flow_format == "base64":
             values: Any = base64.b64encode(flow.astype("<f2").tobytes()).decode("ascii")
             validity: Any = base64.b64encode(_VALIDITY_FLOAT16.take(steps).tobytes()).decode("ascii")
@@ -521,7 +506,7 @@ class DetectService:
             cell_centre_rule=CELL_RULE,
         )
         return FlowOut.model_construct(
-            pair=[chain.last_timestamp, timestamp],
+            pair=[chain.timestamp, timestamp],
             shape=[2, height, width],
             units="m",
             axes=FLOW_AXES,

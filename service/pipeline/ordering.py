@@ -4,12 +4,12 @@ A frame named by the X-Stream-Id header or the path takes its place in its strea
 time its request's first bytes arrived). A frame named only in its body cannot: its stream is known once the body
 has arrived and been parsed, and a larger or slower body would lose its place to a later, smaller one. So:
 
-- such a frame is placed by its ARRIVAL once parsed (`StreamStore.take_ticket` inserts it ahead of frames that
-  arrived after it and have not started);
-- and a frame does not start its turn while a request of the SAME CLIENT that arrived before it still has its
-  stream unknown (its body arriving or being parsed), for at most `hold_s` (RAFD_ORDER_HOLD_S) after the frame
-  is ready. Only the same client's requests count: frames of one stream come from one client, and another client's
-  slow bodies delay nobody else.
+- such a frame is placed once parsed, among the frames of its stream that have not started by its timestamp
+  (`StreamStore.place`);
+- and a frame does not start its turn while a request of the SAME CLIENT still has its stream unknown (its body
+  arriving or being parsed) that was there when the frame became ready, for at most `hold_s` (RAFD_ORDER_HOLD_S).
+  Only the same client's requests count: frames of one stream come from one client, and another client's slow
+  bodies delay nobody else.
 
 A frame held longer than `hold_s` goes ahead; an earlier frame placed after it started is then refused (409) as
 before. All methods run on the event loop.
@@ -61,18 +61,22 @@ class ArrivalOrder:
                 del self._pending[request.client]
         request.resolved.set()
 
-    async def wait_for_earlier(self, client: str, arrival: ArrivalKey) -> None:
-        """Until no request of `client` that arrived before `arrival` has its stream unknown, or `hold_s` passed."""
+    async def wait_for_unresolved(self, client: str) -> None:
+        """Until the requests of `client` whose stream is unknown NOW are resolved, or `hold_s` passed.
+
+        All of them, not only those stamped before this frame: stamps are taken when the event loop reads a request,
+        and a loop busy for a few milliseconds reads the connections that became ready meanwhile in descriptor order,
+        so a frame sent just before this one may carry a later stamp. Requests arriving after this call are not
+        waited for (a client pipelining without pause cannot hold its own frames back)."""
         if self.hold_s <= 0 or client not in self._pending:
             return
         deadline = time.monotonic() + self.hold_s
-        while True:
-            earlier = [r for r in self._pending.get(client, ())[:MAX_WAITING_FOR] if r.arrival < arrival]
+        for request in list(self._pending.get(client, ()))[:MAX_WAITING_FOR]:
             remaining = deadline - time.monotonic()
-            if not earlier or remaining <= 0:
+            if remaining <= 0:
                 return
             try:
-                await _wait(earlier[0].resolved, remaining)
+                await _wait(request.resolved, remaining)
             except asyncio.TimeoutError:
                 return
 

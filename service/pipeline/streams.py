@@ -1,5 +1,5 @@
-"""Per-stream state store: one runner StreamState per stream, an arrival-order queue, generations, TTL and LRU,
-one namespace per API key.
+"""Per-stream state store: one Chain per stream (the model's state and what the service keeps beside it), an
+arrival-order queue, generations, TTL and LRU, one namespace per API key.
 
 Namespaces: a stream is (owner, stream id), the owner being the API key's name (None without keys), so A's
 `car-7` and B's `car-7` are different streams and no key can tell whether another's id exists. Each owner holds at
@@ -11,9 +11,11 @@ Arrival order: a frame holds a `Ticket` in its stream's queue at its place by AR
 bytes arrived, `service.http.intake`) for its request's life (`queued`: taken on entry, released however the request
 ends): from the start with the X-Stream-Id header or the path form, or once its body is parsed when only the body
 names the stream (it is then inserted ahead of frames that arrived after it and have not started;
-`service.pipeline.ordering` holds those for a bounded time while it is parsed). Frames of one stream change the stream
-strictly in that order. A frame that can no longer be in order (its timestamp is not after the stream's last
-accepted frame, or after that of a frame queued ahead of it) is refused at once instead of waiting its turn, except
+`service.pipeline.ordering` holds those for a bounded time while it is parsed). Once its timestamp is known, a frame
+that has not started takes its place among the waiting frames by timestamp (`StreamEntry.order_waiting`: arrival
+stamps can invert two requests sent a few milliseconds apart). Frames of one stream change the stream strictly in
+queue order. A frame that can no longer be in order (its timestamp is not after the stream's last accepted frame, or
+after that of a frame already started) is refused at once instead of waiting its turn, except
 the same frame posted again (a retry after a lost answer, same timestamp): it waits its turn and gets the last
 frame's answer again when it is that frame (`replay_of`: same image and pose), else it is refused (409).
 
@@ -38,10 +40,11 @@ from collections import Counter, OrderedDict, deque
 from collections.abc import Callable, Iterator
 from contextlib import contextmanager
 from dataclasses import dataclass, field
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING
 
 import numpy as np
 
+from rafd.runtime import StreamState
 from service.http.errors import ApiError, timestamp_error
 from service.schemas import DetectResponse, RestartReason
 
@@ -51,6 +54,29 @@ if TYPE_CHECKING:
 StreamKey = tuple[str | None, str]  # (owner: the API key's name or None, stream id)
 ArrivalKey = tuple[float, int]  # (monotonic time of the request's first bytes, arrival sequence number)
 MIN_TOMBSTONES = 64  # per owner; at least 4x its quota (chains ended by eviction or expiry, remembered for a notice)
+
+
+@dataclass(frozen=True)
+class Chain:
+    """A stream chain after its last accepted frame: what its next frame continues. Immutable: a frame builds the
+    next Chain (`advanced`) and the store swaps it in whole when the frame is accepted (StreamStore.commit)."""
+
+    model: StreamState = field(default_factory=StreamState)  # the runner's state: the model's cache per view
+    odometry: OdometryMemory | None = None  # the last frame as the next frame's odometry needs it
+    pose: np.ndarray | None = None  # [3] world pose of the last frame
+    pose_source: str | None = None  # the chain's FIRST frame's: fixes which world frame the chain uses
+    timestamp: float | None = None  # the last frame's
+
+    def advanced(
+        self, model: StreamState, odometry: OdometryMemory, pose: np.ndarray, pose_source: str, timestamp: float
+    ) -> Chain:
+        """The chain once one more frame is accepted."""
+        return Chain(model, odometry, pose, self.pose_source or pose_source, timestamp)
+
+    @property
+    def nbytes(self) -> int:
+        """What the chain's model state holds (the odometry's memory is counted apart: GET /streams)."""
+        return self.model.nbytes
 
 
 @dataclass(eq=False)
@@ -73,15 +99,11 @@ class StreamEntry:
     stream_id: str
     owner: str | None  # name of the API key whose namespace holds it (None without API keys)
     generation: int
-    state: Any  # the runner's StreamState (holds the last T frames + poses)
     last_used: float  # store clock when its last frame was ACCEPTED
+    chain: Chain = field(default_factory=Chain)
     queue: deque[Ticket] = field(default_factory=deque)  # arrival order; the head is the frame being processed
     closed: bool = False  # deleted: the chain ended, its queued frames are refused
     frames_seen: int = 0
-    last_timestamp: float | None = None
-    odometry: OdometryMemory | None = None  # the last accepted frame as the next frame's odometry needs it
-    last_pose: np.ndarray | None = None  # [3] world pose of the last accepted frame
-    pose_source: str | None = None  # source of the FIRST frame: fixes which world frame the stream uses
     restarted: RestartReason | None = None  # how the previous chain of this id ended, when the store ended it
     # The last accepted frame's identity (digest of its image and pose) and its answer: the same frame posted again
     # (a retry after a lost answer) is answered with that answer, not refused and not stepped twice.
@@ -93,27 +115,16 @@ class StreamEntry:
         return (self.owner, self.stream_id)
 
     @property
-    def frames_buffered(self) -> int:
-        return int(self.state.frames_used)
+    def last_timestamp(self) -> float | None:
+        return self.chain.timestamp
 
-    def commit(
-        self,
-        state: Any,
-        timestamp: float,
-        odometry: OdometryMemory,
-        pose: np.ndarray,
-        pose_source: str,
-        digest: bytes | None = None,
-        new_chain: bool = False,
-    ) -> None:
-        """Swap in the runner's new state and the frame's bookkeeping (only after a successful step); `new_chain`: the
-        frame started a new chain on this entry (its world frame is anchored anew)."""
-        self.state = state
-        self.last_timestamp = timestamp
-        self.odometry = odometry
-        self.last_pose = pose
-        if self.pose_source is None or new_chain:
-            self.pose_source = pose_source
+    @property
+    def frames_buffered(self) -> int:
+        return self.chain.model.frames_used
+
+    def commit(self, chain: Chain, digest: bytes | None = None) -> None:
+        """Swap in the chain a frame advanced (only after it succeeded whole) and the frame's bookkeeping."""
+        self.chain = chain
         self.frames_seen += 1
         self.last_digest = digest
         self.last_answer = None  # set once the answer is complete (`remember_answer`)
@@ -146,12 +157,26 @@ class StreamEntry:
             if other is ticket:
                 break
             # Equal: a retry of a frame still queued or running waits for it (then replays it, or takes its place).
+            # Only a started frame can be ahead with a later timestamp: the waiting ones are in timestamp order.
             if other.timestamp is not None and other.timestamp > t:
                 return (
                     f"timestamp {t!r} is not after {other.timestamp!r}, a frame of this stream that arrived "
                     "earlier and is still queued"
                 )
         return None
+
+    def order_waiting(self) -> None:
+        """Put the frames that have not started and whose timestamps are known in timestamp order (by arrival among
+        equal ones), each into one of their slots; a frame whose body is still arriving keeps its place by arrival.
+
+        Arrival order alone is not the client's order: requests of one client on separate connections are stamped
+        when the event loop reads them, and a loop busy for a few milliseconds reads the sockets that became ready
+        meanwhile in descriptor order. Frames that have not started can still be taken in the order the stream
+        needs, so one sent a little later but read first does not get its predecessor refused."""
+        slots = [k for k, t in enumerate(self.queue) if not t.started and t.timestamp is not None]
+        waiting = sorted((self.queue[k] for k in slots), key=lambda t: (t.timestamp, t.arrival))
+        for k, ticket in zip(slots, waiting):
+            self.queue[k] = ticket
 
 
 @dataclass(frozen=True)
@@ -182,7 +207,6 @@ class StreamStore:
 
     def __init__(
         self,
-        new_state: Callable[[], Any],
         max_streams: int,
         ttl_s: float,
         clock: Callable[[], float] = time.monotonic,
@@ -192,7 +216,6 @@ class StreamStore:
         max_streams_per_key: int | None = None,
         on_restart: Callable[[str], None] | None = None,
     ) -> None:
-        self._new_state = new_state
         self.max_streams = max_streams
         self.max_streams_per_key = min(max_streams_per_key or max_streams, max_streams)
         self.ttl_s = ttl_s
@@ -244,7 +267,6 @@ class StreamStore:
                 stream_id=stream_id,
                 owner=owner,
                 generation=next(self._generations),
-                state=self._new_state(),
                 last_used=self._clock(),
                 restarted=self._tombstone(owner, stream_id),
             )
@@ -267,8 +289,10 @@ class StreamStore:
         return ticket
 
     def place(self, ticket: Ticket, timestamp: float) -> None:
-        """Give the ticket its timestamp; 409 at once when it can no longer be in order."""
+        """Give the ticket its timestamp and its place among the waiting frames (StreamEntry.order_waiting); 409 at
+        once when it can no longer be in order."""
         ticket.timestamp = timestamp
+        ticket.entry.order_waiting()
         reason = ticket.entry.out_of_order(ticket)
         if reason:
             raise timestamp_error(ticket.entry.stream_id, reason)
@@ -296,24 +320,17 @@ class StreamStore:
         return ticket.entry
 
     def commit(
-        self,
-        ticket: Ticket,
-        state: Any,
-        timestamp: float,
-        odometry: OdometryMemory,
-        pose: np.ndarray,
-        pose_source: str,
-        digest: bytes | None = None,
-        chain_break: RestartReason | None = None,
+        self, ticket: Ticket, chain: Chain, digest: bytes | None = None, chain_break: RestartReason | None = None
     ) -> None:
-        """The frame was accepted: the only place a stream changes, moves in the LRU order and stops being idle.
+        """The frame was accepted with the chain it advanced: the only place a stream changes, moves in the LRU order
+        and stops being idle.
 
-        `chain_break`: the frame found the chain held here stale or not its own and was stepped on a fresh buffer; the
+        `chain_break`: the frame found the chain held here stale or not its own and was stepped on a fresh chain; the
         entry starts a new chain (a new generation) with it, and its answer says why."""
         entry = self.check_turn(ticket)
         assert entry.queue and entry.queue[0] is ticket, "commit out of turn"
         new_chain = chain_break is not None and entry.frames_seen > 0
-        entry.commit(state, timestamp, odometry, pose, pose_source, digest, new_chain)
+        entry.commit(chain, digest)
         if new_chain:
             entry.generation = next(self._generations)
             ticket.restarted = chain_break
@@ -374,8 +391,8 @@ class StreamStore:
                 frames_queued=len(e.queue),
                 last_timestamp=e.last_timestamp,
                 idle_s=max(0.0, now - e.last_used),
-                pose_source=e.pose_source,
-                state_bytes=int(getattr(e.state, "nbytes", 0)),
+                pose_source=e.chain.pose_source,
+                state_bytes=e.chain.nbytes,
             )
             for e in self._entries.values()
             if e.frames_seen and e.owner == owner

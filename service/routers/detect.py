@@ -12,6 +12,7 @@ from typing import Literal
 
 from fastapi import APIRouter, Depends, Header, Path, Query, Request, Response
 
+from service.body.form import multipart_schema
 from service.dependencies import get_caller, get_service
 from service.http.errors import ApiError, error_responses
 from service.pipeline.detector import DetectOptions, DetectService
@@ -19,59 +20,16 @@ from service.schemas import STREAM_ID_MAX_LENGTH, STREAM_ID_PATTERN, DetectJson,
 
 router = APIRouter(tags=["detect"])
 
-_MULTIPART_SCHEMA = {
-    "type": "object",
-    "required": ["timestamp", "image"],
-    "properties": {
-        "stream_id": {
-            "type": "string",
-            "description": "required unless the X-Stream-Id header or the path names the stream",
-        },
-        "timestamp": {"type": "number"},
-        "pose_x": {"type": "number"},
-        "pose_y": {"type": "number"},
-        "pose_yaw": {"type": "number"},
-        "image": {"type": "string", "format": "binary"},
-    },
-}
 _REQUEST_BODY = {
     "requestBody": {
         "required": True,
         "content": {
             "application/json": {"schema": DetectJson.model_json_schema(ref_template="#/components/schemas/{model}")},
-            "multipart/form-data": {"schema": _MULTIPART_SCHEMA},
+            "multipart/form-data": {"schema": multipart_schema()},
         },
     }
 }
-ERROR_CODES = (
-    "empty_body",
-    "invalid_json",
-    "invalid_multipart",
-    "ambiguous_content_type",
-    "unauthorized",
-    "body_timeout",
-    "body_too_slow",
-    "timestamp_not_increasing",
-    "pose_source_conflict",
-    "stream_reset",
-    "request_too_large",
-    "unsupported_media_type",
-    "validation_error",
-    "stream_id_mismatch",
-    "timestamp_gap_too_small",
-    "implausible_motion",
-    "invalid_image",
-    "unsupported_image_size",
-    "unsupported_image_format",
-    "stream_queue_full",
-    "too_many_client_requests",
-    "internal_error",
-    "odometry_failed",
-    "not_ready",
-    "overloaded",
-    "odometry_unavailable",
-)
-_RESPONSES = {200: {"model": DetectResponse}, **error_responses(*ERROR_CODES)}
+_RESPONSES = {200: {"model": DetectResponse}, **error_responses("detect")}
 
 
 @dataclass(frozen=True)

@@ -20,6 +20,6 @@ async def live() -> Liveness:
     return Liveness(status="alive")
 
 
-@router.get("/ready", response_model=Readiness, responses=error_responses("not_ready"))
+@router.get("/ready", response_model=Readiness, responses=error_responses("ready"))
 async def ready(service: DetectService = Depends(get_service)) -> Readiness:
     return Readiness(status="ready", model_version=service.runner.metadata.get("version", "unknown"))

@@ -18,7 +18,7 @@ router = APIRouter(tags=["metrics"])
             "description": "Prometheus text exposition format 0.0.4",
             "content": {"text/plain": {"schema": {"type": "string"}}},
         },
-        **error_responses("unauthorized"),
+        **error_responses("metrics"),
     },
 )
 async def metrics(request: Request) -> Response:

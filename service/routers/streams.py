@@ -14,7 +14,7 @@ from service.schemas import STREAM_ID_MAX_LENGTH, STREAM_ID_PATTERN, StreamOut, 
 router = APIRouter(prefix="/streams", tags=["streams"])
 
 
-@router.get("", response_model=StreamsResponse, responses=error_responses("unauthorized", "not_ready"))
+@router.get("", response_model=StreamsResponse, responses=error_responses("list_streams"))
 async def list_streams(
     service: DetectService = Depends(get_service), caller: str | None = Depends(get_caller)
 ) -> StreamsResponse:
@@ -32,9 +32,7 @@ async def list_streams(
 @router.delete(
     "/{stream_id}",
     status_code=204,
-    responses=error_responses(
-        "unauthorized", "stream_not_found", "validation_error", "too_many_client_requests", "not_ready"
-    ),
+    responses=error_responses("delete_stream"),
 )
 async def delete_stream(
     stream_id: str = Path(min_length=1, max_length=STREAM_ID_MAX_LENGTH, pattern=STREAM_ID_PATTERN),

@@ -4,11 +4,13 @@ from __future__ import annotations
 
 import asyncio
 
+import numpy as np
 import pytest
 from fastapi.testclient import TestClient
 
 from service.app import create_app
-from service.pipeline.streams import StreamStore
+from service.pipeline.poses import OdometryMemory
+from service.pipeline.streams import Chain, StreamStore
 from service.settings import Settings
 from tests.utils.fake_runner import FakeRunner
 from tests.utils.service_testing import blob_frame, detect_json, wait_ready
@@ -26,8 +28,12 @@ class Clock:
 
 def make_store(max_streams=3, ttl_s=10.0):
     clock, evicted = Clock(), []
-    store = StreamStore(FakeRunner().new_state, max_streams, ttl_s, clock=clock, on_evict=evicted.append)
+    store = StreamStore(max_streams, ttl_s, clock=clock, on_evict=evicted.append)
     return store, clock, evicted
+
+
+def _advanced(chain: Chain, timestamp: float) -> Chain:
+    return chain.advanced(chain.model, OdometryMemory(FRAME, timestamp), np.zeros(3), "request", timestamp)
 
 
 async def feed(store: StreamStore, stream_id: str, timestamp: float) -> None:
@@ -36,7 +42,7 @@ async def feed(store: StreamStore, stream_id: str, timestamp: float) -> None:
     try:
         store.place(ticket, timestamp)
         await store.wait_turn(ticket)
-        store.commit(ticket, ticket.entry.state, timestamp, FRAME, None, "request")
+        store.commit(ticket, _advanced(ticket.entry.chain, timestamp))
     finally:
         store.release(ticket)
 
@@ -46,7 +52,7 @@ async def hold(store: StreamStore, stream_id: str, timestamp: float):
     ticket = store.take_ticket(stream_id)
     store.place(ticket, timestamp)
     await store.wait_turn(ticket)
-    store.commit(ticket, ticket.entry.state, timestamp, FRAME, None, "request")
+    store.commit(ticket, _advanced(ticket.entry.chain, timestamp))
     return ticket
 
 
