@@ -28,7 +28,14 @@ import numpy as np
 from rafd.geometry import RADIATE_SCAN_SIZE
 from rafd.preprocess import model_crop_of_top_rows, polar_to_cartesian, to_model_input
 from rafd.scans.cartesian import accepted_sizes
-from rafd.scans.native import SENSOR_SHAPE, NativeShape, is_native_shape, native_format_name, parse_native_scan
+from rafd.scans.native import (
+    FLAG_COLUMN,
+    SENSOR_SHAPE,
+    NativeShape,
+    is_native_shape,
+    native_format_name,
+    parse_native_scan,
+)
 from rafd.scans.native import to_cartesian as native_to_cartesian
 from rafd.scans.polar import RADIATE_POLAR_SHAPE, accepts_polar
 from service.body import png
@@ -168,7 +175,8 @@ def _decode_frame(image: PostedImage, input_size: int, resolution: float, native
         decoded = polar_to_cartesian(decoded, min(converted, width))  # [576, 400] -> [V, V] uint8
     elif not square:  # a native scan (the size check let only these through)
         try:
-            scan = parse_native_scan(decoded, native_format_name(decoded.shape[1]))
+            # Named by its width and column 10 (a Doppler-mode chirp column is no valid flag: rafd.scans.native).
+            scan = parse_native_scan(decoded, native_format_name(decoded.shape[1], decoded[:, FLAG_COLUMN]))
         except ValueError as exc:
             raise ApiError("invalid_image", f"the native scan's header columns do not read as one: {exc}") from exc
         width, posted_format = RADIATE_SCAN_SIZE, "native"

@@ -191,3 +191,19 @@ def b64png_bytes(data: bytes) -> str:
     import base64
 
     return base64.b64encode(data).decode("ascii")
+
+
+def test_the_real_boreas_rt_scan_answers_as_its_boreas_rt_conversion(client: TestClient, boreas_rt_scan: Path):
+    """The real RAS6 Doppler scan posted as it is on disk: read as boreas-rt (its chirp column not taken for a valid
+    flag, every azimuth measured), it answers exactly as its boreas-rt Cartesian conversion; the old reading (a valid
+    flag: half the azimuths unmeasured) converts to another scan."""
+    import cv2
+
+    native = cv2.imread(str(boreas_rt_scan), cv2.IMREAD_UNCHANGED)
+    from_native = post(client, "boreas-rt", 0, native)
+    converted = to_cartesian(parse_native_scan(native, "boreas-rt"))
+    from_cartesian = post(client, "boreas-rt-cartesian", 0, converted)
+    assert from_native["input"]["posted_format"] == "native"
+    assert comparable(from_native) == comparable(from_cartesian)
+    as_valid_flag = to_cartesian(parse_native_scan(native, "boreas-2021"))
+    assert np.abs(as_valid_flag.astype(int) - converted.astype(int)).max() > 50
