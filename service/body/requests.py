@@ -6,9 +6,9 @@ counted as it streams in (`StructureCount`: a detect request has a few keys, one
 array), and a body with more is refused as soon as its count passes the bound, unparsed and unread past that piece
 (a body of 200k keys or numbers: after its first 64 KiB); the rest is parsed on the parse executor, off the event
 loop, by orjson (strict: UTF-8, no NaN / Infinity, no trailing data). Multipart: fields stream_id, timestamp, optional
-pose_x, pose_y, pose_yaw (all three or none), optional previous_timestamp and the file field `image`, each at most
-once; numbers are written as JSON numbers. Unknown fields are refused (a typo like `pose_yw` must not silently drop
-the pose).
+pose_x, pose_y, pose_yaw (all three or none), optional previous_timestamp and range_resolution_m, and the file field
+`image`, each at most once; numbers are written as JSON numbers. Unknown fields are refused (a typo like `pose_yw`
+must not silently drop the pose).
 The stream id may come from the body, the X-Stream-Id header or the path; all that are given must agree.
 """
 
@@ -33,7 +33,7 @@ from service.schemas import DetectBody, DetectFields, DetectJson, Pose
 JSON = "application/json"
 MULTIPART = "multipart/form-data"
 POSE_FORM_FIELDS = ("pose_x", "pose_y", "pose_yaw")
-FORM_FIELDS = ("stream_id", "timestamp", *POSE_FORM_FIELDS, "previous_timestamp")
+FORM_FIELDS = ("stream_id", "timestamp", *POSE_FORM_FIELDS, "previous_timestamp", "range_resolution_m")
 FORM_FILES = ("image",)
 JSON_FIELDS = frozenset(DetectJson.model_fields)
 POSE_FIELDS = frozenset(Pose.model_fields)
@@ -101,7 +101,13 @@ def resolve_stream_id(body: DetectBody, stream_hint: str | None) -> DetectFields
             f"previous_timestamp ({previous!r}) must be before timestamp ({body.timestamp!r}): it names the frame "
             "this stream sent before this one",
         )
-    return DetectFields(stream_id=stream_id, timestamp=body.timestamp, pose=body.pose, previous_timestamp=previous)
+    return DetectFields(
+        stream_id=stream_id,
+        timestamp=body.timestamp,
+        pose=body.pose,
+        previous_timestamp=previous,
+        range_resolution_m=body.range_resolution_m,
+    )
 
 
 # ---------------------------------------------------------------------------------------------------- JSON
@@ -283,8 +289,9 @@ async def _parse_form(request: Request, inspect: dict[str, Callable[[bytes], Non
         values["stream_id"] = _text(parts["stream_id"])
     if "timestamp" in parts:
         values["timestamp"] = _number("timestamp", _text(parts["timestamp"]))
-    if "previous_timestamp" in parts:
-        values["previous_timestamp"] = _number("previous_timestamp", _text(parts["previous_timestamp"]))
+    for name in ("previous_timestamp", "range_resolution_m"):
+        if name in parts:
+            values[name] = _number(name, _text(parts[name]))
     given = [name for name in POSE_FORM_FIELDS if name in parts]
     if given and len(given) != len(POSE_FORM_FIELDS):
         raise ApiError(

@@ -31,6 +31,13 @@ _MULTIPART_SCHEMA = {
         "pose_x": {"type": "number"},
         "pose_y": {"type": "number"},
         "pose_yaw": {"type": "number"},
+        "previous_timestamp": {"type": "number"},
+        "range_resolution_m": {
+            "type": "number",
+            "minimum": 0.001,
+            "maximum": 1.0,
+            "description": "native scans only: metres per range bin, as the sensor reports it",
+        },
         "image": {"type": "string", "format": "binary"},
     },
 }
