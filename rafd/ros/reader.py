@@ -207,6 +207,8 @@ def read_geometries(
 ) -> tuple[tuple[int, RadarGeometry], ...]:
     """(log time, geometry) of every RadarConfigurationMsg in the bag, in time order."""
     connections = [c for c in reader.connections if c.msgtype == types.CONFIGURATION]
+    if not connections:  # (rosbags reads every topic when given no connection)
+        return ()
     found = []
     messages = _guarded(reader.messages(connections=connections), path, "configuration")
     for index, (connection, log_time, raw) in enumerate(messages):
@@ -317,6 +319,18 @@ def read_scans(
         for connection, log_time, raw in _guarded(iterator, topic.path, f"topic {topic.topic}"):
             yield log_time, decode_scan(topic, decoder, connection, log_time, raw, index)
             index += 1
+        if start_ns is None and stop_ns is None:
+            _check_count(topic, connections, index)
+
+
+def _check_count(topic: BagTopic, connections: list[Any], read: int) -> None:
+    """BagError when fewer messages were read than the bag's index lists: a corrupt record was skipped."""
+    listed = sum(int(c.msgcount) for c in connections)
+    if listed and read != listed:
+        raise BagError(
+            f"{topic.path}: topic {topic.topic}: the bag's index lists {listed} messages, {read} could be read "
+            "(corrupt records)"
+        )
 
 
 def list_stamps(topic: BagTopic) -> list[tuple[int, int]]:
@@ -332,4 +346,5 @@ def list_stamps(topic: BagTopic) -> list[tuple[int, int]]:
                 listed.append((log_time, header_stamp_ns(raw, decoder.ros1)))
             except struct.error as error:
                 raise BagError(f"{topic.path}: topic {topic.topic}, message {index}: too short for a header") from error
+        _check_count(topic, connections, len(listed))
         return listed
