@@ -282,7 +282,8 @@ def post_frame(
     that was answered (the service restarts a chain that does not end there). RetryableError when the frame may be
     posted again (502 / 503 / 504, a connection error, a timeout)."""
     pose = pose_of(frame.pose) if use_pose and frame.pose is not None else None
-    fields = FrameFields(frame.timestamp, stream_id, pose, previous_timestamp, frame.range_resolution_m)
+    range_bin = getattr(frame, "range_resolution_m", None)  # a ClientFrame; stand-ins without it post none
+    fields = FrameFields(frame.timestamp, stream_id, pose, previous_timestamp, range_bin)
     request = detect_request(json_body(fields, base64_png(png)), header_stream_id=stream_id, api_key=api_key)
     try:
         with post(url, request, timeout) as response:

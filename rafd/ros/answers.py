@@ -15,6 +15,7 @@
 
 from __future__ import annotations
 
+import base64
 from typing import Any
 
 import numpy as np
@@ -162,22 +163,38 @@ def scan_grid(store: Any, scan: np.ndarray, resolution: float, stamp_ns: int, fr
     return make(store, types.OCCUPANCY_GRID, header=header(store, stamp_ns, frame_id), info=info, data=values)
 
 
+MIN_FLOW_M = 0.05  # cells moving less get no segment (the pictures' threshold, rafd.viz)
+
+
+def _decoded(flow: dict[str, Any], field: Any, shape: tuple[int, ...]) -> np.ndarray:
+    """An answer's flow array in its `encoding` (docs/api.md: nested lists, or base64 of little-endian float16)."""
+    if flow["encoding"] == "base64-float16":
+        return np.frombuffer(base64.b64decode(field), dtype="<f2").reshape(shape).astype(np.float64)
+    return np.asarray(field, dtype=np.float64).reshape(shape)
+
+
 def flow_markers(store: Any, answer: dict[str, Any], stamp_ns: int, frame_id: str = FRAME_RADAR) -> Any:
     """visualization_msgs/MarkerArray: one LINE_LIST of the flow's valid cells (each a segment from the cell centre
     along its motion over the frame pair, metres), replacing the last one (DELETEALL first)."""
-    from rafd.viz.answer import flow_arrows
-    from rafd.viz.mcap import answer_valid_cells
-
     stamped = header(store, stamp_ns, frame_id)
     clear = make(store, "visualization_msgs/msg/Marker", header=stamped, ns="rafd_flow", action=3)  # DELETEALL
     flow = answer.get("flow")
     if not flow:
         return make(store, types.MARKERS, markers=[clear])
-    heads_px, motions = flow_arrows(flow, min_m=0.05, keep=answer_valid_cells(flow))
-    resolution = float(flow["grid"]["cell_size_m"]) / float(flow["grid"]["stride_px"])
+    grid = flow["grid"]
+    values = _decoded(flow, flow["values"], tuple(int(n) for n in flow["shape"]))  # [2, Hf, Wf] metres
+    rows, cols = np.meshgrid(np.arange(grid["height"]), np.arange(grid["width"]), indexing="ij")
+    keep = np.hypot(values[0], values[1]) > MIN_FLOW_M
+    if flow.get("validity") is not None:
+        validity = _decoded(flow, flow["validity"], (int(grid["height"]), int(grid["width"])))
+        keep &= validity >= float(flow["validity_min"])
+    resolution = float(grid["cell_size_m"]) / float(grid["stride_px"])
     half = answer["input"]["posted_size"] / 2.0
     points = []
-    for (u, v), (dx, dy) in zip(heads_px, motions):
+    for row, col in zip(rows[keep], cols[keep]):
+        u = grid["origin_px"][0] + (col + 0.5) * grid["stride_px"]  # the cell centre, posted pixels
+        v = grid["origin_px"][1] + (row + 0.5) * grid["stride_px"]
+        dx, dy = float(values[0, row, col]), float(values[1, row, col])
         x, y = (u - half) * resolution, (half - v) * resolution  # service axes, metres
         for px, py in ((x, y), (x + dx, y + dy)):
             rx, ry = position_to_ros(px, py)
