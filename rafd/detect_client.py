@@ -40,13 +40,18 @@ class FrameFields:
     pose: Sequence[float] | None = None  # (x, y, yaw) world pose; None: the service estimates ego motion
     # The stream's last frame the client got an answer for: a replica whose chain does not end there restarts it.
     previous_timestamp: float | None = None
+    # A native scan's metres per range bin, as its sensor reported it (a ROS 2 bag's configuration): the service uses
+    # it instead of the bin size of the dataset the scan's shape names.
+    range_resolution_m: float | None = None
 
     def _given(self) -> dict[str, Any]:
-        """stream_id, timestamp and previous_timestamp: those given, in both forms alike."""
+        """stream_id, timestamp, previous_timestamp and range_resolution_m: those given, in both forms alike."""
         fields: dict[str, Any] = {} if self.stream_id is None else {"stream_id": self.stream_id}
         fields["timestamp"] = self.timestamp
         if self.previous_timestamp is not None:
             fields["previous_timestamp"] = self.previous_timestamp
+        if self.range_resolution_m is not None:
+            fields["range_resolution_m"] = self.range_resolution_m
         return fields
 
     def json_fields(self, image: str) -> dict[str, Any]:

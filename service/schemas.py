@@ -29,6 +29,10 @@ StreamId = Annotated[
 # 1e8 of the world origin (UTM northings reach 1e7, Earth-centred coordinates 6.4e6) and yaws within 1e4 rad
 # (unwrapped: 1591 turns), where float64 still resolves a millimetre and a sine means something.
 MAX_TIMESTAMP_S = 4_102_444_800.0
+# A native scan's range bin (range_resolution_m): scanning radars' bins are centimetres (Navtech: 0.0432-0.0596 m);
+# the bounds leave a wide margin either side while refusing a zero, a negative or a unit mistake of a thousand.
+MIN_RANGE_BIN_M = 0.001
+MAX_RANGE_BIN_M = 1.0
 MAX_POSE_M = 1e8
 MAX_YAW_RAD = 1e4
 Timestamp = Annotated[
@@ -39,6 +43,8 @@ Timestamp = Annotated[
         description="seconds since the UNIX epoch (or since the sensor started), 0 to 4102444800 (2100-01-01)",
     ),
 ]
+
+RangeBin = Annotated[float, Field(ge=MIN_RANGE_BIN_M, le=MAX_RANGE_BIN_M, description="metres per range bin")]
 
 # No coercion: a JSON timestamp is a number (an integer is a number), never "1.5" or true.
 Strict = ConfigDict(extra="forbid", allow_inf_nan=False, strict=True)
@@ -74,6 +80,12 @@ class DetectBody(BaseModel):
         '(stream_restarted: "previous_timestamp_mismatch") instead of continuing a chain that is not the client\'s. '
         "Must be before timestamp; omit on a stream's first frame",
     )
+    range_resolution_m: RangeBin | None = Field(
+        default=None,
+        description="native scans only: metres per range bin, as the sensor reports it (e.g. a ROS 2 bag's "
+        "RadarConfigurationMsg); replaces the bin size of the dataset the scan's shape names (GET /model "
+        "accepted_native.format_rule). 0.001 to 1",
+    )
 
 
 class DetectJson(DetectBody):
@@ -83,14 +95,10 @@ class DetectJson(DetectBody):
     )
 
 
-class DetectFields(BaseModel):
+class DetectFields(DetectBody):
     """One frame's fields once the stream id is resolved from the body, the X-Stream-Id header or the path."""
 
-    model_config = Strict
     stream_id: StreamId
-    timestamp: Timestamp
-    pose: Pose | None = None
-    previous_timestamp: Timestamp | None = None
 
 
 class Answer(BaseModel):
@@ -145,6 +153,16 @@ class InputOut(Answer):
         description="polar: a Navtech_Polar scan was posted, native: an Oxford / Boreas native scan; either is "
         "converted to RADIATE's Cartesian scan, and posted_size, crop_offset_px and every polygon are in that "
         "Cartesian scan's pixels"
+    )
+    native_format: str | None = Field(
+        default=None,
+        description="native scans: the format they were read as (oxford, boreas, boreas-2021, boreas-rt: GET /model "
+        "accepted_native); left out for other scans",
+    )
+    native_range_bin_m: float | None = Field(
+        default=None,
+        description="native scans: the metres per range bin used (the request's range_resolution_m, else the "
+        "format's); left out for other scans",
     )
 
 

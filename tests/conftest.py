@@ -54,6 +54,19 @@ def oxford_sample() -> Path:
     return sample
 
 
+@pytest.fixture(scope="session")
+def boreas_rt_scan() -> Path:
+    """One real Boreas-RT scan (Navtech RAS6, Doppler mode: column 10 is the chirp flag) in the native layout; skips
+    with the reason when RAFD_BOREAS_SAMPLE is not set."""
+    path = os.environ.get("RAFD_BOREAS_SAMPLE")
+    if not path:
+        pytest.skip("RAFD_BOREAS_SAMPLE is not set (point it at shared/boreas_rt_sample; .ci/run does)")
+    scans = sorted(Path(path).glob("*.png"))
+    if not scans:
+        pytest.skip(f"RAFD_BOREAS_SAMPLE={path} holds no <microseconds>.png scan")
+    return scans[0]
+
+
 @pytest.fixture(autouse=True)
 def _progress_bars_as_a_new_process_has_them():
     """A command run with --quiet silences the process's progress bars (rafd.progress): a test that ran one must

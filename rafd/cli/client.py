@@ -1,4 +1,4 @@
-"""rafd client: stream a RADIATE-format sequence to a running rafd serve.
+"""rafd client: stream a RADIATE-format sequence, or a ROS 2 bag's radar scans, to a running rafd serve.
 
 Posts every radar frame in timestamp order (with its pose from ego_poses.csv when present, else the
 service estimates ego motion). A folder with only the sensor's polar scans (Navtech_Polar/) posts them as
@@ -7,6 +7,13 @@ converted first when meta.json asks for another size or resolution. With --out: 
 (rafd.viz.answer: the model's crop zoomed, predictions with scores, ground truth where labelled, flow,
 legend), the answers as JSON lines and an MP4. With --mcap: a Foxglove/MCAP log of scans, poses, boxes, flow and
 ground truth (rafd.viz.mcap, `logs` extra). Uses only the standard library for HTTP.
+
+ROS 2 (`ros` extra, docs/ros2.md): a bag (a rosbag2 folder, its .mcap or .db3 file, or a ROS 1 .bag) posts its scan
+topic's scans (Navtech's RadarBScanMsg, or Image / CompressedImage; found by type, or --topic) as native scans with
+the range bin of the bag's RadarConfigurationMsg (else --range-resolution), each at its header stamp. --bag-out OUT
+writes the answers as a ROS 2 bag: Detection3DArray on /rafd/detections, RadarTracks on /rafd/tracks, Odometry on
+/rafd/odometry and /tf per scan (REP-103 axes), the scan and the flow on request (--bag-scan, --bag-flow); the bag
+is complete or absent.
 
 Every run starts its stream fresh, so a run repeats: by default each run posts to a new stream, named after the
 sequence plus a short run id (`tiny_foggy-3fa9c2`); `--stream-id ID` names the stream yourself, and `--reset`
@@ -24,6 +31,7 @@ Each retry is logged on stderr and counted in the closing summary.
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import functools
 import http.client
 import json
@@ -36,7 +44,7 @@ import urllib.parse
 import urllib.request
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import cv2
 import numpy as np
@@ -61,6 +69,9 @@ from rafd.scans.cartesian import png_size
 from rafd.scans.native import NativeSource
 from rafd.scans.polar import RADIATE_AZIMUTHS, RADIATE_RANGE_BINS
 
+if TYPE_CHECKING:
+    from rafd.ros.scans import BagScan, RadarGeometry
+
 
 def _is_radiate_polar_png(path: Path) -> bool:
     """Whether the file is a PNG of RADIATE's polar shape (posted as it is); any other file is posted converted."""
@@ -76,6 +87,7 @@ class ClientFrame:
     timestamp: float
     source: RadarFrame  # the reader's frame: its scan (Cartesian, or polar converted on load) and labels
     pose: np.ndarray | None  # [3] world pose, None to let the service use odometry
+    range_resolution_m: float | None = None  # a bag's native scan: its configuration's range bin, posted with it
 
     def scan_and_png(self) -> tuple[np.ndarray, bytes]:
         """(uint8 [N, N] Cartesian scan, its PNG bytes): a Cartesian PNG as it is on disk, a polar scan converted."""
@@ -97,11 +109,66 @@ class ClientFrame:
 
 
 @dataclass(frozen=True)
+class BagFrameInput:
+    """A bag's scan as the client posts it: the scan's PNG (native or RADIATE polar, as the service reads it) and its
+    range bin; the Cartesian scan made only when something draws it."""
+
+    scan: BagScan
+
+    def posted_png(self) -> bytes:
+        return png_bytes(self.scan.pixels)
+
+    def cartesian(self) -> np.ndarray:
+        from rafd.ros.sequence import cartesian_of
+
+        return cartesian_of(self.scan)
+
+
+@dataclass(frozen=True)
 class ClientSequence:
     name: str
     resolution: float
     annotated: bool  # the folder has annotations/annotations.json: draw and log ground truth
     frames: list[ClientFrame]  # sorted by timestamp
+    bag: Any = None  # rafd.ros.reader.BagTopic when the sequence is a bag's scan topic
+
+
+def read_bag_frames(bag: Path, topic: str | None, flags: RadarGeometry | None) -> ClientSequence:
+    """A bag's scan topic as the client's frames (no pose: the service estimates ego motion)."""
+    from rafd.data.reader import read_bag_sequence
+    from rafd.ros.sequence import BagScanSource, bag_frames
+
+    found, listed = bag_frames(bag, topic, flags)
+    sequence = read_bag_sequence(bag, estimate_poses=False)  # its name, frames' texts and BAG.ego_poses.csv
+    frames = []
+    for k, ((log, stamp), frame) in enumerate(zip(listed, sequence.frames)):
+        source = RadarFrame(
+            frame.number, frame.timestamp, bag, [], BagScanSource(found, log, stamp), frame.timestamp_text
+        )
+        pose = None if sequence.poses is None else sequence.poses[k]
+        frames.append(ClientFrame(frame.number, frame.timestamp, source, pose))
+    return ClientSequence(sequence.name, RADIATE_RESOLUTION, False, frames, found)
+
+
+def bag_inputs(sequence: ClientSequence, frames: list[ClientFrame]) -> Any:
+    """BagFrameInput per frame of a bag, read in one pass over its scan topic (one message held at a time); None for
+    a folder."""
+    if sequence.bag is None:
+        return None
+    from rafd.ros.reader import read_scans
+
+    scans = read_scans(sequence.bag)
+
+    def each() -> Any:
+        for frame in frames:
+            _, scan = next(scans)
+            if scan.stamp_ns != frame.source.timestamp_ns:
+                raise ValueError(
+                    f"{sequence.bag.path}: the scan stamped {scan.stamp_ns} ns is not frame {frame.number}"
+                )
+            yield BagFrameInput(scan)
+
+    return each()
 
 
 def read_frames(sequence_dir: Path) -> ClientSequence:
@@ -214,7 +281,8 @@ def post_frame(
     that was answered (the service restarts a chain that does not end there). RetryableError when the frame may be
     posted again (502 / 503 / 504, a connection error, a timeout)."""
     pose = pose_of(frame.pose) if use_pose and frame.pose is not None else None
-    fields = FrameFields(frame.timestamp, stream_id, pose, previous_timestamp)
+    range_bin = getattr(frame, "range_resolution_m", None)  # a ClientFrame; stand-ins without it post none
+    fields = FrameFields(frame.timestamp, stream_id, pose, previous_timestamp, range_bin)
     request = detect_request(json_body(fields, base64_png(png)), header_stream_id=stream_id, api_key=api_key)
     try:
         with post(url, request, timeout) as response:
@@ -320,6 +388,22 @@ def frame_rate(frames: list[ClientFrame]) -> float:
     return 1.0 / step if step > 0 else 4.0
 
 
+def read_sequence_or_bag(args: argparse.Namespace) -> ClientSequence:
+    """The frames of SEQ_DIR_OR_BAG: a bag's scan topic (rafd.ros), else the folder's frames."""
+    from rafd.ros.sequence import is_bag
+
+    if is_bag(args.sequence):
+        try:
+            from rafd.ros.scans import RadarGeometry
+        except ImportError as exc:  # pragma: no cover - the ros extra is missing
+            raise ValueError(f"reading a bag needs the ros extra (pip install 'rafd[ros]'): {exc}") from exc
+        geometry = None if args.range_resolution is None else RadarGeometry(range_bin_m=args.range_resolution)
+        return read_bag_frames(args.sequence, args.topic, geometry)
+    if args.topic is not None or args.range_resolution is not None:
+        raise ValueError(f"--topic and --range-resolution read a bag; {args.sequence} is not one")
+    return read_frames(args.sequence)
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(
         prog=flags.prog("client"), description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
@@ -327,8 +411,9 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument(
         "sequence",
         type=Path,
-        metavar="SEQ_DIR",
-        help="RADIATE-format sequence folder (Navtech_Cartesian/ + .txt, or Navtech_Polar/ + .txt)",
+        metavar="SEQ_DIR_OR_BAG",
+        help="RADIATE-format sequence folder (Navtech_Cartesian/ + .txt, Navtech_Polar/ + .txt, or native radar/), or "
+        "a ROS 2 bag (rosbag2 folder, .mcap, .db3; ROS 1 .bag)",
     )
     parser.add_argument("--url", required=True, help="service base URL, e.g. http://127.0.0.1:8000")
     flags.add_out(parser, "DIR", "folder receiving frames/ (one picture per answer), answers.jsonl and sequence.mp4")
@@ -358,6 +443,28 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument(
         "--view", type=int, default=768, metavar="PX", help="side in pixels of the zoomed model view (default 768)"
     )
+    bag = parser.add_argument_group("ROS 2 bags (docs/ros2.md; the ros extra)")
+    bag.add_argument("--topic", help="the bag's scan topic (default: the one topic of a scan type)")
+    bag.add_argument(
+        "--range-resolution",
+        type=float,
+        metavar="M",
+        help="metres per range bin, for a bag without a RadarConfigurationMsg (default: the service reads the scan's "
+        "width)",
+    )
+    bag.add_argument(
+        "--bag-out",
+        type=Path,
+        metavar="OUT",
+        help="write the answers as a ROS 2 bag OUT: /rafd/detections, /rafd/tracks, /rafd/odometry, /tf",
+    )
+    bag.add_argument(
+        "--bag-storage", choices=("mcap", "sqlite3"), default="mcap", help="storage of --bag-out (default mcap)"
+    )
+    bag.add_argument(
+        "--bag-scan", action="store_true", help="--bag-out also holds the scan (/rafd/scan, OccupancyGrid)"
+    )
+    bag.add_argument("--bag-flow", action="store_true", help="--bag-out also holds the flow (/rafd/flow, MarkerArray)")
     parser.add_argument("--timeout", type=float, default=30.0, help="seconds per request (default 30)")
     parser.add_argument(
         "--retries",
@@ -390,7 +497,7 @@ def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     flags.apply_quiet(args)
     try:
-        sequence = read_frames(args.sequence)
+        sequence = read_sequence_or_bag(args)
         from rafd.viz.answer import AnswerView, draw_answer
 
         view = AnswerView(view_px=args.view, flow_step=args.flow_step, flow_scale=args.flow_scale)
@@ -404,9 +511,14 @@ def main(argv: list[str] | None = None) -> int:
     if args.mcap is not None and not args.mcap.parent.is_dir():
         print(f"rafd-client: folder of --mcap {args.mcap} does not exist", file=sys.stderr)
         return 2
+    if args.bag_out is not None and (args.bag_out.exists() or not args.bag_out.parent.is_dir()):
+        problem = "exists (a new bag is written, never over one)" if args.bag_out.exists() else "has no folder"
+        print(f"rafd-client: --bag-out {args.bag_out} {problem}", file=sys.stderr)
+        return 2
     stream_id = args.stream_id or new_stream_id(sequence.name)
     out = args.out
-    writer = answers = log = last_answer = bar = None
+    writer = answers = log = last_answer = bar = answer_bag = None
+    completed = False
     boxes = retries = restarts = 0
     if out is not None:
         (out / "frames").mkdir(parents=True, exist_ok=True)
@@ -418,6 +530,10 @@ def main(argv: list[str] | None = None) -> int:
             except ImportError as exc:
                 raise ServiceError(f"--mcap needs the logs extra (pip install 'rafd[logs]'): {exc}") from exc
             log = RadarMcapLog(args.mcap)
+        if args.bag_out is not None:
+            from rafd.ros.writer import AnswerBag
+
+            answer_bag = AnswerBag(args.bag_out, stream_id, args.bag_storage, args.bag_scan, args.bag_flow)
         if args.reset:
             existed = reset_stream(args.url, stream_id, args.timeout, args.api_key)
             print(f"stream {stream_id}: {'deleted on the service' if existed else 'not on the service'} (--reset)")
@@ -428,9 +544,18 @@ def main(argv: list[str] | None = None) -> int:
         bar = progress.bar(desc=f"post {stream_id}", total=len(frames), unit="frame")
         boxes = 0
         previous: float | None = None  # the last frame answered: the chain the service must continue
+        from_bag = bag_inputs(sequence, frames)
+        drawn = out is not None or log is not None or (answer_bag is not None and args.bag_scan)
         for frame in frames:
-            scan, png = frame.scan_and_png()
-            posted = frame.posted_png(png)
+            if from_bag is not None:  # a bag's scan: posted as the native (or polar) scan it is, drawn converted
+                bag_input = next(from_bag)
+                posted = bag_input.posted_png()
+                frame = dataclasses.replace(frame, range_resolution_m=bag_input.scan.range_bin_m)
+                scan = bag_input.cartesian() if drawn else np.zeros((0, 0), np.uint8)
+                png = png_bytes(scan) if out is not None or log is not None else b""
+            else:
+                scan, png = frame.scan_and_png()
+                posted = frame.posted_png(png)
             try:
                 answer, used = post_with_retries(
                     max(0, args.retries),
@@ -465,6 +590,10 @@ def main(argv: list[str] | None = None) -> int:
                 refresh=False,
             )
             validity = None if validity_of is None else validity_of(answer)
+            if answer_bag is not None:
+                answer_bag.write(
+                    answer, frame.source.timestamp_ns, scan if args.bag_scan else None, sequence.resolution
+                )
             if log is not None:
                 log.write(logged_frame(frame, scan, png, answer, sequence.resolution, sequence.annotated, validity))
             if out is None or answers is None:  # (both or neither)
@@ -487,10 +616,16 @@ def main(argv: list[str] | None = None) -> int:
                     str(out / "sequence.mp4"), cv2.VideoWriter.fourcc(*"mp4v"), frame_rate(frames), size
                 )
             writer.write(canvas)
+        completed = True
     except (ServiceError, OSError, ValueError) as exc:
         print(f"rafd-client: {exc}", file=sys.stderr)
         return 1
     finally:
+        if answer_bag is not None:  # complete or absent: kept only when every frame was answered and written
+            if completed:
+                answer_bag.close()
+            else:
+                answer_bag.abort()
         if bar is not None:
             bar.close()
         if writer is not None:
@@ -518,6 +653,8 @@ def main(argv: list[str] | None = None) -> int:
         print(f"wrote {len(frames)} frames, answers.jsonl and sequence.mp4 to {out}")
     if log is not None:
         print(f"wrote {log.frames} frames to the MCAP log {args.mcap}")
+    if answer_bag is not None:
+        print(f"wrote {answer_bag.scans} scans' detections, tracks and odometry to the ROS 2 bag {args.bag_out}")
     return 0
 
 

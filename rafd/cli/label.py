@@ -203,6 +203,13 @@ def link_folder(
     """A sequence folder at `out` reading `sequence_dir`'s native scans through symlinks, with `labels` as its
     annotations and `split` in its meta.json; `frames` keeps only those scans (numbers in time order);
     `labelled_half_m`: the labelled square, outside which the datasets ignore the scans (rafd.data.labels)."""
+    from rafd.ros.sequence import is_bag
+
+    if is_bag(sequence_dir):
+        raise ValueError(
+            f"{sequence_dir} is a ROS 2 bag: link, render and compare read a folder's scan files; write the bag's "
+            "scans as a folder first (rafd polar BAG --out DIR), or propose and apply on the bag itself"
+        )
     sequence_dir, out = sequence_dir.resolve(), Path(out)
     (out / "radar").mkdir(parents=True, exist_ok=True)
     source = read_sequence(sequence_dir, estimate_poses=False)
@@ -251,13 +258,15 @@ def build_parser() -> argparse.ArgumentParser:
     )
     commands = parser.add_subparsers(dest="command", required=True)
     p = commands.add_parser("propose", help="candidate returns and their sheets for each scan")
-    p.add_argument("sequence", type=Path, help="sequence folder (RADIATE, polar-only or native)")
+    p.add_argument("sequence", type=Path, help="sequence folder (RADIATE, polar-only or native) or a ROS 2 bag")
     flags.add_out(p, "DIR", "folder for the pictures and the candidate lists", required=True)
     p.add_argument("--frame-numbers", metavar="LIST", help="frame numbers, e.g. 1,3-5 (default: all)")
     p.add_argument("--radius", type=float, default=40.0, help="metres around the radar to propose in")
     flags.add_quiet(p)
     a = commands.add_parser("apply", help="box text -> a label file")
-    a.add_argument("sequence", type=Path, help="the labelled sequence folder (RADIATE, polar-only or native)")
+    a.add_argument(
+        "sequence", type=Path, help="the labelled sequence folder (RADIATE, polar-only or native) or a ROS 2 bag"
+    )
     a.add_argument("boxes", type=Path, help="text: timestamp track class x y width length yaw_deg per line")
     flags.add_out(a, "JSON", "label file to write", required=True)
     r = commands.add_parser("render", help="draw a label file's boxes on its scans")

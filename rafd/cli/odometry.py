@@ -26,6 +26,7 @@ from rafd.data.dataset import select_sequences
 from rafd.data.ego_motion import consecutive_pairs, error_summary, estimate, signed_errors, write_poses
 from rafd.data.poses import POSES_FILE
 from rafd.progress import track
+from rafd.ros.sequence import is_bag, poses_file
 
 
 def _parser() -> argparse.ArgumentParser:
@@ -37,7 +38,8 @@ def _parser() -> argparse.ArgumentParser:
         nargs="+",
         type=Path,
         metavar="ROOT",
-        help="data root(s) or sequence folder(s) (Navtech_Cartesian/ + .txt)",
+        help="data root(s) or sequence folder(s) (Navtech_Cartesian/ + .txt), or ROS 2 bags (poses written beside "
+        "the bag as BAG.ego_poses.csv)",
     )
     flags.add_split(parser, "only sequences of these splits")
     flags.add_workers(parser, usable_cpus(), "sequences estimated at once (default: the CPUs)")
@@ -99,8 +101,8 @@ def main(argv: list[str] | None = None) -> int:
         return _fail("--workers must be >= 1")
     folders: list[Path] = []
     for root in args.roots:
-        if not root.is_dir():
-            return _fail(f"{root} is not a directory")
+        if not root.is_dir() and not is_bag(root):
+            return _fail(f"{root} is not a directory or a bag")
         try:
             chosen, _ = select_sequences(root, list(flags.split_names(args.split)) or None)
         except (FileNotFoundError, ValueError) as error:
@@ -124,7 +126,8 @@ def main(argv: list[str] | None = None) -> int:
         counts[status] += 1
         frames += count
         if status == "written" and len(folders) == 1:
-            print(f"wrote {args.out or folder / POSES_FILE}: {count} poses, {ms_per_pair:.1f} ms per pair")
+            written = args.out or (poses_file(folder) if is_bag(folder) else folder / POSES_FILE)
+            print(f"wrote {written}: {count} poses, {ms_per_pair:.1f} ms per pair")
     seconds = time.perf_counter() - start
     print(
         f"{counts['written']} sequences given poses ({frames} frames in {seconds:.1f} s), "

@@ -29,6 +29,7 @@ from rafd.data.radiate_files import read_timestamps
 from rafd.data.reader import read_sequence
 from rafd.geometry import RADIATE_SCAN_SIZE
 from rafd.progress import track
+from rafd.ros.sequence import is_bag
 from rafd.scans.cartesian import load_image
 from rafd.scans.native import NativeSource, read_native_scan
 from rafd.scans.native import to_cartesian as native_to_cartesian
@@ -83,7 +84,8 @@ def build_parser() -> argparse.ArgumentParser:
         "sequence",
         type=Path,
         metavar="POLAR_SEQ",
-        help=f"folder holding {POLAR_DIR}/ and {POLAR_TIMESTAMPS_FILE}, or a native folder (radar/<microseconds>.png)",
+        help=f"folder holding {POLAR_DIR}/ and {POLAR_TIMESTAMPS_FILE}, a native folder (radar/<microseconds>.png) or "
+        "a ROS 2 bag",
     )
     parser.add_argument(
         "--compare", type=Path, metavar="CARTESIAN_SEQ", help="RADIATE folder with the same frames' Navtech_Cartesian/"
@@ -164,9 +166,42 @@ def convert_native(args: argparse.Namespace) -> int:
     return 0
 
 
+def convert_bag(args: argparse.Namespace) -> int:
+    """A ROS 2 bag's scans (rafd.ros.sequence) -> RADIATE's grid, optionally written out like a native folder's."""
+    if args.compare is not None or args.fit:
+        return _fail("--compare and --fit compare RADIATE's polar scans with RADIATE's images; a bag has none")
+    try:
+        sequence = read_sequence(args.sequence, estimate_poses=False)
+        size = args.scan_size or RADIATE_SCAN_SIZE
+        scans = {frame.number: _resized(frame.load(), size) for frame in sequence.frames}
+    except (OSError, ValueError) as error:
+        return _fail(str(error))
+    print(f"{len(scans)} scans of {args.sequence} converted to {size} px")
+    if args.out is not None:
+        image_dir = args.out / "Navtech_Cartesian"
+        failure = _write_scans(image_dir, scans)
+        if failure is not None:
+            return failure
+        (args.out / "Navtech_Cartesian.txt").write_text(
+            "".join(f"Frame: {f.number:06d} Time: {f.timestamp_text}\n" for f in sequence.frames)
+        )
+        print(f"wrote {len(scans)} scans to {image_dir}")
+    return 0
+
+
+def _resized(scan: np.ndarray, size: int) -> np.ndarray:
+    """A 1152 px scan's centre `size` px (or the scan itself)."""
+    if size >= scan.shape[0]:
+        return scan
+    offset = (scan.shape[0] - size) // 2
+    return scan[offset : offset + size, offset : offset + size]
+
+
 def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     flags.apply_quiet(args)
+    if is_bag(args.sequence):
+        return convert_bag(args)
     if is_native_folder(args.sequence):
         return convert_native(args)
     try:

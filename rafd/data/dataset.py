@@ -75,7 +75,12 @@ def split_names(split: str | Sequence[str] | None) -> frozenset[str] | None:
 
 def select_sequences(root: str | Path, split: str | Sequence[str] | None) -> tuple[list[Path], dict[str | None, int]]:
     """Sequence folders under `root` whose meta.json "set" is in `split` (only meta.json is read) ->
-    (folders, {split: count} of everything found)."""
+    (folders, {split: count} of everything found). A ROS 2 bag named as `root` is the one sequence, whatever the
+    split (a bag has none)."""
+    from rafd.ros.sequence import is_bag
+
+    if is_bag(root):
+        return [Path(root)], {None: 1}
     wanted = split_names(split)
     chosen: list[Path] = []
     seen: dict[str | None, int] = {}
@@ -89,8 +94,12 @@ def select_sequences(root: str | Path, split: str | Sequence[str] | None) -> tup
 
 def find_sequences(root: str | Path) -> list[Path]:
     """Sequence folders (holding Navtech_Cartesian/, or only the polar scans Navtech_Polar/, or native scans in
-    radar/) at or under `root`, sorted; FileNotFoundError if none."""
+    radar/) at or under `root`, sorted, or `root` itself when it is a ROS 2 bag; FileNotFoundError if none."""
+    from rafd.ros.sequence import is_bag
+
     root = Path(root)
+    if is_bag(root):
+        return [root]
     if not root.is_dir():
         raise FileNotFoundError(f"data root {root} not found or not a directory")
     scan_dirs = {IMAGE_DIR, POLAR_DIR}

@@ -9,7 +9,7 @@ from __future__ import annotations
 
 import functools
 import time
-from collections.abc import Sequence
+from collections.abc import Iterable, Iterator, Sequence
 from pathlib import Path
 
 import numpy as np
@@ -18,7 +18,7 @@ from rafd.data.folders import FrameList, list_frames
 from rafd.data.parallel import run_per_sequence
 from rafd.data.poses import POSES_FILE, write_ego_poses
 from rafd.data.reader import read_sequence
-from rafd.geometry import compose_poses, relative_pose, wrap_angle
+from rafd.geometry import RADIATE_RESOLUTION, compose_poses, relative_pose, wrap_angle
 from rafd.odometry.registration import GAP_PERIODS, OdometryStream, SweepTiming
 from rafd.scans.native import NativeSource, read_native_scan, to_cartesian
 
@@ -32,30 +32,72 @@ def scan_and_timing(listing: FrameList, index: int) -> tuple[np.ndarray, SweepTi
     return listing.load(index), None  # a Cartesian scan (converted from the polar one in polar-only folders)
 
 
+def _bag_scans(bag: Path) -> tuple[list[int], list[float], list[str], Iterator[tuple[np.ndarray, SweepTiming | None]]]:
+    """A bag's frames for odometry: numbers, seconds, texts, and (Cartesian scan, sweep timing) read in one pass."""
+    from rafd.ros.sequence import bag_frames, cartesian_of, native_scan_of
+
+    topic, listed = bag_frames(bag)
+    numbers = list(range(1, len(listed) + 1))
+    texts = [f"{stamp // 1_000_000_000}.{stamp % 1_000_000_000:09d}" for _, stamp in listed]
+
+    def scans() -> Iterator[tuple[np.ndarray, SweepTiming | None]]:
+        from rafd.ros.reader import read_scans
+
+        for _, scan in read_scans(topic):
+            timing = None
+            if scan.layout == "native":
+                native = native_scan_of(scan)
+                timing = SweepTiming.of_native(native.timestamps_us, native.azimuths)
+            yield cartesian_of(scan), timing
+
+    return numbers, [stamp / 1e9 for _, stamp in listed], texts, scans()
+
+
 def estimate(seq_dir: Path) -> tuple[list[int], list[str], np.ndarray, np.ndarray, list[float]]:
     """-> (frame numbers, canonical timestamp texts, world poses [N, 3], relative poses [N-1, 3], seconds per pair).
-    Motion-compensated from the scans' timestamps (rafd.odometry.registration.OdometryStream)."""
+    Motion-compensated from the scans' timestamps (rafd.odometry.registration.OdometryStream). A ROS 2 bag's scans are
+    read in one pass, with each native scan's own sweep timing."""
+    from rafd.ros.sequence import is_bag
+
+    if is_bag(seq_dir):
+        numbers, seconds_of, texts, scans = _bag_scans(seq_dir)
+        if len(numbers) < 2:
+            raise ValueError(f"{seq_dir} has {len(numbers)} scan(s); odometry needs at least 2")
+        return _run(numbers, texts, seconds_of, scans, RADIATE_RESOLUTION)
     listing = list_frames(seq_dir)
     if len(listing.numbers) < 2:
         raise ValueError(f"{seq_dir} has {len(listing.numbers)} frame(s); odometry needs at least 2")
+    scans = (scan_and_timing(listing, index) for index in range(len(listing.numbers)))
+    return _run(listing.numbers, listing.timestamp_texts, listing.timestamps, scans, listing.resolution)
+
+
+def _run(
+    numbers: list[int],
+    texts: list[str],
+    timestamps: Sequence[float],
+    scans: Iterable[tuple[np.ndarray, SweepTiming | None]],
+    resolution: float,
+) -> tuple[list[int], list[str], np.ndarray, np.ndarray, list[float]]:
     relatives, seconds = [], []
-    stream = OdometryStream(listing.resolution)
-    for index in range(len(listing.numbers)):
-        image, timing = scan_and_timing(listing, index)
+    stream = OdometryStream(resolution)
+    for index, (image, timing) in enumerate(scans):
         start = time.perf_counter()
-        relative = stream.add(image, listing.timestamps[index], timing)
+        relative = stream.add(image, timestamps[index], timing)
         if relative is not None:
             relatives.append(relative)
             seconds.append(time.perf_counter() - start)
     poses = [np.zeros(3)]
     for relative in relatives:
         poses.append(compose_poses(poses[-1], relative))
-    return listing.numbers, listing.timestamp_texts, np.stack(poses), np.array(relatives).reshape(-1, 3), seconds
+    return numbers, texts, np.stack(poses), np.array(relatives).reshape(-1, 3), seconds
 
 
 def prepare_poses(seq_dir: Path, out: Path | None, force: bool) -> tuple[str, int, float]:
-    """Write one sequence's ego_poses.csv (atomically) -> (status "written" | "skipped", frames, ms per pair)."""
-    out = out or seq_dir / POSES_FILE
+    """Write one sequence's ego_poses.csv (atomically; a bag's beside it, rafd.ros.sequence.poses_file) -> (status
+    "written" | "skipped", frames, ms per pair)."""
+    from rafd.ros.sequence import is_bag, poses_file
+
+    out = out or (poses_file(seq_dir) if is_bag(seq_dir) else seq_dir / POSES_FILE)
     if out.exists() and not force:
         return "skipped", 0, 0.0
     numbers, stamps, poses, _, seconds = estimate(seq_dir)

@@ -178,7 +178,7 @@ def _list_native_frames(folder: Path) -> FrameList:
     image_size = meta.get("image_size", RADIATE_SCAN_SIZE)
     if isinstance(image_size, bool) or not isinstance(image_size, int) or image_size < 2 or image_size % 2:
         raise ValueError(f"{folder / META_FILE}: image_size must be an even number of pixels, got {image_size!r}")
-    source = NativeSource(native_format_of(meta, scans[0][0]), image_size, RADIATE_RESOLUTION)
+    source = NativeSource(native_format_of(meta, *scans[0]), image_size, RADIATE_RESOLUTION)
     texts = [microseconds_text(us) for us, _ in scans]
     return FrameList(
         folder,

@@ -2,13 +2,15 @@
 its RadarObjects (the labels, boxes in metres in the frame's ego frame) and the scan it loads as a Cartesian one.
 
 A frame of a polar-only or native folder keeps its scan file as it is on disk and converts it on load (its `polar`
-source: rafd.scans.polar.PolarSource, rafd.scans.native.NativeSource).
+source: rafd.scans.polar.PolarSource, rafd.scans.native.NativeSource); a frame of a ROS 2 bag reads its message from
+the bag (image_path) on load (rafd.ros.sequence.BagScanSource).
 """
 
 from __future__ import annotations
 
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 
@@ -16,6 +18,9 @@ from rafd.geometry import RADIATE_RESOLUTION
 from rafd.scans.cartesian import load_image
 from rafd.scans.native import NativeSource
 from rafd.scans.polar import PolarSource
+
+if TYPE_CHECKING:
+    from rafd.ros.sequence import BagScanSource
 
 
 @dataclass(frozen=True, eq=False)
@@ -32,7 +37,8 @@ class RadarFrame:
     timestamp: float  # UNIX seconds
     image_path: Path  # the Cartesian scan, or the polar scan when `polar` is set
     objects: list[RadarObject] = field(default_factory=list)
-    polar: PolarSource | NativeSource | None = None  # set for polar-only and native folders: load() converts
+    # set for polar-only and native folders and bags: load() converts
+    polar: PolarSource | NativeSource | BagScanSource | None = None
     timestamp_text: str = ""  # canonical 'seconds.nnnnnnnnn' (parse_radiate_time): the exact time, all 9 digits
 
     @property

@@ -9,7 +9,9 @@ Layout (Oxford's; Boreas keeps its scans the same way):
     annotations/annotations.json        optional: labels in RADIATE's format keyed by scan timestamps (rafd.data.labels)
     label_2d/<UNIX microseconds>.txt    optional, when there is no annotations.json: MVDNet's published car labels
                                         (rafd.data.mvdnet_labels)
-    meta.json                           optional: {"name", "set", "native_format" ("oxford", "boreas", ...)}
+    meta.json                           optional: {"name", "set", "native_format" ("oxford", "boreas", "boreas-rt",
+                                        ...); without it the first scan names the format as a posted scan's does:
+                                        rafd.scans.native.native_format_name)
 
 Scans are numbered 1..N in time order and converted on load to RADIATE's Cartesian grid (rafd.scans.native.NativeSource;
 rafd.data.folders lists them), so everything downstream (datasets, evaluation, the client) reads them like a RADIATE
@@ -28,10 +30,12 @@ import csv
 import re
 from pathlib import Path
 
+import cv2
 import numpy as np
 
 from rafd.geometry import compose_poses
-from rafd.scans.native import NativeFormat, format_for, is_native_shape
+from rafd.scans.cartesian import load_image
+from rafd.scans.native import FLAG_COLUMN, NativeFormat, format_for, is_native_shape, native_format_name
 
 NATIVE_DIR = "radar"
 NATIVE_TIMESTAMPS_FILE = "radar.timestamps"
@@ -92,7 +96,12 @@ def check_native_png(path: Path, width: int, height: int) -> None:
         )
 
 
-def native_format_of(meta: dict[str, object], first_timestamp_us: int) -> NativeFormat:
+def native_format_of(meta: dict[str, object], first_timestamp_us: int, first_scan: Path | None = None) -> NativeFormat:
+    """meta.json's native_format; without it, what the first scan's width and column 10 say (native_format_name),
+    or "oxford" when no scan is given."""
+    if "native_format" not in meta and first_scan is not None:
+        image = load_image(first_scan, cv2.IMREAD_UNCHANGED, "native radar scan")
+        return format_for(native_format_name(image.shape[1], image[:, FLAG_COLUMN]), first_timestamp_us)
     name = meta.get("native_format", "oxford")
     if not isinstance(name, str):
         raise ValueError(f"meta.json native_format must be a string, got {name!r}")

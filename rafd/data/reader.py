@@ -23,7 +23,7 @@ from rafd.data.mvdnet_labels import MVDNET_LABELS, mvdnet_objects
 from rafd.data.native_folder import GROUND_TRUTH_ODOMETRY, read_ground_truth_odometry, text_microseconds
 from rafd.data.poses import POSES_FILE, read_frame_poses
 from rafd.data.radiate_files import meta_condition, read_annotations
-from rafd.geometry import box_polygons_pixels
+from rafd.geometry import RADIATE_RESOLUTION, RADIATE_SCAN_SIZE, box_polygons_pixels
 from rafd.scans.native import NativeSource
 
 log = logging.getLogger(__name__)
@@ -42,8 +42,13 @@ def _ignore_outside_labelled_area(
 
 
 def read_sequence(path: str | Path, estimate_poses: bool = True) -> RadarSequence:
-    """One sequence folder -> RadarSequence. estimate_poses=False skips odometry when the folder has no
-    ego_poses.csv (poses None, pose_source None): for tools that only need frames and annotations."""
+    """One sequence folder, or a ROS 2 bag (rafd.ros.sequence), -> RadarSequence. estimate_poses=False skips odometry
+    when the folder has no ego_poses.csv (poses None, pose_source None): for tools that only need frames and
+    annotations."""
+    from rafd.ros.sequence import is_bag
+
+    if is_bag(path):
+        return read_bag_sequence(Path(path), estimate_poses)
     listing = list_frames(path)
     folder, numbers, stamps = listing.folder, listing.numbers, listing.timestamps
     image_size, resolution, meta = listing.image_size, listing.resolution, listing.meta
@@ -108,4 +113,47 @@ def read_sequence(path: str | Path, estimate_poses: bool = True) -> RadarSequenc
         resolution=resolution,
         annotated=annotated,
         condition=meta_condition(meta),
+    )
+
+
+def nanoseconds_text(nanoseconds: int) -> str:
+    """UNIX nanoseconds -> the canonical 'seconds.nnnnnnnnn' text (exact)."""
+    return f"{nanoseconds // 1_000_000_000}.{nanoseconds % 1_000_000_000:09d}"
+
+
+def read_bag_sequence(bag: Path, estimate_poses: bool = True) -> RadarSequence:
+    """A ROS 2 bag's scan topic (found by type) -> RadarSequence: frames 1..N at their header stamps, no labels,
+    poses from `<bag>.ego_poses.csv` beside it, else radar odometry when asked for."""
+    from rafd.ros.sequence import BagScanSource, bag_frames, poses_file
+
+    topic, listed = bag_frames(bag)
+    frames = [
+        RadarFrame(n, stamp / 1e9, bag, [], BagScanSource(topic, log, stamp), nanoseconds_text(stamp))
+        for n, (log, stamp) in enumerate(listed, 1)
+    ]
+    numbers = [frame.number for frame in frames]
+    poses: np.ndarray | None = None
+    pose_source: str | None = None
+    if poses_file(bag).is_file():
+        poses, pose_source = read_frame_poses(poses_file(bag), numbers, [f.timestamp for f in frames]), "file"
+    elif estimate_poses and frames:
+        from rafd.odometry.registration import estimate_sequence_poses
+
+        poses = estimate_sequence_poses((frame.load() for frame in frames), RADIATE_RESOLUTION)
+        pose_source = "odometry"
+        log.info(
+            "%s: ego poses of %d scans estimated by radar odometry (rafd odometry BAG saves them)", bag, len(frames)
+        )
+    log.info("%s: %d scans on %s (%s); a bag carries no labels", bag, len(frames), topic.topic, topic.msgtype)
+    return RadarSequence(
+        name=bag.stem if bag.is_file() else bag.name,
+        split=None,
+        path=bag,
+        frames=frames,
+        poses=poses,
+        pose_source=pose_source,
+        image_size=RADIATE_SCAN_SIZE,
+        resolution=RADIATE_RESOLUTION,
+        annotated=False,
+        condition=None,
     )

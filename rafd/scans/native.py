@@ -4,7 +4,9 @@ their conversion to RADIATE's Cartesian grid (torch-free; part of the one prepro
 One PNG per scan, 8-bit grey, one row per azimuth (400 per turn):
     columns 0-7    the azimuth's timestamp, int64 UNIX microseconds, little-endian bytes
     columns 8-9    the encoder angle, uint16 (5600 counts per turn)
-    column 10      valid flag (255: measured; else interpolated by the dataset from its neighbours)
+    column 10      valid flag (255: measured; else interpolated by the dataset from its neighbours); in a
+                   Navtech RAS6's Doppler mode (Boreas-RT) the up/down chirp of the azimuth instead (0 / 255
+                   alternating), which says nothing about validity (NativeFormat.flag_column)
     columns 11-    the range bins, power as 8-bit grey; bin i covers [i, i + 1) bin sizes from the radar (sampled at
                    its centre, as the datasets' SDKs convert them)
 
@@ -17,9 +19,12 @@ under this convention the estimated motion agrees in sign and size with the grou
 0.9-2.5 m per scan); read counter-clockwise the estimated yaw has the opposite sign of the truth, read with forward
 at azimuth 180 degrees the forward motion has.
 
-Formats (NATIVE_FORMATS, overridable by passing a NativeFormat): the range bin size per dataset; the number of range
-bins and azimuths is read from the PNG itself. A scan that comes without its dataset's name (a posted one) is read by
-its width (native_format_name). The sizes accepted are a real sensor's (NativeShape), checked from the PNG header.
+Formats (NATIVE_FORMATS, overridable by passing a NativeFormat): the range bin size per dataset and what column 10
+holds; the number of range bins and azimuths is read from the PNG itself. A scan that comes without its dataset's name
+(a posted one) is read by its width and its column 10 (native_format_name: a column alternating 0 / 255 from azimuth to
+azimuth is Boreas-RT's chirp flag); a caller that knows the range bin size (a ROS 2 bag's configuration message, a
+request's `range_resolution_m`) passes it (with_range_bin). The sizes accepted are a real sensor's (NativeShape),
+checked from the PNG header.
 
 Reading: a native folder's scans (rafd.data.native_folder) load through `NativeSource`, which converts each PNG on
 load.
@@ -28,8 +33,9 @@ load.
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
+from typing import Literal
 
 import cv2
 import numpy as np
@@ -38,7 +44,8 @@ from rafd.geometry import RADIATE_RESOLUTION, RADIATE_SCAN_SIZE
 from rafd.scans.cartesian import load_image
 from rafd.scans.polar import RADIATE_RANGE_BINS, PolarConventions, polar_to_cartesian
 
-HEADER_COLUMNS = 11  # 8 timestamp bytes + 2 encoder bytes + 1 valid flag
+HEADER_COLUMNS = 11  # 8 timestamp bytes + 2 encoder bytes + 1 flag (valid, or chirp in Doppler mode)
+FLAG_COLUMN = 10
 RADIATE_MAX_RANGE_M = RADIATE_RANGE_BINS * RADIATE_RESOLUTION  # 100 m: RADIATE's scans end there
 ENCODER_COUNTS = 5600  # encoder counts per turn (Navtech CTS350-X and CIR304-H)
 # What a real sensor's header holds (parse_native_scan refuses the rest, naming the rule): azimuth times in UNIX
@@ -57,12 +64,22 @@ class NativeFormat:
     range_bin_m: float  # metres per range bin
     encoder_counts: int = ENCODER_COUNTS
     description: str = ""
+    # What column 10 holds: "valid" (Oxford, Boreas: 255 = measured) or "chirp" (a Navtech RAS6 in Doppler mode: the
+    # azimuth's up/down chirp, 0 / 255 alternating; every azimuth is measured).
+    flag_column: Literal["valid", "chirp"] = "valid"
 
     def __post_init__(self) -> None:
         if not (math.isfinite(self.range_bin_m) and self.range_bin_m > 0):
             raise ValueError(f"range_bin_m must be a positive number of metres, got {self.range_bin_m}")
         if self.encoder_counts < 1:
             raise ValueError(f"encoder_counts must be >= 1, got {self.encoder_counts}")
+        if self.flag_column not in ("valid", "chirp"):
+            raise ValueError(f"flag_column must be 'valid' or 'chirp', got {self.flag_column!r}")
+
+    def with_range_bin(self, range_bin_m: float | None) -> NativeFormat:
+        """This format with the range bin size a caller knows (a bag's configuration, a request's field); itself
+        when None."""
+        return self if range_bin_m is None else replace(self, range_bin_m=float(range_bin_m))
 
 
 OXFORD_RANGE_BINS = 3768  # range bins of an Oxford Radar RobotCar scan (its CTS350-X: 163 m)
@@ -76,6 +93,12 @@ NATIVE_FORMATS: dict[str, NativeFormat] = {
         ),
         NativeFormat("boreas", 0.0596, description="Boreas, Navtech CIR304-H, until 2021-09-21"),
         NativeFormat("boreas-2021", 0.04381, description="Boreas, Navtech CIR304-H, from 2021-09-21"),
+        NativeFormat(
+            "boreas-rt",
+            0.04381,
+            description="Boreas-RT, Navtech RAS6 in Doppler mode: column 10 is the up/down chirp flag, not validity",
+            flag_column="chirp",
+        ),
     )
 }
 BOREAS_UPGRADE_US = 1_632_182_400_000_000  # pyboreas' upgrade time, UNIX microseconds
@@ -94,14 +117,27 @@ def format_for(name: str | NativeFormat, timestamp_us: int | None = None) -> Nat
 
 # native_format_name's rule, in words (the service's GET /model says it).
 NATIVE_FORMAT_RULE = (
-    f"{OXFORD_RANGE_BINS} range bins: oxford; any other number: boreas (boreas-2021 after its sensor upgrade, by the "
-    "scan's timestamp)"
+    "column 10 alternating 0 / 255 from azimuth to azimuth (a Navtech RAS6's up/down chirp flag in Doppler mode): "
+    f"boreas-rt; else {OXFORD_RANGE_BINS} range bins: oxford; any other number: boreas (boreas-2021 after its sensor "
+    "upgrade, by the scan's timestamp). A request's range_resolution_m replaces the format's range bin size"
 )
 
 
-def native_format_name(width: int) -> str:
-    """The dataset a native scan without a name (a posted one) is read as, from its PNG width: Oxford's 3768 range
-    bins, else Boreas' (format_for then picks boreas-2021 by the scan's time)."""
+def is_chirp_column(flags: np.ndarray) -> bool:
+    """Whether a scan's column 10 is a Doppler-mode chirp flag: 0 and 255 alternating from each azimuth to the next.
+    An Oxford-style valid flag is 255 on (nearly) every azimuth: alternation over a whole sweep is no valid flag."""
+    flags = np.asarray(flags)
+    if flags.size < 2 or not np.all((flags == 0) | (flags == 255)):
+        return False
+    return bool(np.all(flags[1:] != flags[:-1]))
+
+
+def native_format_name(width: int, flags: np.ndarray | None = None) -> str:
+    """The dataset a native scan without a name (a posted one) is read as: Boreas-RT when its column 10 (`flags`)
+    alternates like a chirp flag, else by its PNG width: Oxford's 3768 range bins, else Boreas' (format_for then
+    picks boreas-2021 by the scan's time)."""
+    if flags is not None and is_chirp_column(flags):
+        return "boreas-rt"
     return "oxford" if width - HEADER_COLUMNS == OXFORD_RANGE_BINS else "boreas"
 
 
@@ -111,7 +147,7 @@ class NativeScan:
 
     timestamps_us: np.ndarray  # int64 [A] UNIX microseconds of each azimuth
     encoder: np.ndarray  # int64 [A] encoder angle of each azimuth (counts)
-    valid: np.ndarray  # bool [A]
+    valid: np.ndarray  # bool [A] (all true where column 10 is a chirp flag)
     power: np.ndarray  # uint8 [A, R]
     fmt: NativeFormat
 
@@ -214,7 +250,8 @@ def check_header(timestamps: np.ndarray, encoder: np.ndarray, valid: np.ndarray,
 
 
 def parse_native_scan(image: np.ndarray, fmt: str | NativeFormat = "oxford") -> NativeScan:
-    """uint8 [A, 11 + R] native PNG pixels -> NativeScan; ValueError when the rows do not read as a scan."""
+    """uint8 [A, 11 + R] native PNG pixels -> NativeScan; ValueError when the rows do not read as a scan. Column 10
+    is the valid flag, or, in a format whose flag_column is "chirp", ignored (every azimuth measured)."""
     image = np.asarray(image)
     if image.dtype != np.uint8 or image.ndim != 2 or image.shape[1] <= HEADER_COLUMNS:
         raise ValueError(f"a native scan is uint8 [azimuths, 11 + range bins], got {image.dtype} {image.shape}")
@@ -222,7 +259,8 @@ def parse_native_scan(image: np.ndarray, fmt: str | NativeFormat = "oxford") -> 
     timestamps = header[:, :8].copy().view("<i8").ravel().astype(np.int64)
     encoder = header[:, 8:10].copy().view("<u2").ravel().astype(np.int64)
     fmt = format_for(fmt, int(timestamps[0]))
-    valid = header[:, 10] == 255
+    flags = header[:, FLAG_COLUMN]
+    valid = np.ones(len(flags), bool) if fmt.flag_column == "chirp" else flags == 255
     check_header(timestamps, encoder, valid, fmt)
     return NativeScan(timestamps, encoder, valid, np.ascontiguousarray(image[:, HEADER_COLUMNS:]), fmt)
 

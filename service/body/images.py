@@ -28,7 +28,15 @@ import numpy as np
 from rafd.geometry import RADIATE_SCAN_SIZE
 from rafd.preprocess import model_crop_of_top_rows, polar_to_cartesian, to_model_input
 from rafd.scans.cartesian import accepted_sizes
-from rafd.scans.native import SENSOR_SHAPE, NativeShape, is_native_shape, native_format_name, parse_native_scan
+from rafd.scans.native import (
+    FLAG_COLUMN,
+    SENSOR_SHAPE,
+    NativeShape,
+    format_for,
+    is_native_shape,
+    native_format_name,
+    parse_native_scan,
+)
 from rafd.scans.native import to_cartesian as native_to_cartesian
 from rafd.scans.polar import RADIATE_POLAR_SHAPE, accepts_polar
 from service.body import png
@@ -57,6 +65,8 @@ class DecodedFrame:
     posted_format: str = "cartesian"  # or "polar" (RADIATE's Navtech_Polar), or "native" (Oxford / Boreas)
     # native scans: (per-azimuth timestamps in UNIX microseconds [A], azimuths in radians clockwise from forward [A])
     sweep: tuple[np.ndarray, np.ndarray] | None = None
+    native_format: str | None = None  # native scans: the format read (rafd.scans.native.NATIVE_FORMATS)
+    native_range_bin_m: float | None = None  # native scans: metres per range bin used
 
     def model_input(self) -> np.ndarray:
         """[S, S] uint8 -> [S, S] float32 in [0, 1], the runner's frame."""
@@ -124,13 +134,18 @@ def upload_check(input_size: int, resolution: float, native: NativeShape = SENSO
 
 
 def decode_frame(
-    image: PostedImage, input_size: int, resolution: float, native: NativeShape = SENSOR_SHAPE
+    image: PostedImage,
+    input_size: int,
+    resolution: float,
+    native: NativeShape = SENSOR_SHAPE,
+    range_bin_m: float | None = None,
 ) -> DecodedFrame:
-    """A posted PNG (bytes, or base64 text; Cartesian or polar) -> the model's [S, S] uint8 crop; 422 naming what
-    was expected. No input gives anything else: a failure of the decoding libraries on a posted file is that file's
-    fault (422 `invalid_image`, logged as a warning), never a 500."""
+    """A posted PNG (bytes, or base64 text; Cartesian, polar or native) -> the model's [S, S] uint8 crop; 422 naming
+    what was expected. `range_bin_m` (the request's range_resolution_m): a native scan's metres per range bin, in
+    place of its format's; 422 for any other scan. No input gives anything else: a failure of the decoding libraries
+    on a posted file is that file's fault (422 `invalid_image`, logged as a warning), never a 500."""
     try:
-        return _decode_frame(image, input_size, resolution, native)
+        return _decode_frame(image, input_size, resolution, native, range_bin_m)
     except ApiError:
         raise
     except Exception as exc:
@@ -138,8 +153,12 @@ def decode_frame(
         raise ApiError("invalid_image", f"the image could not be decoded ({type(exc).__name__})") from exc
 
 
-def _decode_frame(image: PostedImage, input_size: int, resolution: float, native: NativeShape) -> DecodedFrame:
+def _decode_frame(
+    image: PostedImage, input_size: int, resolution: float, native: NativeShape, range_bin_m: float | None
+) -> DecodedFrame:
     layout = check_posted_image(image, input_size, resolution, native)
+    if range_bin_m is not None and layout.header.width == layout.header.height:
+        raise ApiError("validation_error", "range_resolution_m applies to native scans only; this image is square")
     if isinstance(image, str):
         try:
             data = png.a2b_base64_strict(strip_data_url(image))
@@ -158,17 +177,26 @@ def _decode_frame(image: PostedImage, input_size: int, resolution: float, native
     if decoded.ndim != 2 or decoded.dtype != np.uint8:  # the header said 8-bit greyscale: a decoder mismatch
         raise ApiError("unsupported_image_format", f"decoded {decoded.dtype} {decoded.shape}; expected 8-bit grey")
     posted_format = "cartesian"
-    sweep = None
+    sweep = fmt = None
     width = decoded.shape[1]
     # A polar or native scan is converted only where the service looks: the odometry view around the radar (which
     # holds the model's crop), not the whole 1152 px disc; the same pixels as the whole conversion's centre.
     converted = max(input_size, ODOMETRY_VIEW_SIZE)
     if decoded.shape == RADIATE_POLAR_SHAPE:  # the size check let it through: polar scans are accepted here
+        if range_bin_m is not None:
+            raise ApiError(
+                "validation_error", "range_resolution_m applies to native scans only; this is a RADIATE polar scan"
+            )
         width, posted_format = RADIATE_SCAN_SIZE, "polar"
         decoded = polar_to_cartesian(decoded, min(converted, width))  # [576, 400] -> [V, V] uint8
     elif not square:  # a native scan (the size check let only these through)
         try:
-            scan = parse_native_scan(decoded, native_format_name(decoded.shape[1]))
+            # Named by its width and column 10 (a Doppler-mode chirp column is no valid flag: rafd.scans.native); the
+            # request's range bin, when given, replaces the named format's (the sensor knows it, the width guesses).
+            name = native_format_name(decoded.shape[1], decoded[:, FLAG_COLUMN])
+            timestamp_us = int(np.ascontiguousarray(decoded[0, :8]).view("<i8")[0])
+            fmt = format_for(name, timestamp_us).with_range_bin(range_bin_m)
+            scan = parse_native_scan(decoded, fmt)
         except ValueError as exc:
             raise ApiError("invalid_image", f"the native scan's header columns do not read as one: {exc}") from exc
         width, posted_format = RADIATE_SCAN_SIZE, "native"
@@ -182,4 +210,6 @@ def _decode_frame(image: PostedImage, input_size: int, resolution: float, native
         odometry_view=view,
         posted_format=posted_format,
         sweep=sweep,
+        native_format=None if fmt is None else fmt.name,
+        native_range_bin_m=None if fmt is None else fmt.range_bin_m,
     )

@@ -6,7 +6,8 @@ counted as it streams in (`StructureCount`: a detect request has a few keys, one
 array), and a body with more is refused as soon as its count passes the bound, unparsed and unread past that piece
 (a body of 200k keys or numbers: after its first 64 KiB); the rest is parsed on the parse executor, off the event
 loop, by orjson (strict: UTF-8, no NaN / Infinity, no trailing data). Multipart: the JSON body's fields flattened
-(service.body.form: stream_id, timestamp, pose_x, pose_y, pose_yaw (all three or none), previous_timestamp) and the
+(service.body.form: stream_id, timestamp, pose_x, pose_y, pose_yaw (all three or none), previous_timestamp,
+range_resolution_m) and the
 file field `image`, each at most once; numbers are written as JSON numbers. Unknown fields are refused (a typo like
 `pose_yw` must not silently drop the pose).
 The stream id may come from the body, the X-Stream-Id header or the path; all that are given must agree.
@@ -99,7 +100,7 @@ def resolve_stream_id(body: DetectBody, stream_hint: str | None) -> DetectFields
             f"previous_timestamp ({previous!r}) must be before timestamp ({body.timestamp!r}): it names the frame "
             "this stream sent before this one",
         )
-    return DetectFields(stream_id=stream_id, timestamp=body.timestamp, pose=body.pose, previous_timestamp=previous)
+    return DetectFields.model_construct(**{**dict(body), "stream_id": stream_id})  # the body's values, validated
 
 
 # ---------------------------------------------------------------------------------------------------- JSON

@@ -333,7 +333,9 @@ class DetectService:
         """The image decoded (decode executor) into the model's frame ([S, S] float32 in [0, 1]), and the frame's
         digest (what makes a retry the same frame)."""
         check_posted_image(image, *self.image_rule)  # chunk headers only: hostile files never take a decode worker
-        decoded, digest = await self.executors.decode.run(_decode_and_digest, fields.pose, image, *self.image_rule)
+        decoded, digest = await self.executors.decode.run(
+            _decode_and_digest, fields.pose, fields.range_resolution_m, image, *self.image_rule
+        )
         return decoded, decoded.model_input(), digest
 
     async def _turn(self, request: Request, ticket: Ticket, arrival: Arrival) -> StreamEntry:
@@ -429,6 +431,7 @@ class DetectService:
                 model_size=self.config.input_size,
                 crop_offset_px=decoded.crop_offset,
                 posted_format=decoded.posted_format,
+                **native_input(decoded),
             ),
             model=self._model_ref(),
             **restart,
@@ -534,18 +537,35 @@ class DetectService:
         return steps.astype(np.intp)
 
 
-def frame_digest(pose: Pose | None, image: bytes | str) -> bytes:
-    """What makes a frame the same frame again (a retry): its image as posted and its pose (sha256, 0.5 ms per
-    0.9 MB here; run on the decode executor)."""
+def native_input(decoded: DecodedFrame) -> dict[str, Any]:
+    """The answer's input fields of a native scan (its format and range bin); none for other scans (left out)."""
+    if decoded.native_format is None:
+        return {}
+    return {"native_format": decoded.native_format, "native_range_bin_m": decoded.native_range_bin_m}
+
+
+def frame_digest(pose: Pose | None, image: bytes | str, range_bin_m: float | None = None) -> bytes:
+    """What makes a frame the same frame again (a retry): its image as posted, its pose and its range bin (sha256,
+    0.5 ms per 0.9 MB here; run on the decode executor)."""
     digest = hashlib.sha256(image.encode("ascii", "replace") if isinstance(image, str) else image)
     if pose is not None:
         digest.update(repr((pose.x, pose.y, pose.yaw)).encode())
+    if range_bin_m is not None:
+        digest.update(repr(("range_resolution_m", range_bin_m)).encode())
     return digest.digest()
 
 
-def _decode_and_digest(pose: Pose | None, image: bytes | str, *decode_args: Any) -> tuple[DecodedFrame, bytes]:
+def _decode_and_digest(
+    pose: Pose | None,
+    range_bin_m: float | None,
+    image: bytes | str,
+    input_size: int,
+    resolution: float,
+    native: NativeShape,
+) -> tuple[DecodedFrame, bytes]:
     """One decode-executor job: the decoded frame and its digest."""
-    return decode_frame(image, *decode_args), frame_digest(pose, image)
+    decoded = decode_frame(image, input_size, resolution, native, range_bin_m)
+    return decoded, frame_digest(pose, image, range_bin_m)
 
 
 def _replay_or_refuse(entry: StreamEntry, timestamp: float, digest: bytes) -> DetectResponse | None:

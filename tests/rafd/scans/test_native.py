@@ -238,3 +238,44 @@ def test_the_native_shape_is_bounded_by_the_sensors():
     assert not is_native_shape(400_000, 400) and not is_native_shape(11 + 6849, 400)
     assert not is_native_shape(11 + 3768, 401) and not is_native_shape(11 + 3768, 99)
     assert is_native_shape(11 + 8000, 800, NativeShape(max_azimuths=800, max_range_bins=8000))
+
+
+# ---------------------------------------------------------------- Boreas-RT: a Doppler-mode chirp column (issue 60)
+def test_a_chirp_column_is_named_boreas_rt_and_not_read_as_validity():
+    """Column 10 alternating 0 / 255 is a RAS6's chirp flag: the scan is read as boreas-rt, every azimuth measured,
+    so a return on a "0" azimuth reaches the converted scan (read as a valid flag it would be dropped)."""
+    image = native_png(6848, [(90.0, 40.0)], 0.04381)
+    image[:, 10] = np.where(np.arange(AZIMUTHS) % 2, 255, 0)
+    assert native_format_name(image.shape[1], image[:, 10]) == "boreas-rt"
+    scan = parse_native_scan(image, native_format_name(image.shape[1], image[:, 10]))
+    assert scan.fmt.name == "boreas-rt" and scan.fmt.flag_column == "chirp" and scan.valid.all()
+    np.testing.assert_allclose(brightest_metres(to_cartesian(scan)), [40.0, 0.0], atol=0.6)
+    as_valid_flag = parse_native_scan(image, "boreas")  # the old reading: half the azimuths unmeasured
+    assert as_valid_flag.valid.sum() == AZIMUTHS // 2
+    # An Oxford valid flag with a few unmeasured azimuths does not alternate: still a valid flag.
+    oxford = native_png(3768, [], 0.0432)
+    oxford[[5, 9, 200], 10] = 0
+    assert native_format_name(oxford.shape[1], oxford[:, 10]) == "oxford"
+
+
+def test_the_real_boreas_rt_scan_reads_as_boreas_rt(boreas_rt_scan: Path):
+    """The real RAS6 Doppler scan: its column 10 alternates, so it is named boreas-rt, 6848 bins of 0.04381 m, every
+    one of its 400 azimuths measured (read as a valid flag only 200 were); its sweep is one 4 Hz turn."""
+    image = cv2.imread(str(boreas_rt_scan), cv2.IMREAD_UNCHANGED)
+    name = native_format_name(image.shape[1], image[:, 10])
+    assert name == "boreas-rt"
+    scan = read_native_scan(boreas_rt_scan, name)
+    assert scan.range_bins == 6848 and scan.fmt.range_bin_m == pytest.approx(0.04381)
+    assert scan.valid.all() and int((image[:, 10] == 255).sum()) == 200
+    assert scan.timestamp_us == int(boreas_rt_scan.stem)
+    assert 0.24 < (scan.timestamps_us[-1] - scan.timestamps_us[0]) / 1e6 < 0.26
+    converted = to_cartesian(scan)
+    assert converted.shape == (1152, 1152) and converted.mean() > 1.0  # a real scene, not an empty disc
+
+
+def test_a_known_range_bin_replaces_the_formats():
+    fmt = NATIVE_FORMATS["oxford"].with_range_bin(0.0864)
+    assert fmt.name == "oxford" and fmt.range_bin_m == 0.0864
+    assert NATIVE_FORMATS["oxford"].with_range_bin(None) is NATIVE_FORMATS["oxford"]
+    with pytest.raises(ValueError, match="positive"):
+        NATIVE_FORMATS["oxford"].with_range_bin(0.0)

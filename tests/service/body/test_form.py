@@ -52,7 +52,10 @@ def test_the_parser_accepts_every_field_the_document_lists(client):
     _, form = _request_forms(client)
     values = {"stream_id": "every", "timestamp": "2.0", "previous_timestamp": "1.0"}
     values |= {name: "0.5" for name in form_groups()["pose"]}
-    assert set(values) | {"image"} == set(form["properties"])
+    native_only = {"range_resolution_m": "0.0438"}  # read, then refused for a square image (its meaning, not its form)
+    assert set(values) | set(native_only) | {"image"} == set(form["properties"])
+    refused = client.post("/detect", data=values | native_only, files={"image": ("f.png", FRAME, "image/png")})
+    assert refused.status_code == 422 and "native scans only" in refused.json()["error"]["message"]
     first = client.post(
         "/detect",
         data={"stream_id": "every", "timestamp": "1.0", "pose_x": "0", "pose_y": "0", "pose_yaw": "0"},

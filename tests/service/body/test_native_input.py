@@ -47,7 +47,9 @@ def post(client: TestClient, stream: str, t: int, image: np.ndarray) -> dict[str
 
 def comparable(answer: dict[str, Any]) -> dict[str, Any]:
     kept = {k: v for k, v in answer.items() if k not in ("timing", "stream_id")}
-    kept["input"] = {k: v for k, v in answer["input"].items() if k != "posted_format"}
+    kept["input"] = {
+        k: v for k, v in answer["input"].items() if k not in ("posted_format", "native_format", "native_range_bin_m")
+    }
     return kept
 
 
@@ -191,3 +193,64 @@ def b64png_bytes(data: bytes) -> str:
     import base64
 
     return base64.b64encode(data).decode("ascii")
+
+
+def test_the_real_boreas_rt_scan_answers_as_its_boreas_rt_conversion(client: TestClient, boreas_rt_scan: Path):
+    """The real RAS6 Doppler scan posted as it is on disk: read as boreas-rt (its chirp column not taken for a valid
+    flag, every azimuth measured), it answers exactly as its boreas-rt Cartesian conversion; the old reading (a valid
+    flag: half the azimuths unmeasured) converts to another scan."""
+    import cv2
+
+    native = cv2.imread(str(boreas_rt_scan), cv2.IMREAD_UNCHANGED)
+    from_native = post(client, "boreas-rt", 0, native)
+    converted = to_cartesian(parse_native_scan(native, "boreas-rt"))
+    from_cartesian = post(client, "boreas-rt-cartesian", 0, converted)
+    assert from_native["input"]["posted_format"] == "native"
+    assert comparable(from_native) == comparable(from_cartesian)
+    as_valid_flag = to_cartesian(parse_native_scan(native, "boreas-2021"))
+    assert np.abs(as_valid_flag.astype(int) - converted.astype(int)).max() > 50
+
+
+# ---------------------------------------------------------------- the sensor's own range bin (issue 60)
+def test_a_posted_range_resolution_replaces_the_guess_from_the_width(client: TestClient):
+    """range_resolution_m (JSON and multipart alike) is the bin size used: the answer equals the Cartesian conversion
+    at that bin size, says so in input.native_range_bin_m, and differs from the width's guess (Oxford's 0.0432)."""
+    from rafd.detect_client import FrameFields, base64_png, json_body, multipart_body, png_bytes
+    from rafd.scans.native import NATIVE_FORMATS
+
+    native = native_scan(0)
+    doubled = NATIVE_FORMATS["oxford"].with_range_bin(0.0864)
+    reference = post(client, "reference", 0, to_cartesian(parse_native_scan(native, doubled)))
+    guessed = post(client, "guessed", 0, native)
+    assert guessed["input"]["native_format"] == "oxford" and guessed["input"]["native_range_bin_m"] == 0.0432
+    for form, stream in (("json", "told-json"), ("multipart", "told-form")):
+        fields = FrameFields(10.0, stream, (0.0, 0.0, 0.0), range_resolution_m=0.0864)
+        body = (
+            json_body(fields, base64_png(png_bytes(native)))
+            if form == "json"
+            else multipart_body(fields, png_bytes(native))
+        )
+        response = client.post("/detect", content=body.content, headers={"Content-Type": body.content_type})
+        assert response.status_code == 200, response.text
+        told = response.json()
+        assert told["input"]["native_range_bin_m"] == 0.0864 and told["input"]["native_format"] == "oxford"
+        assert comparable(told) == comparable(reference)
+        assert told["boxes"] != guessed["boxes"]
+
+
+@pytest.mark.parametrize(
+    "value, image, message",
+    [
+        (0.0, "native", "greater than or equal to 0.001"),
+        (-0.0432, "native", "greater than or equal to 0.001"),
+        (43.2, "native", "less than or equal to 1"),
+        (0.0432, "cartesian", "native scans only"),
+    ],
+)
+def test_a_bad_range_resolution_is_refused(client: TestClient, value: float, image: str, message: str):
+    posted = native_scan(0) if image == "native" else np.zeros((128, 128), np.uint8)
+    body = {"stream_id": "bad-bin", "timestamp": 1.0, "image": b64png(posted), "range_resolution_m": value}
+    response = client.post("/detect", json=body)
+    assert response.status_code == 422, response.text
+    assert response.json()["error"]["code"] == "validation_error" and message in response.json()["error"]["message"]
+    assert client.get("/streams").json()["streams"] == []  # refused before it reached the stream
