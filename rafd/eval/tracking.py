@@ -113,13 +113,18 @@ def matched_records(frames: Sequence[TrackingFrame], answers: Sequence[TrackedBo
     return records
 
 
+MOVING_SPEED = 0.5  # m/s: a labelled vehicle moving faster than this counts as moving (parked ones are at 0)
+
+
 def velocity_summary(records: Iterable[dict[str, Any]]) -> dict[str, Any]:
     """Velocity errors (m/s) of matched boxes with a known true velocity: over the boxes whose velocity has a source
-    (mean, p90) and over all of them (a box without one answers its prior, 0 m/s), with the coverage."""
+    (mean, p90) and over all of them (a box without one answers its prior, 0 m/s), with the coverage; and over all of
+    them split into moving and parked vehicles (a parked majority rewards answering 0 m/s: read both)."""
     known = [r for r in records if np.isfinite(r["truth_velocity"]).all()]
     errors = np.array([np.hypot(*(r["velocity"] - r["truth_velocity"])) for r in known])
     sourced = np.array([r["source"] != SOURCE_NONE for r in known], bool)
     speeds = np.array([np.hypot(*r["truth_velocity"]) for r in known])
+    moving = speeds >= MOVING_SPEED
     return {
         "matched": len(known),
         "with_velocity": int(sourced.sum()),
@@ -128,6 +133,10 @@ def velocity_summary(records: Iterable[dict[str, Any]]) -> dict[str, Any]:
         "p90": _p90(errors[sourced]),
         "mean_all": _mean(errors),
         "p90_all": _p90(errors),
+        "moving": int(moving.sum()),
+        "mean_moving": _mean(errors[moving]),
+        "p90_moving": _p90(errors[moving]),
+        "mean_parked": _mean(errors[~moving]),
         "mean_true_speed": _mean(speeds),
     }
 

@@ -7,7 +7,18 @@ import math
 from typing import Any
 
 TRACK_COLUMNS = ("HOTA", "DetA", "AssA", "HOTA@2m", "MOTA", "IDF1", "IDSW", "objects")
-VELOCITY_COLUMNS = ("mean", "p90", "coverage", "mean_all", "p90_all", "matched")
+VELOCITY_COLUMNS = (
+    "mean",
+    "p90",
+    "coverage",
+    "mean_all",
+    "p90_all",
+    "mean_moving",
+    "p90_moving",
+    "mean_parked",
+    "moving",
+    "matched",
+)
 
 
 def _text(value: Any) -> str:
@@ -44,7 +55,8 @@ def format_tracking(report: dict[str, Any]) -> str:
     lines.append("")
     lines.append(
         f"velocity error, m/s (true velocities: {report['velocity_truth'] or 'unknown'}; mean/p90 over matched boxes "
-        "with a velocity source, *_all over every matched box, a box without one answering 0 m/s)"
+        "with a velocity source, *_all over every matched box, a box without one answering 0 m/s; *_moving and "
+        "*_parked: every matched box of a vehicle moving at >= 0.5 m/s, or not)"
     )
     rows = [("overall", report["velocity"])]
     rows += [(f"range {band}", figures["velocity"]) for band, figures in report["by_range"].items()]
@@ -54,8 +66,11 @@ def format_tracking(report: dict[str, Any]) -> str:
     rows = [(f"candidate {mode}", figures["velocity"]) for mode, figures in report["candidates"].items()]
     rows += [(f"baseline {name}", figures) for name, figures in report["baselines"].items()]
     lines += _table("velocity candidates", VELOCITY_COLUMNS, rows)
-    tracks = [(f"candidate {mode}", figures["tracking"]) for mode, figures in report["candidates"].items()]
-    lines += _table("tracks by candidate", TRACK_COLUMNS, tracks)
+    tracks = [
+        (f"candidate {mode}", figures["tracking"] | {"id_kept": figures["identity_kept"]["percent"]})
+        for mode, figures in report["candidates"].items()
+    ]
+    lines += _table("tracks by candidate", TRACK_COLUMNS + ("id_kept",), tracks)
     study = report.get("time_helps_detection")
     if study:
         lines.append("")

@@ -7,6 +7,8 @@ radar box's size and yaw are what the annotator drew around a blurred return, no
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 
 
@@ -68,3 +70,17 @@ def mahalanobis_squared(
     s_inverse = inverse_2x2(position_covariance + noise_var * np.eye(2))  # [T, 2, 2]
     difference = points[None, :, :] - predicted[:, None, :]  # [T, D, 2]
     return np.einsum("tdi,tij,tdj->td", difference, s_inverse, difference)
+
+
+def moving_probability(velocity: np.ndarray, covariance: np.ndarray, prior_std: float, prior: float) -> np.ndarray:
+    """The probability that a track moves at all, against being parked (v = 0): velocity [N, 2] and its covariance
+    [N, 2, 2] from a filter whose velocity prior was N(0, prior_std^2 I), and the prior probability of moving -> [N].
+
+    The Savage-Dickey ratio of the nested models: Bayes factor (moving : parked) = prior density at v = 0 / posterior
+    density at v = 0 = N(0; 0, prior_std^2 I) / N(0; v, P), so logit p = logit(prior) + v' P^-1 v / 2
+    + log det(P) / 2 - 2 log(prior_std). A track with no evidence keeps the prior; one whose velocity is not
+    distinguishable from 0 tends to parked."""
+    determinant = covariance[:, 0, 0] * covariance[:, 1, 1] - covariance[:, 0, 1] ** 2  # [N]
+    distance_sq = np.einsum("ni,nij,nj->n", velocity, inverse_2x2(covariance), velocity)
+    logit = math.log(prior / (1.0 - prior)) + 0.5 * distance_sq + 0.5 * np.log(determinant) - 2.0 * math.log(prior_std)
+    return 1.0 / (1.0 + np.exp(-np.clip(logit, -50.0, 50.0)))

@@ -4,7 +4,8 @@ Every kept detection becomes a track's box: it continues the track whose predict
 (rafd.tracking.matching, gated) or begins a new one. Tracks live in the world frame given by the scans' poses, so
 the ego's own motion is removed from positions and velocities alike; answers are turned back into the scan's ego
 axes. Life cycle: tentative until `confirm_hits` detections, then confirmed; a confirmed track missed by the
-detector coasts on its prediction for up to `max_coast_frames` scans, a tentative one ends at its first miss.
+detector coasts on its prediction for up to `max_coast_frames` scans (a tentative one `tentative_coast_frames`,
+and only a confirmed one's predicted box is ever answered).
 The state passed in is never modified (rafd.tracking.state).
 """
 
@@ -258,9 +259,11 @@ def _begin(columns: np.ndarray, world_xy: np.ndarray, measured: _Measured, s: Tr
 def _miss(
     tracks: TrackerState, mean: np.ndarray, covariance: np.ndarray, rows: np.ndarray, s: TrackerSettings
 ) -> dict[str, np.ndarray]:
-    """Tracks without a detection: confirmed ones coast on their prediction (up to max_coast_frames), the rest end."""
+    """Tracks without a detection coast on their prediction: confirmed ones up to max_coast_frames scans, tentative
+    ones up to tentative_coast_frames; the rest end."""
     misses = tracks.misses[rows] + 1
-    keep = rows[(tracks.hits[rows] >= s.confirm_hits) & (misses <= s.max_coast_frames)]
+    limit = np.where(tracks.hits[rows] >= s.confirm_hits, s.max_coast_frames, s.tentative_coast_frames)
+    keep = rows[misses <= limit]
     finite = np.isfinite(mean[keep]).all(1) & np.isfinite(covariance[keep]).all((1, 2))
     keep = keep[finite]  # defensive: a track that could not be predicted ends rather than poisons the state
     rows_kept = rows_of(tracks)
@@ -318,7 +321,9 @@ def _answer(
         answered = answered[status[:seen] != TENTATIVE]
     answered = answered[np.argsort(det_index[answered], kind="stable")]  # the input's order
     if s.answer_coasting:
-        answered = np.concatenate([answered, np.arange(seen, len(state))])
+        coasting = np.arange(seen, len(state))
+        shown = (state.hits[coasting] >= s.confirm_hits) & (state.misses[coasting] <= s.answer_coast_frames)
+        answered = np.concatenate([answered, coasting[shown]])
     velocity = state.mean[answered, 2:].copy()  # [M, 2] world
     covariance = state.covariance[answered, 2:, 2:].copy()  # [M, 2, 2]
     source = state.evidence[answered].copy()
@@ -331,6 +336,17 @@ def _answer(
         variance = np.where(has_flow, measured.variance[columns], prior)
         covariance[rows] = variance[:, None, None] * np.eye(2)
         source[rows] = np.where(has_flow, SOURCE_FLOW, SOURCE_NONE)
+    if s.moving_prior is not None:  # parked or moving: the mixture's mean and covariance
+        filtered = source != SOURCE_NONE
+        if s.velocity in ("flow_centre", "flow_box"):
+            filtered &= answered >= seen  # the flow candidates answer the flow itself for detected boxes
+        if filtered.any():
+            v, p = velocity[filtered], covariance[filtered]
+            moving = motion.moving_probability(v, p, s.initial_speed_std, s.moving_prior)[:, None]  # [F, 1]
+            velocity[filtered] = moving * v
+            covariance[filtered] = moving[:, :, None] * p + (moving * (1 - moving))[:, :, None] * np.einsum(
+                "ni,nj->nij", v, v
+            )
     # world -> ego axes: v_ego = R^T v_world (rows: v @ R), covariance R^T P R
     ego_velocity = velocity @ rotation
     ego_covariance = rotation.T @ covariance @ rotation

@@ -75,9 +75,12 @@ def test_two_crossing_targets_keep_their_ids():
 def test_ids_are_never_reused_after_a_track_ends():
     centre = straight_line(1)[0]
     frames = [car(to_ego(ego_pose(0), centre)), np.zeros((0, 5)), car(to_ego(ego_pose(2), centre))]
-    answers, state = run(frames)  # tentative, missed (ends), a new detection at the same place
+    ending = TrackerSettings(tentative_coast_frames=0)
+    answers, state = run(frames, ending)  # tentative, missed (ends), a new detection at the same place
     assert answers[0].track_id.tolist() == [1] and len(answers[1]) == 0 and answers[2].track_id.tolist() == [2]
     assert state.next_id == 3
+    kept, _ = run(frames, TrackerSettings(tentative_coast_frames=1))  # a tentative track outlives one miss
+    assert kept[2].track_id.tolist() == [1]
     _, restarted = run([car([0.0, 10.0])], state=TrackerState.empty(first_id=100))
     assert restarted.ids.tolist() == [100]
 
@@ -188,10 +191,13 @@ def test_the_flow_seeds_a_new_tracks_velocity():
     flow = np.zeros((2, 64, 64))
     flow[:, 20:44, 20:44] = (truth * PERIOD)[:, None, None]
     field = FlowField(grid, flow, PERIOD, np.ones((64, 64)), reach_m=4.2)
-    answer, _ = step(TrackerState.empty(), car([0.0, 0.0]), np.array([5.0, 5.0, 1.0]), 0.0, flow=field)
+    seeded = TrackerSettings("filter_flow")
+    answer, _ = step(TrackerState.empty(), car([0.0, 0.0]), np.array([5.0, 5.0, 1.0]), 0.0, flow=field, settings=seeded)
     assert VELOCITY_SOURCES[answer.velocity_source[0]] == "flow"
     assert np.allclose(answer.velocity[0], truth)
     assert np.allclose(answer.velocity_covariance[0], 0.25 * np.eye(2))  # the floor alone: a uniform flow
+    without, _ = step(TrackerState.empty(), car([0.0, 0.0]), np.zeros(3), 0.0, flow=field)  # the default: filter
+    assert VELOCITY_SOURCES[without.velocity_source[0]] == "none" and np.allclose(without.velocity[0], 0.0)
     centre_only, _ = step(
         TrackerState.empty(), car([0.0, 0.0]), np.zeros(3), 0.0, flow=field, settings=TrackerSettings("flow_centre")
     )
