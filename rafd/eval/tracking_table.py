@@ -29,11 +29,19 @@ def _text(value: Any) -> str:
 
 def _table(title: str, columns: tuple[str, ...], rows: list[tuple[str, dict[str, Any]]]) -> list[str]:
     width = max([24, len(title) + 2, *(len(name) + 2 for name, _ in rows)])
-    widths = [max(len(column), 7) + 2 for column in columns]
+    widths = [max([len(column), 7, *(len(_text(row.get(column))) for _, row in rows)]) + 2 for column in columns]
     lines = [f"{title:<{width}}" + "".join(f"{c:>{w}}" for c, w in zip(columns, widths))]
     for name, row in rows:
         lines.append(f"{name:<{width}}" + "".join(f"{_text(row.get(c)):>{w}}" for c, w in zip(columns, widths)))
     return lines
+
+
+def _difference(figures: dict[str, Any] | None) -> str:
+    """A recall difference in points with its 95% interval, e.g. '+2.6 [-0.4, +5.1]'."""
+    if not figures:
+        return "-"
+    low, high = figures["interval95"]
+    return f"{figures['points']:+.1f} [{low:+.1f}, {high:+.1f}]"
 
 
 def format_tracking(report: dict[str, Any]) -> str:
@@ -91,8 +99,10 @@ def format_tracking(report: dict[str, Any]) -> str:
                             "threshold": best["threshold"],
                             "recall@op": operating.get("recall"),
                             "fp/scan@op": operating.get("fp_per_frame"),
+                            "vs detections": _difference(figures.get("difference_from_detections")),
                         },
                     )
                 )
-        lines += _table("answer", ("recall", "fp/scan", "threshold", "recall@op", "fp/scan@op"), rows)
+        columns = ("recall", "fp/scan", "threshold", "recall@op", "fp/scan@op", "vs detections")
+        lines += _table("answer", columns, rows)
     return "\n".join(lines)
