@@ -2,10 +2,12 @@
 candidate, with the flow of one 256 px crop (the service's answer today: 64 x 64 cells) and of a whole scan's 25
 tiles (rafd eval --full-scan's mosaic); and what the tracks add to the answer's JSON per box.
 
-    python -m bench.tracking [--boxes 32] [--frames 400]
+    python -m bench.tracking [--boxes 32] [--frames 400] [--rounds 5]
 
 Times the CPU time of the calling thread (time.thread_time) around each step, so work of other processes on a
-shared machine is not counted; prints the median and p99 ms per scan after a warm-up. Torch-free.
+shared machine is not counted directly (it still slows a core whose sibling or cache it shares): each case runs
+`--rounds` times, interleaved with the others, and prints the lowest and highest of the rounds' median ms per scan
+and the p99 of the best round, after a warm-up. Torch-free.
 """
 
 from __future__ import annotations
@@ -28,7 +30,8 @@ CELL_M = 0.694  # the shipped model's flow cells (256 px at 0.1736 m / px, 64 x 
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="python -m bench.tracking", description=__doc__.splitlines()[0])
     flags.add_count(parser, "--boxes", 32, 1000, "vehicles (and so boxes) per scan")
-    flags.add_count(parser, "--frames", 400, 100000, "scans timed per case (after 20 of warm-up)")
+    flags.add_count(parser, "--frames", 400, 100000, "scans timed per case and round (after 20 of warm-up)")
+    flags.add_count(parser, "--rounds", 5, 100, "rounds of every case, interleaved")
     flags.add_quiet(parser)
     return parser
 
@@ -111,17 +114,24 @@ def main(argv: list[str] | None = None) -> int:
     parser, args = flags.parse(build_parser, argv)
     stream = synthetic_stream(args.boxes, args.frames + 20)
     crop, mosaic = crop_flow(), scan_mosaic()
-    print(f"rafd.tracking.step, {args.boxes} boxes per scan, CPU ms per scan (thread time) over {args.frames} scans")
-    print(f"{'velocity':<14}{'flow':<26}{'median':>9}{'p99':>9}")
+    cases = []
     for mode in VELOCITY_MODES:
-        settings = TrackerSettings(velocity=mode)
-        cases = (
-            [("none", None)] if mode == "filter" else [("one crop (64 x 64)", crop), ("whole scan (25 tiles)", mosaic)]
-        )
-        for name, flow in cases:
-            times = time_case(stream, settings, flow)
-            p99 = float(np.percentile(times, 99))
-            print(f"{mode:<14}{name:<26}{statistics.median(times):9.3f}{p99:9.3f}")
+        flows = [("one crop (64 x 64)", crop), ("whole scan (25 tiles)", mosaic)]
+        cases += [(mode, name, flow) for name, flow in ([("none", None)] if mode == "filter" else flows)]
+    rounds: dict[tuple[str, str], list[list[float]]] = {(mode, name): [] for mode, name, _ in cases}
+    for _ in range(args.rounds):
+        for mode, name, flow in cases:
+            rounds[(mode, name)].append(time_case(stream, TrackerSettings(velocity=mode), flow))
+    print(
+        f"rafd.tracking.step, {args.boxes} boxes per scan, CPU ms per scan (thread time), {args.frames} scans x "
+        f"{args.rounds} rounds"
+    )
+    print(f"{'velocity':<14}{'flow':<26}{'median (best-worst round)':>28}{'p99 (best round)':>18}")
+    for (mode, name), times in rounds.items():
+        medians = [statistics.median(t) for t in times]
+        best = times[int(np.argmin(medians))]
+        spread = f"{min(medians):.3f} - {max(medians):.3f}"
+        print(f"{mode:<14}{name:<26}{spread:>28}{float(np.percentile(best, 99)):18.3f}")
     print(f"answer growth: {answer_growth(stream, crop):.0f} bytes of JSON per box")
     return 0
 

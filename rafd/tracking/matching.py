@@ -4,7 +4,6 @@ closest-first (greedy, CenterPoint) assignment."""
 from __future__ import annotations
 
 import numpy as np
-from scipy.optimize import linear_sum_assignment
 
 UNMATCHABLE = 1e9  # the cost of a pair outside a gate (never chosen: the pairs above the gate are dropped after)
 
@@ -20,7 +19,8 @@ def gated_costs(
     """Predicted centres [T, 2], detection centres [D, 2], squared Mahalanobis distances [T, D], Euclidean gates
     [T] metres, the Mahalanobis gate in sigmas and class agreement [T, D] -> costs [T, D] (metres; UNMATCHABLE
     outside a gate)."""
-    distance = np.hypot(*(detections[None, :, :] - predicted[:, None, :]).transpose(2, 0, 1))  # [T, D]
+    difference = detections[None, :, :] - predicted[:, None, :]  # [T, D, 2]
+    distance = np.sqrt((difference * difference).sum(-1))  # [T, D]
     allowed = (distance <= gates_m[:, None]) & (mahalanobis_sq <= sigmas**2) & same_class
     return np.where(allowed, distance, UNMATCHABLE)
 
@@ -32,6 +32,9 @@ def assign(costs: np.ndarray, how: str) -> tuple[np.ndarray, np.ndarray]:
     if how == "greedy":
         rows, columns = _greedy(costs)
     else:
+        # imported here: greedy matching runs where scipy (~140 MB installed) is not
+        from scipy.optimize import linear_sum_assignment
+
         rows, columns = linear_sum_assignment(costs)
     keep = costs[rows, columns] < UNMATCHABLE
     return np.asarray(rows, np.int64)[keep], np.asarray(columns, np.int64)[keep]

@@ -68,8 +68,10 @@ def mahalanobis_squared(
     """Predicted centres [T, 2] with covariances [T, 2, 2], detection centres [D, 2] -> [T, D] squared Mahalanobis
     distances under the track's spread plus a detection's noise variance."""
     s_inverse = inverse_2x2(position_covariance + noise_var * np.eye(2))  # [T, 2, 2]
-    difference = points[None, :, :] - predicted[:, None, :]  # [T, D, 2]
-    return np.einsum("tdi,tij,tdj->td", difference, s_inverse, difference)
+    dx = points[None, :, 0] - predicted[:, 0, None]  # [T, D]
+    dy = points[None, :, 1] - predicted[:, 1, None]
+    a, b, d = s_inverse[:, 0, 0, None], s_inverse[:, 0, 1, None], s_inverse[:, 1, 1, None]  # [T, 1] each
+    return a * dx * dx + 2.0 * b * dx * dy + d * dy * dy
 
 
 def moving_probability(velocity: np.ndarray, covariance: np.ndarray, prior_std: float, prior: float) -> np.ndarray:

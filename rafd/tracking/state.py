@@ -4,7 +4,7 @@ old state until the whole request has succeeded (and a replayed frame steps the 
 
 from __future__ import annotations
 
-from dataclasses import dataclass, fields, replace
+from dataclasses import dataclass, replace
 
 import numpy as np
 
@@ -42,10 +42,10 @@ class TrackerState:
     scans: int = 0  # scans stepped
 
     def __post_init__(self) -> None:
-        for item in fields(self):
-            value = getattr(self, item.name)
-            if isinstance(value, np.ndarray) and value.flags.writeable:
-                object.__setattr__(self, item.name, read_only(value))
+        for name in TRACK_ARRAYS:
+            value = getattr(self, name)
+            if value.flags.writeable:
+                object.__setattr__(self, name, read_only(value))
 
     def __len__(self) -> int:
         return len(self.ids)

@@ -134,7 +134,7 @@ def step(
         scans=state.scans + 1,
     )
     answer = _answer(next_state, detections[order], det_index[order], measured, order, pose, settings)
-    return replace(answer, dropped=tuple(sorted(dropped))), next_state
+    return replace(answer, dropped=tuple(sorted(dropped))) if dropped else answer, next_state
 
 
 def _rotation(yaw: float) -> np.ndarray:
@@ -344,9 +344,8 @@ def _answer(
             v, p = velocity[filtered], covariance[filtered]
             moving = motion.moving_probability(v, p, s.initial_speed_std, s.moving_prior)[:, None]  # [F, 1]
             velocity[filtered] = moving * v
-            covariance[filtered] = moving[:, :, None] * p + (moving * (1 - moving))[:, :, None] * np.einsum(
-                "ni,nj->nij", v, v
-            )
+            spread = v[:, :, None] * v[:, None, :]  # [F, 2, 2] v v'
+            covariance[filtered] = moving[:, :, None] * p + (moving * (1 - moving))[:, :, None] * spread
     # world -> ego axes: v_ego = R^T v_world (rows: v @ R), covariance R^T P R
     ego_velocity = velocity @ rotation
     ego_covariance = rotation.T @ covariance @ rotation
