@@ -6,10 +6,10 @@ package folder has an __init__.py.
 
 Inside rafd the sub-packages import downwards too, in the order of RAFD_LAYERS: the top-level modules (geometry,
 config, preprocessing, the wire protocol) and the scan formats (rafd.scans), numpy and opencv only, at the bottom as
-one layer, then data, the simulator, the model, the ONNX runtime, pictures, evaluation, training and the command
-line. So training may call evaluation
-(validation during training) but evaluation never imports training: what both need (collation, precision, the device)
-lives below both. And no module imports a private (underscore) name from another package."""
+one layer, then the tracker (rafd.tracking: numpy + scipy, torch-free, for the service and evaluation alike), data,
+the simulator, the model, the ONNX runtime, pictures, evaluation, training and the command line. So training may
+call evaluation (validation during training) but evaluation never imports training: what both need (collation,
+precision, the device) lives below both. And no module imports a private (underscore) name from another package."""
 
 from __future__ import annotations
 
@@ -52,7 +52,7 @@ def test_a_package_imports_only_the_layers_below_it(package: str):
 
 # Lowest first; "core" is rafd's top-level modules and the packages of CORE_PACKAGES. A sub-package may import those
 # before it, never one after it.
-RAFD_LAYERS = ("core", "assets", "data", "sim", "model", "runtime", "viz", "eval", "train", "cli")
+RAFD_LAYERS = ("core", "tracking", "assets", "data", "sim", "model", "runtime", "viz", "eval", "train", "cli")
 
 
 def rafd_imports(path: Path) -> list[tuple[str, str]]:
