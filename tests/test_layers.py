@@ -6,11 +6,12 @@ package folder has an __init__.py.
 
 Inside rafd the sub-packages import downwards too, in the order of RAFD_LAYERS: the top-level modules (geometry,
 config, preprocessing, the wire protocol) and the scan formats (rafd.scans), numpy and opencv only, at the bottom as
-one layer, then the radar odometry (which the data readers and the service run), ROS 2 bags (rafd.ros: a bag is a
-source of scans the data layer reads), data, the simulator, the model, the ONNX runtime, pictures, evaluation,
-training and the command line. So training may call evaluation (validation during training) but evaluation never
-imports training: what both need (collation, precision, the device) lives below both. And no module imports a
-private (underscore) name from another package.
+one layer, then the tracker (rafd.tracking: numpy + scipy, torch-free, for the service and evaluation alike), the radar
+odometry (which the data readers and the service run), ROS 2 bags (rafd.ros: a bag is a source of scans the data
+layer reads), data, the simulator, the model, the ONNX runtime, pictures, evaluation, training and the command line.
+So training may call evaluation (validation during training) but evaluation never imports training: what both need
+(collation, precision, the device) lives below both. And no module imports a private (underscore) name from another
+package.
 
 Below the packages, no module imports itself back through others: the module graph (every import statement, those
 inside functions and under TYPE_CHECKING too) has no cycle; an import inside a function is never a way around one."""
@@ -56,7 +57,21 @@ def test_a_package_imports_only_the_layers_below_it(package: str):
 
 # Lowest first; "core" is rafd's top-level modules and the packages of CORE_PACKAGES. A sub-package may import those
 # before it, never one after it.
-RAFD_LAYERS = ("core", "assets", "odometry", "ros", "data", "sim", "model", "runtime", "viz", "eval", "train", "cli")
+RAFD_LAYERS = (
+    "core",
+    "tracking",
+    "assets",
+    "odometry",
+    "ros",
+    "data",
+    "sim",
+    "model",
+    "runtime",
+    "viz",
+    "eval",
+    "train",
+    "cli",
+)
 
 
 def rafd_imports(path: Path) -> list[tuple[str, str]]:

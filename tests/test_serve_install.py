@@ -46,6 +46,8 @@ def test_serve_extra_installs_without_torch_and_answers_detect(serve_venv: Path,
         cwd=tmp_path,
     )
     assert probe.stdout.strip() == "True", "the serve extra pulled in torch"
+    # the tracker the service will carry per stream imports without torch (numpy + scipy)
+    subprocess.run([str(python), "-c", "import rafd.tracking"], capture_output=True, check=True, cwd=tmp_path)
 
     port = free_port()
     key = "install-check-key-0123456789"

@@ -87,6 +87,14 @@ def build_parser() -> argparse.ArgumentParser:
         "so a multi-frame model sees only what a single-frame model sees; compare with the true "
         "windows (rafd bench accuracy compare on both --detections) to measure what the past adds",
     )
+    parser.add_argument(
+        "--tracking",
+        action="store_true",
+        help="also track every sequence as a stream (rafd.tracking) and score it: HOTA/DetA/AssA, MOTA, IDF1 and ID "
+        "switches (TrackEval, 2 m centre matching), velocity error of the four velocity candidates and two "
+        "baselines, by range and weather, and the operating point with and without tracks (docs/tracking.md). "
+        "Needs the metrics extra; use --warm-up-windows so every scan of a stream is answered",
+    )
     flags.add_threads(parser, None, "torch's CPU threads (default: torch's)")
     flags.add_quiet(parser)
     return parser
@@ -122,6 +130,10 @@ def main(argv: Sequence[str] | None = None) -> int:
         print(report["calibration"])
     print(format_table(report["overall"], report["per_sequence"], report["per_condition"]))
     print(format_flow_table(report["flow"]))
+    if "tracking" in report:
+        from rafd.eval.tracking_table import format_tracking
+
+        print(format_tracking(report["tracking"]))
     for key, what in (("plots", "plots"), ("mcap", "MCAP logs")):
         if key in report:
             print(f"{what}: {getattr(args, key)} ({len(report[key])} files)")

@@ -8,6 +8,8 @@ numbers, timestamps, scan paths, the side and resolution of the Cartesian scans 
     radar/<microseconds>.png ...       native: the scans in the sensor's own layout (Oxford Radar RobotCar, Boreas;
                                        rafd.data.native_folder), converted on load (rafd.scans.native.NativeSource)
     annotations/annotations.json      the labels, meta.json the split and sizes (rafd.data.radiate_files)
+    annotations/velocities.json       simulated drives only: each labelled road user's true ground velocity
+                                       (rafd.sim.writer.velocities_json; read by rafd.eval.velocity_truth)
     ego_poses.csv                      optional, ours (rafd.data.poses): frame, timestamp, x, y, yaw
 
 A folder with both Cartesian and polar scans (RADIATE ships both) is read from its Cartesian scans; a polar-only
@@ -45,6 +47,7 @@ TIMESTAMPS_FILE = "Navtech_Cartesian.txt"
 POLAR_DIR = "Navtech_Polar"
 POLAR_TIMESTAMPS_FILE = "Navtech_Polar.txt"
 ANNOTATIONS_FILE = "annotations/annotations.json"
+VELOCITIES_FILE = "annotations/velocities.json"
 META_FILE = "meta.json"
 
 _IMAGE_NAME = re.compile(r"(\d+)\.png")

@@ -25,6 +25,7 @@ from rafd.data.dataset import objects_in_crop
 from rafd.eval.flow_split import FlowTally, pooled, tally_pair
 from rafd.eval.predict import FrameResult, outside_ignored
 from rafd.eval.tiled import TileGrid, merge_tiles, tile_poses
+from rafd.eval.tracking_inputs import flow_mosaic
 from rafd.flow_validity import config_validity
 from rafd.model import RaFD, relative_pose_torch
 from rafd.model.precision import autocast
@@ -59,9 +60,11 @@ def predict_full_scan(
     precision: str = "fp32",
     tiles_per_batch: int = 32,
     progress: bool = True,
+    keep_flow: bool = False,
 ) -> list[FrameResult]:
     """Every window of a whole-scan RadarWindowDataset (opened with scan_config) -> FrameResults with the merged
-    detections of the whole newest scan (ego frame, all K of every tile kept: AP wants the tail)."""
+    detections of the whole newest scan (ego frame, all K of every tile kept: AP wants the tail); keep_flow also
+    keeps each scan's newest real pair's flow as a mosaic of the tiles' flow fields (FrameResult.flow_fields)."""
     device = torch.device(device)
     model.eval()
     frames_per_window = cfg.num_frames
@@ -88,6 +91,8 @@ def predict_full_scan(
         poses: deque = deque(maxlen=frames_per_window)  # per frame: [n, 3] tile world poses
         newest_relative = None  # [n, 3] ego motion of flows[-1], the newest real pair
         previous_number = None
+        previous_time = None  # timestamp of the frame before the newest (the newest pair's older scan)
+        interval = math.nan  # seconds between the newest pair's scans
         for k, number in enumerate(meta.numbers):
             if (s, k) not in needed:
                 previous_number = None  # the stream starts again at the next frame needed
@@ -111,6 +116,8 @@ def predict_full_scan(
                 relative = relative_pose_torch(poses[-1], pose).float().to(device)  # [n, 3]
                 flows.append(batched(model.pair_flow, features[-1], encoded, relative).float())
                 newest_relative = relative.double().cpu().numpy()
+                interval = float(meta.timestamps[k] - previous_time) if previous_time is not None else math.nan
+            previous_time = float(meta.timestamps[k])
             features.append(encoded)
             poses.append(pose)
             if (s, k) not in wanted:
@@ -160,6 +167,9 @@ def predict_full_scan(
                     cells_all=0,
                     cells_foreground=0,
                     flow_tally=tally,
+                    flow_fields=flow_mosaic(tiles, pair_flows[:, -1].cpu().numpy(), newest_relative, cfg, interval)
+                    if keep_flow and real_pair and pair_flows is not None and newest_relative is not None
+                    else None,
                 )
             )
             bar.update(1)

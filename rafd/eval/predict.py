@@ -38,6 +38,9 @@ class FrameResult:
     gt_flow: np.ndarray | None = None  # [2, Hf, Wf]
     # the newest pair's flow by ring from the crop's edge, vehicles / background / label-free (rafd.eval.flow_split)
     flow_tally: FlowTally | None = None
+    # full scans with keep_flow: the newest real pair's flow over the whole scan, one rafd.tracking.FlowField per
+    # tile (a mosaic; None without a real pair), for the tracking evaluation (rafd.eval.tracking)
+    flow_fields: tuple | None = None
 
 
 def outside_ignored(predictions: np.ndarray, ignore: np.ndarray) -> np.ndarray:

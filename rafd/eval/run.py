@@ -39,6 +39,7 @@ class EvalRun:
     like_frames: int | None = None
     past_as_newest: bool = False
     warm_up_windows: bool = False  # also each sequence's first frames, in padded windows (as the service answers)
+    tracking: bool = False  # also run the tracker over each sequence and score tracks and velocities
     threads: int | None = None
     progress: bool = True
 
@@ -60,6 +61,8 @@ def check_run(run: EvalRun) -> None:
             "--past-as-newest scores the model's crop windows as numbers only; run it without "
             "--full-scan, --plots and --mcap"
         )
+    if run.tracking and run.past_as_newest:
+        raise EvalError("--tracking follows the real windows; run it without --past-as-newest")
     if run.full_scan and (run.plots is not None or run.mcap is not None):
         raise EvalError("--plots and --mcap draw the model's crop; run them without --full-scan")
 
@@ -233,7 +236,9 @@ def evaluate(run: EvalRun) -> dict[str, Any]:
         if run.full_scan:
             from rafd.eval.fullscan import predict_full_scan
 
-            results = predict_full_scan(model, dataset, cfg, device, precision=run.precision, progress=run.progress)
+            results = predict_full_scan(
+                model, dataset, cfg, device, precision=run.precision, progress=run.progress, keep_flow=run.tracking
+            )
         else:
             results = predict(
                 model,
@@ -243,7 +248,7 @@ def evaluate(run: EvalRun) -> dict[str, Any]:
                 batch_size=run.batch_size,
                 progress=run.progress,
                 precision=run.precision,
-                keep_flow=run.mcap is not None,
+                keep_flow=run.mcap is not None or run.tracking,
                 past_as_newest=run.past_as_newest,
             )
     except ValueError as error:
@@ -269,6 +274,12 @@ def evaluate(run: EvalRun) -> dict[str, Any]:
         }
     )
     report["flow"] = flow_figures(results, report["overall"], run.full_scan)
+    if run.tracking:
+        from rafd.eval.tracking import evaluate_tracking
+        from rafd.eval.tracking_inputs import tracking_frames
+
+        frames, truth = tracking_frames(results, dataset, cfg, run.full_scan)
+        report["tracking"] = evaluate_tracking(frames, threshold, velocity_truth=truth)
     if run.plots is not None:
         written = write_plots(run.plots, model, cfg, dataset, results, run.examples, device, threshold)
         report["plots"] = [str(p) for p in written]

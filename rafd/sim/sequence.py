@@ -48,6 +48,9 @@ class SimulatedObject:
     id: int
     class_name: str
     boxes: np.ndarray  # [T, 5] metres in each frame's ego frame; NaN rows where not annotated
+    # [T, 2] true ground velocity (m/s) at the moment the beam saw it, in each frame's ego axes (x right, y forward,
+    # the frame's pose): the world velocity of its trajectory rotated by -pose yaw; NaN rows where not annotated
+    velocities: np.ndarray | None = None
 
 
 @dataclass(frozen=True)
@@ -151,6 +154,13 @@ def _interpolate(times: np.ndarray, values: np.ndarray, at: np.ndarray | float, 
         values[:, angle_column] = np.unwrap(values[:, angle_column])
     at = np.atleast_1d(np.asarray(at, np.float64))
     return np.stack([np.interp(at, times, values[:, d]) for d in range(values.shape[1])], -1)
+
+
+def trajectory_velocity(times: np.ndarray, boxes: np.ndarray, at: float) -> np.ndarray:
+    """[F] times and [F, 5] world boxes of a piecewise-linear trajectory (what _interpolate reads) -> [2] its world
+    velocity (m/s) at time `at`: the slope of the segment holding it, exactly."""
+    segment = int(np.clip(np.searchsorted(times, at, side="right") - 1, 0, len(times) - 2))
+    return (boxes[segment + 1, :2] - boxes[segment, :2]) / (times[segment + 1] - times[segment])
 
 
 def _to_ego(poses: np.ndarray, points: np.ndarray) -> np.ndarray:
@@ -258,6 +268,7 @@ def run_simulation(
     half_extent = size / 2.0 * resolution
     azimuth_bin = 2.0 * math.pi / sensor.config.azimuths
     truth = np.full((len(agents), num_frames, 5), np.nan)
+    velocities = np.full((len(agents), num_frames, 2), np.nan)  # true ground velocity, each frame's ego axes
     images, polar_scans, poses = [], [], _interpolate(fine, ego.poses, times, angle_column=2)
     for t in range(num_frames):
         sweep = (times[t] - SCAN_PERIOD / 2.0, times[t] + SCAN_PERIOD / 2.0)
@@ -271,6 +282,8 @@ def run_simulation(
         turn_by = rotation_matrix(-poses[t, 2])  # normals: the world's orientation in this frame's ego axes
         parts = [Scatterers(seen, static.amplitude, static.normal @ turn_by.T, static.occluder, static.owner)]
         ego_boxes = np.full((len(agents), 5), np.nan)
+        ego_velocities = np.full((len(agents), 2), np.nan)
+        frame_axes = rotation_matrix(-poses[t, 2])  # world -> this frame's ego axes
         for k, agent in enumerate(agents):
             at_start, at_end = _interpolate(fine, agent.boxes, np.array(sweep), angle_column=4)
             if min(np.hypot(*(at_start[:2] - ego_start[:2])), np.hypot(*(at_end[:2] - ego_end[:2]))) > view + 15.0:
@@ -284,6 +297,7 @@ def run_simulation(
             ego_boxes[k, :2] = _to_ego(pose[None], box[None, :2])[0]
             ego_boxes[k, 2:4] = box[2:4]
             ego_boxes[k, 4] = (box[4] - pose[2] + math.pi) % (2 * math.pi) - math.pi
+            ego_velocities[k] = frame_axes @ trajectory_velocity(fine, agent.boxes, moment)
             parts.append(diffuse_returns(ego_boxes[k], looks[k], rng, k, azimuth_bin, sensor.config.range_bin))
         echoes = sensor.illuminate(Scatterers.concat(parts), conditions)
         lit, seen_count = visible_beams(echoes, len(agents), sensor.config.azimuths)
@@ -329,10 +343,11 @@ def run_simulation(
             truth[i, t] = annotation_box(
                 ego_boxes[i], agents[i].class_name, looks[i], label_rng, sensor.beam_sigma_rad, sensor.range_sigma_m
             )
+            velocities[i, t] = ego_velocities[i]
     if ambiguous:
         truth = ambiguous_labels(truth, label_rng)
     objects = [
-        SimulatedObject(agent.id, agent.class_name, truth[k])
+        SimulatedObject(agent.id, agent.class_name, truth[k], velocities[k])
         for k, agent in enumerate(agents)
         if np.isfinite(truth[k, :, 0]).any()
     ]

@@ -1,5 +1,6 @@
-"""Write a simulated sequence in RADIATE's on-disk layout (+ our ego_poses.csv with the true poses; optionally the
-polar scans as Navtech_Polar/ + Navtech_Polar.txt, RADIATE's layout and bin size)."""
+"""Write a simulated sequence in RADIATE's on-disk layout (+ our ego_poses.csv with the true poses and
+annotations/velocities.json with the road users' true ground velocities; optionally the polar scans as Navtech_Polar/ +
+Navtech_Polar.txt, RADIATE's layout and bin size)."""
 
 from __future__ import annotations
 
@@ -9,6 +10,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 
+from rafd.data.folders import VELOCITIES_FILE
 from rafd.data.poses import write_ego_poses
 from rafd.geometry import box_to_radiate
 from rafd.sim.sequence import SimulatedSequence
@@ -32,6 +34,20 @@ def annotations_json(sequence: SimulatedSequence) -> list[dict]:
             else:
                 bboxes.append([])
         entries.append({"id": int(obj.id), "class_name": obj.class_name, "bboxes": bboxes})
+    return entries
+
+
+def velocities_json(sequence: SimulatedSequence) -> list[dict]:
+    """The true ground velocities beside annotations.json: one entry per object, velocities[k] = [vx, vy] m/s for
+    frame k + 1 in that frame's ego axes (x right, y forward; ego motion removed), [] where it is not annotated."""
+    entries = []
+    for obj in sequence.objects:
+        if obj.velocities is None:
+            continue
+        velocities: list = [
+            [round(float(v[0]), 4), round(float(v[1]), 4)] if np.isfinite(v).all() else [] for v in obj.velocities
+        ]
+        entries.append({"id": int(obj.id), "velocities": velocities})
     return entries
 
 
@@ -66,6 +82,7 @@ def write_sequence(sequence: SimulatedSequence, out_dir: Path, poses: bool = Tru
         _write_scans(out_dir, "Navtech_Polar", sequence.polar_scans, sequence.timestamps_ns)
     (out_dir / "annotations").mkdir(exist_ok=True)
     (out_dir / "annotations" / "annotations.json").write_text(json.dumps(annotations_json(sequence)))
+    (out_dir / VELOCITIES_FILE).write_text(json.dumps(velocities_json(sequence)))
     meta = {
         "name": sequence.name,
         "type": "simulated",

@@ -187,3 +187,19 @@ def test_plots_draw_the_boxes_the_service_would_answer(
         red[threshold] = int((np.abs(scan.astype(int) - np.array(PRED_COLOUR)) < 60).all(-1).sum())
     assert red["0.0"] > 50  # every decoded box is drawn at threshold 0
     assert red["1.0"] == 0  # none reaches 1.0: nothing is drawn
+
+
+def test_tracking_scores_tracks_and_velocities(trained_checkpoint: Path, sim_root: Path, tmp_path: Path) -> None:
+    out_json = tmp_path / "metrics.json"
+    args = [str(trained_checkpoint), str(sim_root), "--split", "train", "--device", "cpu", "--quiet"]
+    code = main(args + ["--warm-up-windows", "--tracking", "--json", str(out_json)])
+    assert code == 0
+    report = json.loads(out_json.read_text())
+    tracking = report["tracking"]
+    assert tracking["frames"] == report["overall"]["frames"] and tracking["sequences"] == 2
+    assert tracking["velocity_truth"] == "simulator"  # the simulated drives carry their true velocities
+    for key in ("HOTA", "DetA", "AssA", "MOTA", "IDF1", "IDSW"):
+        assert key in tracking["tracking"]
+    assert set(tracking["candidates"]) == {"flow_centre", "flow_box", "filter", "filter_flow"}
+    assert {"detections", "confirmed"} <= set(tracking["time_helps_detection"])
+    assert main(args + ["--tracking", "--past-as-newest"]) == 2

@@ -93,3 +93,27 @@ def test_streamed_tiles_equal_each_tiles_window(scans: Path, monkeypatch: pytest
             confident = got[:, 5] > 0.05  # the tail below may swap at the top-K boundary
             distance = np.abs(got[confident][:, None] - want[None]).max(-1)  # [k, K]
             assert distance.min(1).max() < 1e-3 if confident.any() else True
+
+
+def test_keep_flow_gives_each_scan_its_tiles_flow_mosaic(scans: Path) -> None:
+    """keep_flow: every scan after a stream's first carries one FlowField per tile, on the tile's grid (the crop's
+    cells shifted by the tile's offset), with the pair's interval and the flow search's reach."""
+    from rafd.assets import default_checkpoint
+    from rafd.eval.tracking_inputs import reach_of
+    from rafd.model.checkpoint import load_checkpoint
+
+    model, cfg, _ = load_checkpoint(default_checkpoint())
+    dataset = RadarWindowDataset(scans, split="test", cfg=scan_config(cfg, _scan_size()), warm_up=True)
+    grid = TileGrid.for_model(cfg.input_size, scan_size=_scan_size())
+    results = predict_full_scan(model, dataset, cfg, grid=grid, progress=False, keep_flow=True)
+    assert results[0].flow_fields is None  # a stream's first scan has no pair
+    stamps = dataset.sequences[0].timestamps
+    for k, result in enumerate(results[1:], start=1):
+        fields = result.flow_fields
+        assert fields is not None and len(fields) == grid.per_side**2
+        for field, offset in zip(fields, grid.offsets_m):
+            height, width = field.grid.shape
+            assert field.flow.shape == (2, height, width) and field.validity.shape == (height, width)
+            assert np.allclose(field.grid.centres().mean((0, 1)), offset, atol=1e-6)
+            assert field.interval_s == pytest.approx(stamps[k] - stamps[k - 1])
+            assert field.reach_m == pytest.approx(reach_of(cfg))
