@@ -1,10 +1,11 @@
-"""`rafd bench capacity`: how many radars at 4 Hz one replica holds (bench.capacity), per model and input form.
+"""`rafd bench capacity`: how many radars at 4 Hz one replica holds (bench.capacity), per model, coverage and input.
 
-For each config (the shipped default model; the paper's network with random weights, exported here) a real
-`rafd-serve` runs on loopback with the given threads; for each form of input (full 1152 px scans without poses, so
-the service's odometry runs; model-size crops with poses) the number of streams rises until the p99 latency leaves
-the budget or an answer is not 200. Prints the largest N that held, one stream alone (p50 / p99), and the answers'
-own time split by stage at both; --json writes every level.
+For each config (the shipped default model; the paper's network with random weights, exported here) and each
+coverage (--ranges: `whole`, the service's default, detects over the whole scan; a number of metres sets
+RAFD_DETECT_RANGE_M) a real `rafd-serve` runs on loopback with the given threads; for each form of input (full 1152 px
+scans with poses; the same without poses, so the service's odometry runs; model-size crops with poses) the number of
+streams rises until the p99 latency leaves the budget or an answer is not 200. Prints the largest N that held, one
+stream alone (p50 / p99), and the answers' own time split by stage at both; --json writes every level.
 """
 
 from __future__ import annotations
@@ -23,7 +24,7 @@ from bench.machine import machine_description
 from bench.server import start_server
 from rafd.cli import flags
 
-INPUTS = ("scans", "crops")
+INPUTS = ("posed-scans", "scans", "crops")
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -35,8 +36,14 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--model", type=Path, help="serve this ONNX model as the default config instead")
     parser.add_argument(
         "--inputs",
-        default="scans,crops",
-        help="comma list: scans (full scans, no poses: odometry runs), crops (model-size, with poses)",
+        default="posed-scans,scans,crops",
+        help="comma list: posed-scans (full scans with poses), scans (full scans, no poses: odometry runs), crops "
+        "(model-size, with poses)",
+    )
+    parser.add_argument(
+        "--ranges",
+        default="whole",
+        help="comma list of coverages: whole (the whole scan, the default service) or metres (RAFD_DETECT_RANGE_M)",
     )
     parser.add_argument("--multipart", action="store_true", help="post multipart files instead of JSON + base64")
     parser.add_argument("--seconds", type=float, default=10.0, help="seconds per load level")
@@ -69,7 +76,9 @@ def main(argv: Sequence[str] | None = None) -> int:
     logging.basicConfig(level=logging.WARNING, format="%(levelname)s %(name)s: %(message)s")
     configs = [c.strip() for c in args.configs.split(",") if c.strip()]
     inputs = [i.strip() for i in args.inputs.split(",") if i.strip()]
+    ranges = [r.strip() for r in args.ranges.split(",") if r.strip()]
     bad = [c for c in configs if c not in ("default", "paper")] + [i for i in inputs if i not in INPUTS]
+    bad += [r for r in ranges if r != "whole" and not r.replace(".", "", 1).isdigit()]
     if bad:
         print(f"rafd bench capacity: error: unknown configs or inputs {bad}", file=sys.stderr)
         return 2
@@ -85,9 +94,11 @@ def main(argv: Sequence[str] | None = None) -> int:
     report: dict[str, Any] = {"machine": machine_description(args.threads or 0), "levels": {}}
     rows = []
     with tempfile.TemporaryDirectory(prefix="rafd-capacity-") as tmp:
-        for config in configs:
+        for config, coverage in [(c, r) for c in configs for r in ranges]:
             model = _model_for(config, Path(tmp), args.model)
-            with start_server(model, args.threads, env=env, clean_env=True) as server:
+            served_env = env if coverage == "whole" else {**env, "RAFD_DETECT_RANGE_M": coverage}
+            config_label = config if coverage == "whole" else f"{config}, within {coverage} m"
+            with start_server(model, args.threads, env=served_env, clean_env=True) as server:
                 import urllib.request
 
                 with urllib.request.urlopen(f"{server.url}/model") as response:
@@ -95,16 +106,18 @@ def main(argv: Sequence[str] | None = None) -> int:
                 size = int(described["input_size"])
                 runtime = described["runtime"]  # what the service chose to serve: the figures are that path's
                 served = f"{runtime['runtime']}/{runtime['precision']}"
-                report.setdefault("served", {})[config] = {
+                report.setdefault("served", {})[config_label] = {
                     "runtime": served,
                     "float32_islands": runtime.get("float32_islands", []),
                     "selection_ms_per_run": runtime.get("selection_ms_per_run", {}),
                 }
-                print(f"{config}: served as {served} (ms a run at start-up: {runtime.get('selection_ms_per_run')})")
+                print(
+                    f"{config_label}: served as {served} (ms a run at start-up: {runtime.get('selection_ms_per_run')})"
+                )
                 for form in inputs:
-                    frames = encode_frames(scans, None if form == "scans" else size)
-                    with_poses = poses if form == "crops" else None
-                    label = f"{config}, {frames.label}, {'poses' if with_poses is not None else 'no poses'}"
+                    frames = encode_frames(scans, size if form == "crops" else None)
+                    with_poses = None if form == "scans" else poses
+                    label = f"{config_label}, {frames.label}, {'poses' if with_poses is not None else 'no poses'}"
                     print(f"{label}:")
                     run_level(server.url, frames, 1, 2.0, poses=with_poses, multipart=args.multipart)  # warm up
                     alone = run_level(server.url, frames, 1, args.seconds, poses=with_poses, multipart=args.multipart)

@@ -20,8 +20,8 @@ import time
 import numpy as np
 
 from rafd.cli import flags
-from rafd.eval.tiled import TileGrid
 from rafd.tracking import VELOCITY_MODES, FlowField, FlowGrid, TrackerSettings, TrackerState, step
+from rafd.view import TileGrid
 
 PERIOD_S = 0.25
 CELL_M = 0.694  # the shipped model's flow cells (256 px at 0.1736 m / px, 64 x 64)

@@ -8,6 +8,10 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
+from rafd.config import RaFDConfig
+from rafd.geometry import RADIATE_SCAN_SIZE
+from rafd.scans.cartesian import accepted_sizes
+from rafd.view import View
 from service.settings import Settings
 
 if TYPE_CHECKING:  # the runtime (onnxruntime, OpenVINO) is imported when the model loads, never at service import
@@ -42,8 +46,20 @@ def open_runner(settings: Settings) -> StreamRunner:
         settings.threads,
         settings.concurrent_runs,
     )
+    from rafd.runtime.runners import time_runner
+
+    def timer(runner: StreamRunner) -> float:
+        """A candidate's run at the tiles of the view a full scan is detected over: what the service runs most."""
+        view = full_scan_view(runner.config, settings.detect_range_m)
+        return time_runner(runner, views=1 if view is None else len(view.tiles))
+
     runner = create_runner(
-        path, settings.runtime, settings.precision, threads=settings.threads, concurrent_runs=settings.concurrent_runs
+        path,
+        settings.runtime,
+        settings.precision,
+        threads=settings.threads,
+        concurrent_runs=settings.concurrent_runs,
+        timer=timer,
     )
     log.info("serving on %s", runner.describe())
     if runner.precision_choice:
@@ -56,6 +72,15 @@ def check_buffer_length(settings: Settings, runner: Runner) -> None:
     frames = runner.config.num_frames
     if settings.buffer_length is not None and settings.buffer_length != frames:
         raise ValueError(f"RAFD_BUFFER_LENGTH={settings.buffer_length} but the model takes {frames} frames")
+
+
+def full_scan_view(config: RaFDConfig, range_m: float | None) -> View | None:
+    """What a full RADIATE scan (posted, or converted from a polar or native scan) is detected over; None for a model
+    that takes none (not at RADIATE's resolution)."""
+    if RADIATE_SCAN_SIZE not in accepted_sizes(config.input_size, config.resolution):
+        return None
+    cell_px = config.input_size // config.feature_size
+    return View.of(RADIATE_SCAN_SIZE, config.input_size, config.resolution, cell_px, range_m)
 
 
 def warm_up(runner: Runner) -> None:

@@ -107,6 +107,20 @@ class Answer(BaseModel):
     model_config = ConfigDict(extra="forbid", populate_by_name=True)
 
 
+class TrackOut(Answer):
+    status: Literal["tentative", "confirmed", "coasting"] = Field(
+        description="tentative until the track is detected in 2 scans; coasting: a confirmed track not detected in "
+        "this scan, its box predicted (answered only with RAFD_TRACKS_ANSWER_COASTING)"
+    )
+    age: int = Field(description="scans since the track began (1 on its first)")
+    hits: int = Field(description="scans in which it was detected")
+
+
+class Velocity(Answer):
+    x: float
+    y: float
+
+
 class BoxOut(Answer):
     x: float = Field(description="centre, metres right of the radar (ego frame of this frame)")
     y: float = Field(description="centre, metres forward of the radar")
@@ -117,6 +131,23 @@ class BoxOut(Answer):
     class_id: int
     class_name: str = Field(alias="class")
     polygon: list[list[float]] = Field(description="4 corners (u, v) in the POSTED image's pixels")
+    track_id: str = Field(
+        description="the box's track (rafd.tracking): the same while the vehicle is seen, never reused within a "
+        "stream; CHAIN-N, where CHAIN is new with each chain of the stream (a restart, a failover), so ids of "
+        "another chain never equal these"
+    )
+    track: TrackOut
+    velocity: Velocity | None = Field(
+        description="ground velocity (ego motion removed), m/s in this frame's ego axes (x right, y forward); null "
+        "when nothing measured it yet (velocity_source none: a track's first scan)"
+    )
+    velocity_covariance: list[list[float]] | None = Field(
+        description="the velocity's 2x2 covariance, (m/s)^2, in the same axes; null with the velocity"
+    )
+    velocity_source: Literal["flow", "track", "none"] = Field(
+        description="what the velocity rests on: track (the track's constant-velocity filter over its positions), "
+        "flow (the model's flow), none"
+    )
 
 
 class FlowGrid(Answer):
@@ -134,7 +165,7 @@ class FlowOut(Answer):
     units: Literal["m"] = "m"
     axes: str
     grid: FlowGrid
-    encoding: Literal["list", "base64-float16"]
+    encoding: Literal["list", "base64-float16", "png"]
     values: list[list[list[float]]] | str
     validity: list[list[float]] | str = Field(
         description="[Hf, Wf] in [0, 1], in `encoding` like `values`: where the flow was measured (1 = over the "
@@ -145,14 +176,27 @@ class FlowOut(Answer):
     search_reach_m: float = Field(description="metres the flow's search reaches from a cell (validity 1)")
 
 
+class CoveredOut(Answer):
+    side_px: int = Field(description="side of the square detected over, centred on the radar, in posted pixels")
+    offset_px: int = Field(description="posted pixel (u and v) of that square's top-left corner")
+    side_m: float = Field(description="its side in metres")
+    range_m: float | None = Field(
+        description="boxes farther than this from the radar are not answered (RAFD_DETECT_RANGE_M); null: the "
+        "whole scan"
+    )
+    tiles: int = Field(description="the model's inputs stepped over it (one for a scan of the model's size)")
+
+
 class InputOut(Answer):
     posted_size: int
     model_size: int
-    crop_offset_px: int = Field(description="posted pixel of the model crop's top-left corner")
     posted_format: Literal["cartesian", "polar", "native"] = Field(
         description="polar: a Navtech_Polar scan was posted, native: an Oxford / Boreas native scan; either is "
-        "converted to RADIATE's Cartesian scan, and posted_size, crop_offset_px and every polygon are in that "
-        "Cartesian scan's pixels"
+        "converted to RADIATE's Cartesian scan, and posted_size, covered and every polygon are in that Cartesian "
+        "scan's pixels"
+    )
+    covered: CoveredOut = Field(
+        description="what was detected over: the whole scan, or within RAFD_DETECT_RANGE_M of the radar"
     )
     native_format: str | None = Field(
         default=None,
@@ -183,9 +227,10 @@ class ModelRef(Answer):
     precision: str = Field(description="what it computed in: fp32, bf16 or int8 (the quantized MODEL.int8.onnx)")
 
 
-# evicted / expired: the store ended the previous chain; gap / previous_timestamp_mismatch: the frame itself showed
-# that the chain held here is not its own (service/pipeline/detector.py, `chain_break`), and it starts a new one.
-RestartReason = Literal["evicted", "expired", "gap", "previous_timestamp_mismatch"]
+# evicted / expired: the store ended the previous chain; gap / previous_timestamp_mismatch / view_changed: the frame
+# itself showed that the chain held here is not its own (service/pipeline/detector.py, `chain_break`), and it starts
+# a new one.
+RestartReason = Literal["evicted", "expired", "gap", "previous_timestamp_mismatch", "view_changed"]
 
 
 class DetectResponse(Answer):
@@ -199,8 +244,9 @@ class DetectResponse(Answer):
         description="present only on the first answer of a chain that the service restarted: the stream id's "
         "previous chain was evicted (its key's quota or the store's cap), expired (idle past RAFD_STREAM_TTL_S), "
         "is too old for this frame (gap: more than RAFD_STREAM_GAP_RESTART_S seconds of timestamps before it) or "
-        "is not the client's (previous_timestamp_mismatch: its last frame is not the request's previous_timestamp); "
-        "frames_used starts again at 1 and the odometry world frame restarts at this frame",
+        "is not the client's (previous_timestamp_mismatch: its last frame is not the request's previous_timestamp) "
+        "or was detected over another view (view_changed: a scan of another size than the chain's); frames_used "
+        "starts again at 1 and the odometry world frame restarts at this frame",
     )
     replayed: bool | None = Field(
         default=None,
@@ -281,6 +327,18 @@ class RuntimeOut(Answer):
     )
 
 
+class FullScanOut(Answer):
+    side_px: int = Field(description="side of the square a full scan is detected over (RAFD_DETECT_RANGE_M)")
+    tiles: int = Field(description="the model's inputs stepped over it, as one run")
+    state_bytes: int = Field(
+        description="the model's state a stream of full scans holds (its tracks add a few kB: GET /streams)"
+    )
+    model_ms: float | None = Field(
+        description="median ms of the model stage of the last full scans served (timing.model_ms); null before one"
+    )
+    frames: int = Field(description="full scans that median is of (at most the last 64)")
+
+
 class ModelInfo(Answer):
     metadata: dict[str, str] = Field(description="the ONNX model's metadata (rafd.runtime.METADATA_KEYS and more)")
     config: dict[str, Any] = Field(description="the model's RaFDConfig")
@@ -300,6 +358,10 @@ class ModelInfo(Answer):
     )
     score_threshold: float = Field(description="detections scoring below it are not answered")
     runtime: RuntimeOut = Field(description="how the graph runs")
+    full_scan: FullScanOut | None = Field(
+        description="what a full RADIATE scan (posted, or converted from a polar or native one) costs; null for a "
+        "model that takes none"
+    )
 
 
 class Liveness(Answer):

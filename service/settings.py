@@ -343,6 +343,32 @@ class Settings(BaseSettings):
             "--calibrate`), else 0.3."
         ),
     )
+    detect_range_m: float | None = Field(
+        default=None,
+        gt=0.0,
+        le=1000.0,
+        description=(
+            "Detect only within this distance of the radar (metres); None: over the whole posted scan. The model's "
+            "input is stepped as tiles over the smallest square holding that disc (rafd.view): fewer tiles, less "
+            "CPU per frame; a value within the model's own crop (22 m for the shipped model) is one tile, the "
+            "cheapest."
+        ),
+    )
+    tracks_answer_tentative: bool = Field(
+        default=True,
+        description=(
+            "Answer the boxes of tracks not yet confirmed (detected in one scan only so far). False drops a lone "
+            "detection until its vehicle is seen again: fewer false positives, a scan later for every new vehicle "
+            "(docs/tracking.md)."
+        ),
+    )
+    tracks_answer_coasting: bool = Field(
+        default=False,
+        description=(
+            "Also answer a confirmed track's predicted box for up to 3 scans without a detection (status coasting, "
+            "its score decayed), so a vehicle missed in one scan stays in the answer."
+        ),
+    )
     native_max_azimuths: int = Field(
         default=400,
         ge=100,

@@ -4,7 +4,7 @@ Posts every radar frame in timestamp order (with its pose from ego_poses.csv whe
 service estimates ego motion). A folder with only the sensor's polar scans (Navtech_Polar/) posts them as
 they are (the service converts them with the same rafd.scans.polar conversion the client draws and logs), or
 converted first when meta.json asks for another size or resolution. With --out: each frame's picture
-(rafd.viz.answer: the model's crop zoomed, predictions with scores, ground truth where labelled, flow,
+(rafd.viz.answer: what was detected over, predictions with scores, ground truth where labelled, flow,
 legend), the answers as JSON lines and an MP4. With --mcap: a Foxglove/MCAP log of scans, poses, boxes, flow and
 ground truth (rafd.viz.mcap, `logs` extra). Uses only the standard library for HTTP.
 
@@ -363,7 +363,8 @@ def logged_frame(
     the cells `validity` marks valid, when given)."""
     from rafd.viz.mcap import frame_from_answer
 
-    offset, model_size = answer["input"]["crop_offset_px"], answer["input"]["model_size"]
+    covered = answer["input"]["covered"]  # the square detected over
+    offset, side = covered["offset_px"], covered["side_px"]
     truth = None
     if annotated:
         truth = np.array([o.box for o in frame.source.objects], dtype=np.float64).reshape(-1, 5)
@@ -372,7 +373,7 @@ def logged_frame(
         png,
         scan.shape[0],
         resolution,
-        scan[offset : offset + model_size, offset : offset + model_size],
+        scan[offset : offset + side, offset : offset + side],
         frame.source.timestamp_ns,
         truth_boxes=truth,
         truth_polygons=truth_polygons(frame, annotated),
@@ -499,8 +500,10 @@ def main(argv: list[str] | None = None) -> int:
     try:
         sequence = read_sequence_or_bag(args)
         from rafd.viz.answer import AnswerView, draw_answer
+        from rafd.viz.trails import Trails
 
         view = AnswerView(view_px=args.view, flow_step=args.flow_step, flow_scale=args.flow_scale)
+        trails = Trails()
     except (OSError, ValueError) as exc:
         print(f"rafd-client: {exc}", file=sys.stderr)
         return 2
@@ -599,6 +602,7 @@ def main(argv: list[str] | None = None) -> int:
             if out is None or answers is None:  # (both or neither)
                 continue
             answers.write(json.dumps(answer) + "\n")
+            trails.add(answer)
             canvas = draw_answer(
                 scan,
                 answer,
@@ -607,6 +611,7 @@ def main(argv: list[str] | None = None) -> int:
                 view,
                 title=f"{sequence.name} frame {frame.number}",
                 validity=validity,
+                trails=trails.in_scan(answer, sequence.resolution),
             )
             if not cv2.imwrite(str(out / "frames" / f"{frame.number:06d}.png"), canvas):
                 raise OSError(f"could not write {out / 'frames' / f'{frame.number:06d}.png'}")

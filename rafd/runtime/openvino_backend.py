@@ -129,44 +129,45 @@ class OpenVinoBackend:
             "NUM_STREAMS": self.concurrent_runs,
             "INFERENCE_NUM_THREADS": self.threads * self.concurrent_runs,
         }
-        # A graph with a free batch axis is compiled for batch 1, which single runs take: OpenVINO's CPU plugin runs
-        # the static shape 1.3-1.4x faster than the dynamic one (the shipped step, one thread, AMD EPYC Zen 4: fp32
-        # 15.9 against 22.4 ms, int8 12.3 against 18.7). The dynamic compilation is made by the first batched run
-        # (rafd.runtime.streaming.step_many; only with cross-stream batching on, RAFD_MAX_BATCH > 1), so a service or
-        # gate that never batches pays neither its compile time nor its memory.
-        self._dynamic: tuple[Any, Any, dict[str, Any]] | None = None  # (core, model, config) until compiled
-        self._batched: Any = None
+        # A graph with a free batch axis is compiled for each batch size it is run with, as a static shape: OpenVINO's
+        # CPU plugin runs a static shape 1.3-1.4x faster than the dynamic one (the shipped step at batch 1, one
+        # thread, AMD EPYC Zen 4: fp32 15.9 against 22.4 ms), and a stream's views (a whole scan's tiles) always come
+        # in the same number, so a service compiles a size or two: 1, and its whole-scan view's tile count.
+        self._core, self._model, self._config = core, model, config
+        self._free = any(DYNAMIC in shape for shape in self.input_shapes.values())
+        self._compiled: dict[int, Any] = {}  # batch size (0: the graph's own, static) -> compiled model
+        self._idle: dict[int, queue.SimpleQueue[Any]] = {}  # idle InferRequests per compilation (untyped library)
         self._compiling = threading.Lock()
-        if any(DYNAMIC in shape for shape in self.input_shapes.values()):
-            single = model.clone()
-            single.reshape(
-                {name: [1 if d == DYNAMIC else d for d in shape] for name, shape in self.input_shapes.items()}
-            )
-            self.single = core.compile_model(single, "CPU", config)
-            self._dynamic = (core, model, config)
-        else:
-            self.single = self._batched = core.compile_model(model, "CPU", config)
+        self.single = self.compiled(1)
         compiled = self.single.get_property("INFERENCE_PRECISION_HINT").get_type_name()  # "bf16" / "f32"
         self.precision = "int8" if precision == "int8" else {"f32": "fp32"}.get(compiled, compiled)
-        # idle openvino InferRequests (an untyped library), per compilation
-        self._idle: dict[bool, queue.SimpleQueue[Any]] = {True: queue.SimpleQueue(), False: queue.SimpleQueue()}
 
-    def batched(self) -> Any:
-        """The compilation batched runs take (the dynamic one, compiled on first use)."""
+    def compiled(self, batch: int) -> Any:
+        """The model compiled for `batch` rows, on first use (a graph without a free batch axis: its own)."""
+        key = batch if self._free else 0
         with self._compiling:
-            if self._batched is None and self._dynamic is not None:
-                core, model, config = self._dynamic
-                self._batched = core.compile_model(model, "CPU", config)
-                self._dynamic = None
-            return self._batched
+            if key not in self._compiled:
+                model = self._model
+                if self._free:
+                    model = model.clone()
+                    model.reshape(
+                        {
+                            name: [batch if d == DYNAMIC else d for d in shape]
+                            for name, shape in self.input_shapes.items()
+                        }
+                    )
+                self._compiled[key] = self._core.compile_model(model, "CPU", self._config)
+                self._idle[key] = queue.SimpleQueue()
+            return self._compiled[key]
 
     def run(self, feeds: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
-        single = all(len(value) == 1 for value in feeds.values())
-        idle = self._idle[single]
+        batch = len(next(iter(feeds.values())))
+        compiled = self.compiled(batch)
+        idle = self._idle[batch if self._free else 0]
         try:
             request = idle.get_nowait()
         except queue.Empty:
-            request = (self.single if single else self.batched()).create_infer_request()
+            request = compiled.create_infer_request()
         try:
             # share_outputs=False (the default): the arrays are copies, not views of the request's buffers
             results = request.infer(feeds)

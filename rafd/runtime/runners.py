@@ -314,11 +314,13 @@ def _islands_folder(model_path: str | os.PathLike[str], precision: str, islands:
     return islands_dir(model_path)
 
 
-def time_runner(runner: StreamRunner, repeats: int = 3, warmup: int = 1, seed: int = 0) -> float:
-    """Median seconds of one graph run on random inputs of the graph's shapes (frames in [0, 1])."""
+def time_runner(runner: StreamRunner, repeats: int = 3, warmup: int = 1, seed: int = 0, views: int = 1) -> float:
+    """Median seconds of one graph run of `views` rows (a whole scan's tiles step as one run) on random inputs of the
+    graph's shapes (frames in [0, 1])."""
     rng = np.random.default_rng(seed)
+    batch = views if runner.batch == DYNAMIC else 1
     feeds = {
-        name: rng.random(tuple(1 if d == DYNAMIC else d for d in shape), dtype=np.float32)
+        name: rng.random(tuple(batch if d == DYNAMIC else d for d in shape), dtype=np.float32)
         for name, shape in runner.backend.input_shapes.items()
     }
     for _ in range(warmup):

@@ -93,6 +93,8 @@ class Runner(Protocol):
 
     def describe(self) -> dict[str, object]: ...
 
+    def state_bytes(self, views: int) -> int: ...
+
 
 class StreamRunner:
     """Streams frames through one backend's step graph; thread-safe, stateless.
@@ -167,6 +169,11 @@ class StreamRunner:
     # ------------------------------------------------------------------ API
     def new_state(self) -> StreamState:
         return StreamState()
+
+    def state_bytes(self, views: int) -> int:
+        """What a stream of `views` views holds once it has stepped (StreamState.nbytes)."""
+        per_view = sum(4 * int(np.prod(shape)) for shape in self._cache_shapes.values()) + 3 * 8
+        return views * per_view
 
     def run(self, feeds: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
         """One raw graph run -> {output name: array}; a graph of static batch 1 runs a batch view by view."""

@@ -50,6 +50,11 @@ class TrackerState:
     def __len__(self) -> int:
         return len(self.ids)
 
+    @property
+    def nbytes(self) -> int:
+        """Bytes its arrays hold (at most max_tracks tracks: bounded)."""
+        return sum(getattr(self, name).nbytes for name in TRACK_ARRAYS)
+
     @classmethod
     def empty(cls, first_id: int = 1) -> TrackerState:
         """A new stream's state; its first track gets `first_id`."""

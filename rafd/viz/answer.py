@@ -1,31 +1,32 @@
-"""The picture of one /detect answer (rafd-client): what the model saw, zoomed, beside an overview and a legend.
+"""The picture of one /detect answer (rafd-client): what was detected over, beside an overview and a legend.
 
     +--------------------------------------+---------------------+
-    | the model's crop of the posted scan, | whole posted scan,  |
-    | zoomed by an integer factor (crisp   | the crop outlined   |
-    | pixels): predictions with their      |---------------------|
-    | scores (labels never overlap),       | legend: prediction, |
+    | what was detected over (the whole    | whole posted scan,  |
+    | scan, or the square around the radar | that area outlined  |
+    | the range asked), zoomed to fit:     |---------------------|
+    | predictions with their scores,       | legend: prediction, |
     | ground truth, flow arrows, a         | ground truth, flow  |
     | distance bar                         | arrow = 1 m         |
     |                                      | status of the answer|
     +--------------------------------------+---------------------+
 
-When the model covers the whole posted scan (a model-size frame was posted) the view is the whole scan. Given a
-validity map of the flow grid (AnswerValidity: the answer's own flow.validity, or rafd.flow_validity from the
-answers' poses for a service that does not answer it) the arrows are drawn only where the flow was measured over
-the network's whole search range.
+A small area is zoomed by an integer factor (crisp pixels), a whole scan shrunk to fit. Given a validity map of the
+flow grid (AnswerValidity: the answer's own flow.validity, or rafd.flow_validity from the answers' poses for a
+service that does not answer it) the arrows are drawn only where the flow was measured over the network's whole
+search range.
 """
 
 from __future__ import annotations
 
 import base64
-from collections.abc import Callable
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass
 from typing import Any
 
 import cv2
 import numpy as np
 
+from rafd import flow_png
 from rafd.flow_validity import flow_validity, search_reach_m
 from rafd.geometry import RADIATE_RESOLUTION, relative_pose
 from rafd.viz.drawing import (
@@ -35,6 +36,7 @@ from rafd.viz.drawing import (
     PANEL_COLOUR,
     PRED_COLOUR,
     TEXT_COLOUR,
+    TRACK_COLOUR,
     draw_arrow,
     draw_polygons,
     draw_scores,
@@ -48,7 +50,7 @@ MIN_ARROW_PX_PER_M = 24.0  # 1 m of motion must be at least this long on screen
 
 @dataclass(frozen=True)
 class AnswerView:
-    view_px: int = 768  # the zoomed crop is the largest integer multiple of the crop that fits (at least 1x)
+    view_px: int = 768  # a small area: the largest integer zoom that fits (at least 1x); a larger one shrunk to fit
     panel_px: int = 300  # width of the side panel
     flow_step: int = 2  # draw every n-th flow cell
     flow_scale: float | None = None  # arrows / true motion; None: the smallest of FLOW_SCALES giving 24 px per metre
@@ -65,6 +67,8 @@ class AnswerView:
 def decode_flow(flow: dict[str, Any]) -> np.ndarray:
     """The answer's flow (list or base64 float16 encoding) -> float64 [2, Hf, Wf] metres (x right, y forward)."""
     shape = tuple(int(n) for n in flow["shape"])
+    if flow["encoding"] == "png":
+        return flow_png.decode_flow(base64.b64decode(flow["values"]), (shape[0], shape[1], shape[2]))
     if flow["encoding"] == "base64-float16":
         values = np.frombuffer(base64.b64decode(flow["values"]), dtype="<f2").reshape(shape)
     else:
@@ -78,6 +82,8 @@ def decode_validity(flow: dict[str, Any]) -> np.ndarray | None:
     if flow.get("validity") is None:
         return None
     shape = (int(flow["grid"]["height"]), int(flow["grid"]["width"]))
+    if flow["encoding"] == "png":
+        return flow_png.decode_steps(base64.b64decode(flow["validity"]), (shape[0], shape[1]))
     if flow["encoding"] == "base64-float16":
         return np.frombuffer(base64.b64decode(flow["validity"]), dtype="<f2").reshape(shape).astype(np.float64)
     return np.asarray(flow["validity"], dtype=np.float64).reshape(shape)
@@ -99,6 +105,11 @@ def flow_arrows(
     if keep is not None:
         moving &= np.asarray(keep, dtype=bool)[::step, ::step].reshape(-1)
     return heads[moving], motions[moving]
+
+
+def track_number(track_id: str) -> str:
+    """A track id's number within its chain (CHAIN-N -> N): what a picture labels a box with."""
+    return track_id.rsplit("-", 1)[-1]
 
 
 def answer_validity(
@@ -186,19 +197,24 @@ def draw_answer(
     view: AnswerView = AnswerView(),
     title: str | None = None,
     validity: np.ndarray | None = None,
+    trails: Mapping[str, np.ndarray] | None = None,
 ) -> np.ndarray:
     """The posted scan uint8 [N, N], its /detect answer and (optional) ground-truth polygons [M, 4, 2] in posted
     pixels -> BGR uint8 picture [H, W, 3] (layout in the module docstring). With `validity` [Hf, Wf] of the flow
-    grid (answer_validity) flow arrows only where it reaches FLOW_VALID_MIN."""
+    grid (answer_validity) flow arrows only where it reaches FLOW_VALID_MIN. Every box's label carries its track's
+    number, and its velocity is drawn as an arrow of where it will be in 1 s; `trails`: track id -> [P, 2] earlier
+    centres of that track in posted pixels of this scan (the client's Trails), drawn as a line."""
     scan = np.asarray(scan)
-    posted, size, offset = (int(answer["input"][k]) for k in ("posted_size", "model_size", "crop_offset_px"))
+    posted = int(answer["input"]["posted_size"])
+    covered = answer["input"]["covered"]  # the square detected over
+    size, offset = int(covered["side_px"]), int(covered["offset_px"])
     if scan.dtype != np.uint8 or scan.ndim != 2 or scan.shape != (posted, posted):
         raise ValueError(f"the scan must be the posted uint8 [{posted}, {posted}] image, got {scan.dtype} {scan.shape}")
-    zoom = max(1, view.view_px // size)
-    crop = scan[offset : offset + size, offset : offset + size]
-    canvas = cv2.resize(
-        cv2.cvtColor(crop, cv2.COLOR_GRAY2BGR), (size * zoom, size * zoom), interpolation=cv2.INTER_NEAREST
-    )
+    zoom: float = max(1, view.view_px // size) if size <= view.view_px else view.view_px / size
+    side = int(round(size * zoom))
+    area = scan[offset : offset + size, offset : offset + size]
+    shrink = cv2.INTER_NEAREST if zoom >= 1 else cv2.INTER_AREA
+    canvas = cv2.resize(cv2.cvtColor(area, cv2.COLOR_GRAY2BGR), (side, side), interpolation=shrink)
 
     def to_view(uv: np.ndarray) -> np.ndarray:
         """Posted continuous pixels -> view canvas pixels."""
@@ -218,8 +234,21 @@ def draw_answer(
         draw_polygons(canvas, to_view(truth_polygons), GT_COLOUR, 1, thickness)
     predicted = np.array([box["polygon"] for box in answer["boxes"]], dtype=np.float64).reshape(-1, 4, 2)
     draw_polygons(canvas, to_view(predicted), PRED_COLOUR, 1, thickness)
+    for track_id, trail in (trails or {}).items():
+        if len(trail) > 1 and any(box["track_id"] == track_id for box in answer["boxes"]):
+            cv2.polylines(canvas, [np.round(to_view(trail)).astype(np.int32)], False, TRACK_COLOUR, 1, cv2.LINE_AA)
+    for box, polygon in zip(answer["boxes"], to_view(predicted)):
+        if box.get("velocity"):  # where the box will be in 1 s, at its ground velocity
+            centre = polygon.mean(axis=0)
+            ahead = centre + px_per_m * np.array([box["velocity"]["x"], -box["velocity"]["y"]])
+            draw_arrow(canvas, tuple(centre), tuple(ahead), TRACK_COLOUR)
     draw_scores(
-        canvas, to_view(predicted), np.array([box["score"] for box in answer["boxes"]]), PRED_COLOUR, view.font_scale
+        canvas,
+        to_view(predicted),
+        np.array([box["score"] for box in answer["boxes"]]),
+        PRED_COLOUR,
+        view.font_scale,
+        suffixes=[f" #{track_number(box['track_id'])}" for box in answer["boxes"]],
     )
     draw_scale_bar(canvas, px_per_m, view.font_scale)
 
@@ -237,8 +266,9 @@ def draw_answer(
             flow_px_per_m=flow_scale * px_per_m,
             flow_scale=flow_scale,
             font_scale=view.font_scale,
+            velocity_px_per_s=px_per_m,
         ),
-        f"model view, {size} px crop x{zoom}",
+        f"detected over {size} px, x{zoom:.3g}",
         title,
     )
     height = max(canvas.shape[0], panel.shape[0])
@@ -260,7 +290,8 @@ def _side_panel(
     caption: str,
     title: str | None,
 ) -> np.ndarray:
-    """Overview of the whole posted scan with the crop outlined, then the legend, then the answer's status."""
+    """Overview of the whole posted scan with the detected area outlined, then the legend, then the answer's
+    status."""
     width, margin = view.panel_px, 8
     line = int(round(22 * view.font_scale / 0.45))
     inner = width - 2 * margin
@@ -276,7 +307,7 @@ def _side_panel(
     panel = np.full((max(min_height, 4000), width, 3), PANEL_COLOUR, np.uint8)  # cut to what is used below
     y = margin
     cv2.putText(
-        panel, "whole scan, crop outlined", (margin, y + line - 6), FONT, view.font_scale, TEXT_COLOUR, 1, cv2.LINE_AA
+        panel, "whole scan, area outlined", (margin, y + line - 6), FONT, view.font_scale, TEXT_COLOUR, 1, cv2.LINE_AA
     )
     y += line
     panel[y : y + inner, margin : margin + inner] = overview

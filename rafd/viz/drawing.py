@@ -15,6 +15,7 @@ import numpy as np
 GT_COLOUR = (0, 255, 0)
 PRED_COLOUR = (0, 0, 255)
 FLOW_COLOUR = (0, 255, 255)
+TRACK_COLOUR = (255, 160, 40)  # velocity arrows and trails (BGR: a light blue)
 TEXT_COLOUR = (235, 235, 235)
 PANEL_COLOUR = (32, 32, 32)
 FONT = cv2.FONT_HERSHEY_SIMPLEX
@@ -112,14 +113,16 @@ def draw_scores(
     colour: tuple[int, int, int],
     font_scale: float = 0.4,
     avoid: Sequence[Rect] = (),
+    suffixes: Sequence[str] | None = None,
 ) -> list[Rect | None]:
-    """Score labels for [N, 4, 2] canvas-pixel polygons, placed best score first and never overlapping (a thin
-    leader line joins a label pushed away from its box) -> the label rects in the polygons' order."""
+    """Score labels for [N, 4, 2] canvas-pixel polygons (each followed by its suffix, e.g. its track), placed best
+    score first and never overlapping (a thin leader line joins a label pushed away from its box) -> the label rects
+    in the polygons' order."""
     scores = np.asarray(scores, dtype=np.float64).reshape(-1)
     if len(polygons) == 0:
         return []
     order = [int(k) for k in np.argsort(-scores, kind="stable")]
-    texts = [f"{scores[k]:.2f}" for k in order]
+    texts = [f"{scores[k]:.2f}{'' if suffixes is None else suffixes[k]}" for k in order]
     sizes = []
     for text in texts:
         (tw, th), baseline = cv2.getTextSize(text, FONT, font_scale, 1)

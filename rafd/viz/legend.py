@@ -8,7 +8,7 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
-from rafd.viz.drawing import FLOW_COLOUR, FONT, GT_COLOUR, PRED_COLOUR, TEXT_COLOUR, Rect, draw_arrow
+from rafd.viz.drawing import FLOW_COLOUR, FONT, GT_COLOUR, PRED_COLOUR, TEXT_COLOUR, TRACK_COLOUR, Rect, draw_arrow
 
 
 @dataclass(frozen=True)
@@ -21,6 +21,7 @@ class Legend:
     font_scale: float = 0.45
     score_threshold: float | None = None  # the threshold boxes were drawn at (stated), None: not stated
     flow_where: str | None = None  # where arrows are drawn when not everywhere (stated)
+    velocity_px_per_s: float | None = None  # canvas pixels per metre a box moves in 1 s (None: no velocities)
 
 
 def _legend_items(legend: Legend) -> list[tuple[str, tuple[int, int, int], str, int]]:
@@ -34,6 +35,9 @@ def _legend_items(legend: Legend) -> list[tuple[str, tuple[int, int, int], str, 
         if legend.flow_where:
             text += f", at {legend.flow_where}"
         items.append((text, FLOW_COLOUR, "arrow", max(8, int(round(legend.flow_px_per_m)))))
+    if legend.velocity_px_per_s is not None:
+        sample = max(8, int(round(legend.velocity_px_per_s)))
+        items.append(("#track, velocity: where in 1 s, trail", TRACK_COLOUR, "arrow", sample))
     return items
 
 

@@ -3,12 +3,13 @@
 Topics (every message stamped with the scan's own time, so the file replays at the sensor's rate):
 
     /radar/scan                 foxglove.CompressedImage   the scan as PNG (Image panel)
-    /radar/scan/grid            foxglove.Grid              the model's crop as a uint8 `intensity` grid in frame
-                                                           `radar`, so the 3D panel shows returns under the boxes
+    /radar/scan/grid            foxglove.Grid              what was detected over as a uint8 `intensity` grid in
+                                                           frame `radar`, so the 3D panel shows returns under boxes
     /tf                         foxglove.FrameTransform    ego pose: `world` -> `radar` (x right, y forward, z up)
-    /radar/detections           foxglove.SceneUpdate       one cube per box (centre, size, yaw), score as text
+    /radar/detections           foxglove.SceneUpdate       one cube per box (centre, size, yaw), score and #track
     /radar/detections/image     foxglove.ImageAnnotations  box outlines and scores on /radar/scan
     /radar/flow                 foxglove.SceneUpdate       one arrow per moving valid flow cell (true length, metres)
+    /radar/velocity             foxglove.SceneUpdate       one arrow per box with a velocity: its motion in 1 s
     /radar/ground_truth         foxglove.SceneUpdate       ground-truth cubes (only when labels exist)
     /radar/ground_truth/image   foxglove.ImageAnnotations  ground-truth outlines on /radar/scan
 
@@ -69,12 +70,14 @@ TOPICS = {
     "detections": "/radar/detections",
     "detections_image": "/radar/detections/image",
     "flow": "/radar/flow",
+    "velocity": "/radar/velocity",
     "truth": "/radar/ground_truth",
     "truth_image": "/radar/ground_truth/image",
 }
 _PRED_RGBA = (1.0, 0.15, 0.1, 0.55)
 _TRUTH_RGBA = (0.1, 0.9, 0.2, 0.35)
 _FLOW_RGBA = (1.0, 0.9, 0.1, 1.0)
+_VELOCITY_RGBA = (0.15, 0.65, 1.0, 1.0)
 
 
 @dataclass(frozen=True, eq=False)
@@ -96,6 +99,8 @@ class LoggedFrame:
     flow_motions: np.ndarray | None = None  # [P, 2] metres moved since the previous frame
     truth_boxes: np.ndarray | None = None  # [M, 5]; None = no labels
     truth_polygons: np.ndarray | None = None  # [M, 4, 2] scan pixels
+    track_ids: tuple[str, ...] = ()  # [N] each box's track (the answer's track_id)
+    velocities: np.ndarray | None = None  # [N, 2] m/s ground velocity, ego axes; NaN where not measured
 
 
 def _timestamp(nanoseconds: int) -> Timestamp:
@@ -121,6 +126,7 @@ class RadarChannels:
         self._detections = channels.SceneUpdateChannel(self.topic("detections"), context=context)
         self._detections_image = channels.ImageAnnotationsChannel(self.topic("detections_image"), context=context)
         self._flow = channels.SceneUpdateChannel(self.topic("flow"), context=context)
+        self._velocity = channels.SceneUpdateChannel(self.topic("velocity"), context=context)
         # created on the first labelled frame
         self._truth: channels.SceneUpdateChannel | None = None
         self._truth_image: channels.ImageAnnotationsChannel | None = None
@@ -138,11 +144,18 @@ class RadarChannels:
         )
         self._grid.log(_grid(frame, stamp), log_time=time_ns)
         self._tf.log(_transform(frame.pose, stamp), log_time=time_ns)
-        labels = [f"{c} {s:.2f}" for c, s in zip(frame.classes, np.asarray(frame.scores, np.float64))]
+        tracks = [f" #{track_id.rsplit('-', 1)[-1]}" for track_id in frame.track_ids] or [""] * len(frame.classes)
+        labels = [f"{c} {s:.2f}{t}" for c, s, t in zip(frame.classes, np.asarray(frame.scores, np.float64), tracks)]
         self._detections.log(_cubes(frame.boxes, labels, "pred", _PRED_RGBA, stamp), log_time=time_ns)
         self._detections_image.log(_outlines(frame.polygons, labels, _PRED_RGBA, stamp), log_time=time_ns)
         if frame.flow_heads is not None and frame.flow_motions is not None:
             self._flow.log(_arrows(frame.flow_heads, frame.flow_motions, stamp), log_time=time_ns)
+        if frame.velocities is not None:  # each box's motion in the next second, from its centre
+            moving = np.isfinite(frame.velocities).all(axis=1)
+            tips = frame.boxes[moving, :2] + frame.velocities[moving]
+            self._velocity.log(
+                _arrows(tips, frame.velocities[moving], stamp, "velocity", _VELOCITY_RGBA), log_time=time_ns
+            )
         if frame.truth_boxes is not None:
             if self._truth is None or self._truth_image is None:  # both or neither
                 self._truth = channels.SceneUpdateChannel(self.topic("truth"), context=self._context)
@@ -157,7 +170,15 @@ class RadarChannels:
 
     def close(self) -> None:
         """Close the channels (a live viewer sees them unadvertised)."""
-        for channel in (self._scan, self._grid, self._tf, self._detections, self._detections_image, self._flow):
+        for channel in (
+            self._scan,
+            self._grid,
+            self._tf,
+            self._detections,
+            self._detections_image,
+            self._flow,
+            self._velocity,
+        ):
             channel.close()
         for labels in (self._truth, self._truth_image):
             if labels is not None:
@@ -230,7 +251,8 @@ def frame_from_answer(
     from rafd.viz.answer import flow_arrows  # opencv: loaded with the picture code
     from rafd.viz.flow_cells import NEAR_BOX_M, meaningful_cells, valid_cells
 
-    offset, model_size = answer["input"]["crop_offset_px"], answer["input"]["model_size"]
+    covered = answer["input"]["covered"]  # the square detected over (the whole scan, or within the range asked)
+    offset, side = covered["offset_px"], covered["side_px"]
     boxes = np.array(
         [[b[k] for k in ("x", "y", "width", "length", "yaw")] for b in answer["boxes"]], dtype=np.float64
     ).reshape(-1, 5)
@@ -262,7 +284,7 @@ def frame_from_answer(
         scan_png=scan_png,
         scan_size=scan_size,
         resolution=resolution,
-        crop=(offset - scan_offset, model_size),
+        crop=(offset - scan_offset, side),
         crop_pixels=crop_pixels,
         pose=np.array([answer["pose"][k] for k in ("x", "y", "yaw")], dtype=np.float64),
         boxes=boxes,
@@ -273,6 +295,14 @@ def frame_from_answer(
         flow_motions=motions,
         truth_boxes=truth_boxes,
         truth_polygons=truth_polygons,
+        track_ids=tuple(b["track_id"] for b in answer["boxes"]),
+        velocities=np.array(
+            [
+                [b["velocity"]["x"], b["velocity"]["y"]] if b.get("velocity") else [np.nan, np.nan]
+                for b in answer["boxes"]
+            ],
+            dtype=np.float64,
+        ).reshape(-1, 2),
     )
 
 
@@ -383,8 +413,15 @@ def _outlines(polygons: np.ndarray, labels: list[str], rgba: tuple, stamp: Times
     return ImageAnnotations(points=points, texts=texts)
 
 
-def _arrows(heads: np.ndarray, motions: np.ndarray, stamp: Timestamp) -> SceneUpdate:
-    """Flow -> one entity of arrows from where each cell's content was to where it is (true length)."""
+def _arrows(
+    heads: np.ndarray,
+    motions: np.ndarray,
+    stamp: Timestamp,
+    name: str = "flow",
+    rgba: tuple[float, float, float, float] = _FLOW_RGBA,
+) -> SceneUpdate:
+    """Motions -> one entity of arrows from where each thing was to its head (true length): the flow's cells, or the
+    boxes' velocities over one second."""
     arrows = []
     heads, motions = np.asarray(heads, np.float64).reshape(-1, 2), np.asarray(motions, np.float64).reshape(-1, 2)
     for head, motion in zip(heads, motions):
@@ -403,10 +440,10 @@ def _arrows(heads: np.ndarray, motions: np.ndarray, stamp: Timestamp) -> SceneUp
                 shaft_diameter=0.08,
                 head_length=head_length,
                 head_diameter=0.25,
-                color=_colour(_FLOW_RGBA),
+                color=_colour(rgba),
             )
         )
-    entity = SceneEntity(timestamp=stamp, frame_id=FRAME_RADAR, id="flow", frame_locked=True, arrows=arrows)
+    entity = SceneEntity(timestamp=stamp, frame_id=FRAME_RADAR, id=name, frame_locked=True, arrows=arrows)
     return SceneUpdate(
         deletions=[SceneEntityDeletion(timestamp=stamp, type=SceneEntityDeletionType.All, id="")], entities=[entity]
     )

@@ -26,7 +26,7 @@ import cv2
 import numpy as np
 
 from rafd.geometry import RADIATE_SCAN_SIZE
-from rafd.preprocess import model_crop_of_top_rows, polar_to_cartesian, to_model_input
+from rafd.preprocess import model_crop_of_top_rows, polar_to_cartesian
 from rafd.scans.cartesian import accepted_sizes
 from rafd.scans.native import (
     FLAG_COLUMN,
@@ -39,6 +39,7 @@ from rafd.scans.native import (
 )
 from rafd.scans.native import to_cartesian as native_to_cartesian
 from rafd.scans.polar import RADIATE_POLAR_SHAPE, accepts_polar
+from rafd.view import covered_side
 from service.body import png
 from service.http.errors import ApiError
 
@@ -56,21 +57,16 @@ PostedImage = bytes | str
 
 @dataclass(frozen=True)
 class DecodedFrame:
-    crop: np.ndarray  # [S, S] uint8, the model's input crop centred on the radar
+    covered: np.ndarray  # [C, C] uint8, the square detected over (rafd.view), centred on the radar
     # Side of the Cartesian scan that polygons and the flow grid are answered in: the posted image, or the
-    # RADIATE scan a posted polar scan was converted to (1152).
+    # RADIATE scan a posted polar or native scan was converted to (1152).
     posted_size: int
-    crop_offset: int  # pixel of that scan where the crop's top-left corner lies (0 when posted at model size)
-    odometry_view: np.ndarray  # [V, V] uint8 centre of that scan that odometry registers (V >= S)
+    odometry_view: np.ndarray  # [V, V] uint8 centre of that scan that odometry registers
     posted_format: str = "cartesian"  # or "polar" (RADIATE's Navtech_Polar), or "native" (Oxford / Boreas)
     # native scans: (per-azimuth timestamps in UNIX microseconds [A], azimuths in radians clockwise from forward [A])
     sweep: tuple[np.ndarray, np.ndarray] | None = None
     native_format: str | None = None  # native scans: the format read (rafd.scans.native.NATIVE_FORMATS)
     native_range_bin_m: float | None = None  # native scans: metres per range bin used
-
-    def model_input(self) -> np.ndarray:
-        """[S, S] uint8 -> [S, S] float32 in [0, 1], the runner's frame."""
-        return to_model_input(self.crop)
 
 
 def strip_data_url(text: str) -> str:
@@ -139,13 +135,15 @@ def decode_frame(
     resolution: float,
     native: NativeShape = SENSOR_SHAPE,
     range_bin_m: float | None = None,
+    range_m: float | None = None,
 ) -> DecodedFrame:
-    """A posted PNG (bytes, or base64 text; Cartesian, polar or native) -> the model's [S, S] uint8 crop; 422 naming
-    what was expected. `range_bin_m` (the request's range_resolution_m): a native scan's metres per range bin, in
-    place of its format's; 422 for any other scan. No input gives anything else: a failure of the decoding libraries
-    on a posted file is that file's fault (422 `invalid_image`, logged as a warning), never a 500."""
+    """A posted PNG (bytes, or base64 text; Cartesian, polar or native) -> the uint8 square it is detected over (the
+    whole scan, or within `range_m` of the radar: rafd.view.covered_side) and odometry's view; 422 naming what was
+    expected. `range_bin_m` (the request's range_resolution_m): a native scan's metres per range bin, in place of its
+    format's; 422 for any other scan. No input gives anything else: a failure of the decoding libraries on a posted
+    file is that file's fault (422 `invalid_image`, logged as a warning), never a 500."""
     try:
-        return _decode_frame(image, input_size, resolution, native, range_bin_m)
+        return _decode_frame(image, input_size, resolution, native, range_bin_m, range_m)
     except ApiError:
         raise
     except Exception as exc:
@@ -154,7 +152,12 @@ def decode_frame(
 
 
 def _decode_frame(
-    image: PostedImage, input_size: int, resolution: float, native: NativeShape, range_bin_m: float | None
+    image: PostedImage,
+    input_size: int,
+    resolution: float,
+    native: NativeShape,
+    range_bin_m: float | None,
+    range_m: float | None,
 ) -> DecodedFrame:
     layout = check_posted_image(image, input_size, resolution, native)
     if range_bin_m is not None and layout.header.width == layout.header.height:
@@ -168,9 +171,12 @@ def _decode_frame(
         data = image
     header = layout.header
     square = header.width == header.height
-    # A square scan is read only down to the odometry view's last row: the rows below are never unfiltered.
-    view_side = max(input_size, min(header.width, ODOMETRY_VIEW_SIZE))
-    rows = (header.height + view_side) // 2 if square else header.height
+    cartesian = header.width if square else RADIATE_SCAN_SIZE  # the side of the Cartesian scan it is or becomes
+    side = covered_side(cartesian, input_size, resolution, range_m)
+    # The square read: the covered one and odometry's view around the radar (a square scan is read only down to its
+    # last row: the rows below are never unfiltered; a polar or native scan is converted only that far).
+    read = max(side, min(cartesian, ODOMETRY_VIEW_SIZE))
+    rows = (header.height + read) // 2 if square else header.height
     decoded = cv2.imdecode(np.frombuffer(png.decoder_png(data, layout, rows), np.uint8), cv2.IMREAD_UNCHANGED)
     if decoded is None:
         raise ApiError("invalid_image", "the PNG could not be decoded (corrupt image data)")
@@ -179,16 +185,13 @@ def _decode_frame(
     posted_format = "cartesian"
     sweep = fmt = None
     width = decoded.shape[1]
-    # A polar or native scan is converted only where the service looks: the odometry view around the radar (which
-    # holds the model's crop), not the whole 1152 px disc; the same pixels as the whole conversion's centre.
-    converted = max(input_size, ODOMETRY_VIEW_SIZE)
     if decoded.shape == RADIATE_POLAR_SHAPE:  # the size check let it through: polar scans are accepted here
         if range_bin_m is not None:
             raise ApiError(
                 "validation_error", "range_resolution_m applies to native scans only; this is a RADIATE polar scan"
             )
         width, posted_format = RADIATE_SCAN_SIZE, "polar"
-        decoded = polar_to_cartesian(decoded, min(converted, width))  # [576, 400] -> [V, V] uint8
+        decoded = polar_to_cartesian(decoded, read)  # [576, 400] -> [read, read] uint8, the same pixels as the whole
     elif not square:  # a native scan (the size check let only these through)
         try:
             # Named by its width and column 10 (a Doppler-mode chirp column is no valid flag: rafd.scans.native); the
@@ -200,14 +203,12 @@ def _decode_frame(
         except ValueError as exc:
             raise ApiError("invalid_image", f"the native scan's header columns do not read as one: {exc}") from exc
         width, posted_format = RADIATE_SCAN_SIZE, "native"
-        decoded = native_to_cartesian(scan, min(converted, width))  # [A, 11 + R] -> [V, V] uint8
+        decoded = native_to_cartesian(scan, read)  # [A, 11 + R] -> [read, read] uint8
         sweep = (scan.timestamps_us, scan.azimuths)
-    view = model_crop_of_top_rows(decoded, max(input_size, min(width, ODOMETRY_VIEW_SIZE)))
     return DecodedFrame(
-        crop=model_crop_of_top_rows(decoded, input_size),
+        covered=model_crop_of_top_rows(decoded, side),
         posted_size=width,
-        crop_offset=(width - input_size) // 2,
-        odometry_view=view,
+        odometry_view=model_crop_of_top_rows(decoded, min(width, ODOMETRY_VIEW_SIZE)),
         posted_format=posted_format,
         sweep=sweep,
         native_format=None if fmt is None else fmt.name,

@@ -18,8 +18,10 @@ from __future__ import annotations
 
 import asyncio
 import base64
+import dataclasses
 import hashlib
 import time
+from collections import deque
 from collections.abc import Callable, Iterator
 from contextlib import AsyncExitStack, contextmanager
 from dataclasses import dataclass
@@ -31,12 +33,13 @@ from fastapi import Request
 from pydantic import TypeAdapter
 from starlette.requests import ClientDisconnect
 
-from rafd.detections import decode_detections
+from rafd import flow_png, tracking
 from rafd.flow_validity import FLOW_VALID_MIN, config_validity, search_reach_m
 from rafd.geometry import box_polygons_pixels, relative_pose
 from rafd.protocol import operating_threshold, warming_up
 from rafd.scans.cartesian import accepted_sizes
 from rafd.scans.native import NativeShape
+from rafd.view import View, step_view
 from service.body.images import (
     DecodedFrame,
     PostedImage,
@@ -47,6 +50,7 @@ from service.body.images import (
 from service.body.requests import StructureCount, parse_detect_request, parse_json_body
 from service.http.errors import ApiError, client_of, timestamp_error
 from service.http.intake import arrival_of
+from service.loading import full_scan_view
 from service.pipeline import poses
 from service.pipeline.executors import AdmissionLimit, BoundedExecutor
 from service.pipeline.ordering import ArrivalOrder, Unresolved
@@ -54,6 +58,7 @@ from service.pipeline.service_metrics import ServiceMetrics
 from service.pipeline.streams import ArrivalKey, Chain, StreamEntry, StreamStore, Ticket
 from service.schemas import (
     BoxOut,
+    CoveredOut,
     DetectBody,
     DetectFields,
     DetectResponse,
@@ -68,9 +73,9 @@ from service.schemas import (
 from service.settings import Settings
 
 if TYPE_CHECKING:
-    from rafd.runtime.streaming import Runner, StepResult
+    from rafd.runtime.streaming import Runner, StepResult, StreamState
 
-FlowFormat = Literal["list", "base64"]
+FlowFormat = Literal["list", "base64", "png"]
 CELL_RULE = (
     "cell (i, j) = (row, col) covers posted pixels u in [origin_u + j*stride_px, +stride_px), "
     "v in [origin_v + i*stride_px, +stride_px); its centre in metres (ego frame): "
@@ -142,6 +147,16 @@ class Arrival:
     @classmethod
     def of(cls, request: Request, caller: str | None) -> Arrival:
         return cls(caller, arrival_of(request.scope), client_of(request.scope))
+
+
+@dataclass(frozen=True)
+class Seen:
+    """What the model and the tracker made of one frame."""
+
+    result: StepResult  # each tile's outputs
+    tracked: tracking.TrackedBoxes  # the answered boxes with their tracks, ego frame
+    state: StreamState  # the model's state after the frame
+    tracks: tracking.TrackerState  # the tracks after the frame
 
 
 @dataclass(frozen=True)
@@ -219,6 +234,15 @@ class DetectService:
         # config in its ONNX metadata): what a flow validity of 1 means (rafd.flow_validity)
         flow = self.config.flow
         self.flow_reach_m = search_reach_m(flow.stride, self.config.resolution, flow.local_radius)
+        self._views: dict[int, View] = {}  # posted scan side -> what it is detected over (view_for)
+        self.tracker_settings = dataclasses.replace(
+            tracking.DEFAULT_SETTINGS,
+            answer_tentative=settings.tracks_answer_tentative,
+            answer_coasting=settings.tracks_answer_coasting,
+        )
+        # what a full scan is detected over (None: the model takes none), and its model stage's last seconds
+        self.full_scan = full_scan_view(self.config, settings.detect_range_m)
+        self._full_scan_seconds: deque[float] = deque(maxlen=64)
         # Given every answer once it is complete, with the caller's key name (the live view's queue,
         # service/pipeline/live.py, which publishes one key's streams only); must not block.
         self.on_answer: Callable[[dict[str, Any], DecodedFrame, str | None], None] | None = None
@@ -226,6 +250,31 @@ class DetectService:
     @property
     def accepted_sizes(self) -> tuple[int, ...]:
         return accepted_sizes(self.config.input_size, self.config.resolution)
+
+    def view_for(self, posted_size: int) -> View:
+        """What a Cartesian scan of this side is detected over (rafd.view: the whole scan, or within
+        RAFD_DETECT_RANGE_M of the radar; a scan of the model's size is one tile)."""
+        view = self._views.get(posted_size)
+        if view is None:
+            cfg = self.config
+            cell_px = cfg.input_size // cfg.feature_size
+            view = View.of(posted_size, cfg.input_size, cfg.resolution, cell_px, self.settings.detect_range_m)
+            self._views[posted_size] = view
+        return view
+
+    def full_scan_cost(self) -> dict[str, float | int | None] | None:
+        """What a full scan costs: its tiles, the state a stream of them holds and the median model stage of the
+        last full scans served (None before the first)."""
+        if self.full_scan is None:
+            return None
+        seconds = sorted(self._full_scan_seconds)
+        return {
+            "side_px": self.full_scan.side_px,
+            "tiles": len(self.full_scan.tiles),
+            "state_bytes": self.runner.state_bytes(len(self.full_scan.tiles)),
+            "model_ms": round(1e3 * seconds[len(seconds) // 2], 1) if seconds else None,
+            "frames": len(seconds),
+        }
 
     @property
     def image_rule(self) -> tuple[int, float, NativeShape]:
@@ -246,25 +295,30 @@ class DetectService:
         async with AsyncExitStack() as held:  # the frame's slots and places, left however the request ends
             fields, image, ticket = await self._received(held, request, stream_hint, arrival)
             clock.lap("read")
-            decoded, frame, digest = await self._decoded(fields, image)
+            decoded, digest = await self._decoded(fields, image)
+            view = self.view_for(decoded.posted_size)
             clock.lap("decode")
             entry = await self._turn(request, ticket, arrival)
             replay = _replay_or_refuse(entry, fields.timestamp, digest)
             if replay is not None:  # a retry of the last accepted frame: its answer again, the stream unchanged
                 return replay.model_copy(update={"replayed": True})
-            chain, broken = self._chain(entry, fields)
+            chain, broken = self._chain(entry, fields, view)
             clock.lap("wait")
             located = await self._locate(fields, decoded, chain)
             clock.lap("odometry")
-            result, state = await self.executors.model.run(
-                self.runner.step, chain.model, frame[None], located.pose[None]
+            seen = await self.executors.model.run(
+                self._seen, chain, view, decoded.covered, located.pose, fields.timestamp
             )
             clock.lap("model")
-            advanced = chain.advanced(state, located.memory, located.pose, located.source, fields.timestamp)
+            if view == self.full_scan:
+                self._full_scan_seconds.append(clock.seconds["model"])
+            advanced = chain.advanced(
+                seen.state, located.memory, located.pose, located.source, fields.timestamp, view, seen.tracks
+            )
             self.store.commit(ticket, advanced, digest, broken)
         self.metrics.frames.inc()
         self.metrics.model_latency.observe(clock.seconds["model"])
-        answer = self._answer(fields, decoded, result.view(0), located, chain, options, ticket.restarted, clock)
+        answer = self._answer(fields, decoded, view, seen, located, chain, options, ticket.restarted, clock)
         ticket.entry.remember_answer(fields.timestamp, digest, answer)  # for a retry whose answer was lost
         if self.on_answer is not None:
             self.on_answer(answer.to_plain(), decoded, caller)
@@ -329,14 +383,34 @@ class DetectService:
         """A JSON body (its structure counted as it arrived) parsed and validated on the parse executor."""
         return await self.executors.parse.run(parse_json_body, raw, counted)
 
-    async def _decoded(self, fields: DetectFields, image: PostedImage) -> tuple[DecodedFrame, np.ndarray, bytes]:
-        """The image decoded (decode executor) into the model's frame ([S, S] float32 in [0, 1]), and the frame's
-        digest (what makes a retry the same frame)."""
+    async def _decoded(self, fields: DetectFields, image: PostedImage) -> tuple[DecodedFrame, bytes]:
+        """The image decoded (decode executor) into the square it is detected over and odometry's view, and the
+        frame's digest (what makes a retry the same frame)."""
         check_posted_image(image, *self.image_rule)  # chunk headers only: hostile files never take a decode worker
-        decoded, digest = await self.executors.decode.run(
-            _decode_and_digest, fields.pose, fields.range_resolution_m, image, *self.image_rule
+        return await self.executors.decode.run(
+            _decode_and_digest,
+            fields.pose,
+            fields.range_resolution_m,
+            self.settings.detect_range_m,
+            image,
+            *self.image_rule,
         )
-        return decoded, decoded.model_input(), digest
+
+    def _seen(self, chain: Chain, view: View, covered: np.ndarray, pose: np.ndarray, timestamp: float) -> Seen:
+        """The model's step over the view's tiles, their merged detections and those detections' tracks (one job of
+        the model executor)."""
+        result, state = step_view(self.runner, chain.model, view, covered, pose)
+        detections = view.merge(result.boxes, result.scores, self.score_threshold)
+        tracked, tracks = tracking.step(
+            chain.tracks,
+            detections.boxes,
+            pose,
+            timestamp,
+            scores=detections.scores,
+            labels=detections.labels,
+            settings=self.tracker_settings,
+        )
+        return Seen(result, tracked, state, tracks)
 
     async def _turn(self, request: Request, ticket: Ticket, arrival: Arrival) -> StreamEntry:
         """Once the same client's earlier frames still being parsed are placed (RAFD_ORDER_HOLD_S at most) and the
@@ -347,16 +421,16 @@ class DetectService:
             raise ClientDisconnect()  # nobody to answer: the frame is dropped before it changes the stream
         return self.store.check_turn(ticket)  # the chain may have ended while the disconnect was checked
 
-    def _chain(self, entry: StreamEntry, fields: DetectFields) -> tuple[Chain, RestartReason | None]:
+    def _chain(self, entry: StreamEntry, fields: DetectFields, view: View) -> tuple[Chain, RestartReason | None]:
         """The chain the frame continues: the stream's, or a new one when the stream's is not to be continued
         (`chain_break`: why); 422 when the frame follows the stream's last one too closely."""
-        broken = self.chain_break(entry, fields)
+        broken = self.chain_break(entry, fields, view)
         poses.check_gap(entry.last_timestamp, fields.timestamp, self.settings.min_frame_gap_s)
         if broken is not None:  # a new model state, odometry world frame and pose source, from this frame
             return Chain(), broken
         return entry.chain, None
 
-    def chain_break(self, entry: StreamEntry, fields: DetectFields) -> RestartReason | None:
+    def chain_break(self, entry: StreamEntry, fields: DetectFields, view: View) -> RestartReason | None:
         """Why the chain held here must not be continued by this frame, from the stream's own evidence; None to
         continue it. `gap`: more than RAFD_STREAM_GAP_RESTART_S seconds of timestamps since its last frame (frames
         missing here, e.g. sent to another replica meanwhile). `previous_timestamp_mismatch`: the client names
@@ -368,6 +442,8 @@ class DetectService:
             return "gap"
         if fields.previous_timestamp is not None and fields.previous_timestamp != entry.last_timestamp:
             return "previous_timestamp_mismatch"
+        if entry.chain.view is not None and entry.chain.view != view:
+            return "view_changed"
         return None
 
     async def _locate(self, fields: DetectFields, decoded: DecodedFrame, chain: Chain) -> FramePose:
@@ -403,7 +479,8 @@ class DetectService:
         self,
         fields: DetectFields,
         decoded: DecodedFrame,
-        result: StepResult,
+        view: View,
+        seen: Seen,
         located: FramePose,
         chain: Chain,
         options: DetectOptions,
@@ -412,7 +489,7 @@ class DetectService:
     ) -> DetectResponse:
         """The answer, built unvalidated (`model_construct`): its parts are the service's own, and the flow's list
         form stays a numpy array that orjson writes (DetectResponse.to_json). Fields left unset are not sent."""
-        frames_used, num_frames = int(result.frames_used), self.config.num_frames
+        frames_used, num_frames = int(seen.result.frames_used), self.config.num_frames
         pose = located.pose
         # stream_restarted: only on the first answer of a chain the service restarted, saying why
         restart: dict[str, Any] = {} if restarted is None else {"stream_restarted": restarted}
@@ -424,13 +501,13 @@ class DetectService:
             warming_up=warming_up(frames_used, num_frames),
             pose_source=located.source,
             pose=Pose.model_construct(x=float(pose[0]), y=float(pose[1]), yaw=float(pose[2])),
-            boxes=self._boxes(result, decoded.posted_size),
-            flow=self._flow(result, decoded, chain, located, fields.timestamp, options),
+            boxes=self._boxes(view, seen.tracked, chain.token),
+            flow=self._flow(view, seen.result, chain, located, fields.timestamp, options),
             input=InputOut.model_construct(
                 posted_size=decoded.posted_size,
                 model_size=self.config.input_size,
-                crop_offset_px=decoded.crop_offset,
                 posted_format=decoded.posted_format,
+                covered=covered_out(view),
                 **native_input(decoded),
             ),
             model=self._model_ref(),
@@ -447,10 +524,13 @@ class DetectService:
             precision=self.runner.precision,
         )
 
-    def _boxes(self, result: StepResult, posted_size: int) -> list[BoxOut]:
-        detections = decode_detections(result.boxes, result.scores, self.score_threshold)
-        polygons = box_polygons_pixels(detections.boxes, posted_size, self.config.resolution)  # [N, 4, 2]
+    def _boxes(self, view: View, tracked: tracking.TrackedBoxes, token: str) -> list[BoxOut]:
+        """The answered boxes with their tracks; the velocity and its covariance rounded to mm/s and (mm/s)^2."""
+        polygons = box_polygons_pixels(tracked.boxes, view.posted_size, self.config.resolution)  # [N, 4, 2]
         names = self.config.class_names
+        measured = tracked.velocity_source != tracking.VELOCITY_SOURCES.index("none")
+        velocities = np.round(tracked.velocity, 3).tolist()
+        covariances = np.round(tracked.velocity_covariance, 6).tolist()
         # Validated, unlike the rest of the answer: validating these few numbers at once is faster than
         # model_construct on each box.
         return _BOXES.validate_python(
@@ -462,38 +542,43 @@ class DetectService:
                     "width": round(float(box[2]), 4),
                     "length": round(float(box[3]), 4),
                     "yaw": round(float(box[4]), 5),
-                    "score": round(float(score), 5),
-                    "class_id": int(label),
-                    "class": names[label] if label < len(names) else str(label),
+                    "score": round(float(tracked.scores[k]), 5),
+                    "class_id": int(tracked.labels[k]),
+                    "class": names[tracked.labels[k]] if tracked.labels[k] < len(names) else str(tracked.labels[k]),
                     "polygon": polygon,
+                    "track_id": f"{token}-{int(tracked.track_id[k])}",
+                    "track": {
+                        "status": tracking.STATUS_NAMES[int(tracked.status[k])],
+                        "age": int(tracked.age[k]),
+                        "hits": int(tracked.hits[k]),
+                    },
+                    "velocity": {"x": velocities[k][0], "y": velocities[k][1]} if measured[k] else None,
+                    "velocity_covariance": covariances[k] if measured[k] else None,
+                    "velocity_source": tracking.VELOCITY_SOURCES[int(tracked.velocity_source[k])],
                 }
                 # the polygons rounded at once: the same numbers as box by box, in a sixth of the time
-                for box, score, label, polygon in zip(
-                    detections.boxes, detections.scores, detections.labels, np.round(polygons, 2).tolist()
-                )
+                for k, (box, polygon) in enumerate(zip(tracked.boxes, np.round(polygons, 2).tolist()))
             ]
         )
 
     def _flow(
-        self,
-        result: StepResult,
-        decoded: DecodedFrame,
-        chain: Chain,
-        located: FramePose,
-        timestamp: float,
-        options: DetectOptions,
+        self, view: View, result: StepResult, chain: Chain, located: FramePose, timestamp: float, options: DetectOptions
     ) -> FlowOut | None:
-        """The newest pair's flow [2, Hf, Wf] and its validity [Hf, Wf]; None when not asked for or no real pair
-        exists yet."""
-        if not options.flow or result.flow is None or result.frames_used < 2:
+        """The newest pair's flow [2, H, W] over the view and its validity [H, W] (each cell from the tile whose core
+        holds it, rafd.view); None when not asked for or no real pair exists yet."""
+        if not options.flow or result.flow is None or result.frames_used < 2 or chain.pose is None:
             return None
-        flow = np.asarray(result.flow)  # [2, Hf, Wf] the newest pair
+        flow = view.mosaic(np.asarray(result.flow))  # [2, H, W] the newest pair
         _, height, width = flow.shape
-        steps = self.validity_steps(chain.pose, located.pose, result.frames_used, height)  # [Hf, Wf] of k / 100
+        steps = view.mosaic(self.validity_steps(view, chain.pose, located.pose))  # [H, W] of k / 100
         if options.flow_format == "base64":
             values: Any = base64.b64encode(flow.astype("<f2").tobytes()).decode("ascii")
             validity: Any = base64.b64encode(_VALIDITY_FLOAT16.take(steps).tobytes()).decode("ascii")
             encoding = "base64-float16"
+        elif options.flow_format == "png":  # rafd.flow_png: lossless to 1 mm, a fraction of the others' size
+            values = base64.b64encode(flow_png.encode_flow(flow)).decode("ascii")
+            validity = base64.b64encode(flow_png.encode_steps(steps)).decode("ascii")
+            encoding = "png"
         else:
             # millimetres: well below a cell. Left an array: the route's orjson writes it as nested lists
             # (OPT_SERIALIZE_NUMPY), the same text as .tolist() first, in 0.16 ms instead of 0.27 for 2 x 64 x 64.
@@ -504,8 +589,8 @@ class DetectService:
             height=height,
             width=width,
             cell_size_m=self.config.cell_size,
-            stride_px=self.config.input_size // height,
-            origin_px=[decoded.crop_offset, decoded.crop_offset],
+            stride_px=view.cell_px,
+            origin_px=[view.origin_px, view.origin_px],
             cell_centre_rule=CELL_RULE,
         )
         return FlowOut.model_construct(
@@ -521,20 +606,27 @@ class DetectService:
             search_reach_m=round(self.flow_reach_m, 4),
         )
 
-    def validity_steps(
-        self, previous_pose: np.ndarray | None, pose: np.ndarray | None, frames_used: int, feature_size: int
-    ) -> np.ndarray:
-        """[Hf, Wf] integers k in [0, VALIDITY_STEPS]: the newest pair's flow validity (rafd.flow_validity, from the
-        pair's relative pose as the model aligned it: the request's poses or odometry's) is k / VALIDITY_STEPS,
-        rounded down. All 0 when the window holds no real pair (a stream's first frame: its window is copies of it,
-        nothing was measured)."""
-        if frames_used < 2 or previous_pose is None or pose is None:
-            return np.zeros((feature_size, feature_size), np.intp)
-        validity = config_validity(self.config, relative_pose(previous_pose, pose))  # [Hf, Wf]
+    def validity_steps(self, view: View, previous_pose: np.ndarray, pose: np.ndarray) -> np.ndarray:
+        """[V, Hf, Wf] integers k in [0, VALIDITY_STEPS]: each tile's newest pair flow validity (rafd.flow_validity,
+        from the tile's relative pose as the model aligned it: the request's poses or odometry's, moved to the tile's
+        frame) is k / VALIDITY_STEPS, rounded down."""
+        relative = relative_pose(view.tile_poses(previous_pose), view.tile_poses(pose))  # [V, 3]
+        validity = np.stack([config_validity(self.config, motion) for motion in relative])  # [V, Hf, Wf]
         # Down (the cast truncates: the floor of these non-negative numbers), in float64 where a float32 times 100
         # is exact: a cell below validity_min stays below it.
         steps: np.ndarray = np.multiply(validity, float(VALIDITY_STEPS), dtype=np.float64)
         return steps.astype(np.intp)
+
+
+def covered_out(view: View) -> CoveredOut:
+    """What the answer says the view covered."""
+    return CoveredOut.model_construct(
+        side_px=view.side_px,
+        offset_px=view.origin_px,
+        side_m=round(view.side_px * view.grid.resolution, 3),
+        range_m=None if view.range_m is None else round(view.range_m, 3),
+        tiles=len(view.tiles),
+    )
 
 
 def native_input(decoded: DecodedFrame) -> dict[str, Any]:
@@ -558,13 +650,14 @@ def frame_digest(pose: Pose | None, image: bytes | str, range_bin_m: float | Non
 def _decode_and_digest(
     pose: Pose | None,
     range_bin_m: float | None,
+    range_m: float | None,
     image: bytes | str,
     input_size: int,
     resolution: float,
     native: NativeShape,
 ) -> tuple[DecodedFrame, bytes]:
     """One decode-executor job: the decoded frame and its digest."""
-    decoded = decode_frame(image, input_size, resolution, native, range_bin_m)
+    decoded = decode_frame(image, input_size, resolution, native, range_bin_m, range_m)
     return decoded, frame_digest(pose, image, range_bin_m)
 
 

@@ -152,7 +152,8 @@ class LiveView:
             self.dropped.inc()
             return
         try:
-            self._queue.put_nowait((answer, decoded.odometry_view, decoded.crop, decoded.posted_size, self.resolution))
+            covered = decoded.covered  # the square detected over: shown as the scan and as the 3D grid
+            self._queue.put_nowait((answer, covered, covered, decoded.posted_size, self.resolution))
         except queue.Full:
             self.dropped.inc()
 

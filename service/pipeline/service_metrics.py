@@ -25,7 +25,7 @@ LATENCY_BUCKETS = (0.005, 0.01, 0.025, 0.05, 0.1, 0.25, 0.5, 1.0, 2.5, 5.0, 10.0
 METHODS = frozenset({"GET", "HEAD", "POST", "PUT", "DELETE", "OPTIONS", "PATCH"})
 STATUSES = frozenset({200, 204, CLIENT_CLOSED_REQUEST} | {error.status for error in ERRORS.values()})
 EXECUTORS = ("parse", "decode", "odometry", "model")
-RESTART_REASONS = ("evicted", "expired", "gap", "previous_timestamp_mismatch")
+RESTART_REASONS = ("evicted", "expired", "gap", "previous_timestamp_mismatch", "view_changed")
 
 
 def method_label(method: str) -> str:

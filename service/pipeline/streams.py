@@ -35,6 +35,7 @@ from __future__ import annotations
 import asyncio
 import itertools
 import math
+import secrets
 import time
 from collections import Counter, OrderedDict, deque
 from collections.abc import Callable, Iterator
@@ -45,6 +46,8 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from rafd.runtime import StreamState
+from rafd.tracking import TrackerState
+from rafd.view import View
 from service.http.errors import ApiError, timestamp_error
 from service.schemas import DetectResponse, RestartReason
 
@@ -66,17 +69,27 @@ class Chain:
     pose: np.ndarray | None = None  # [3] world pose of the last frame
     pose_source: str | None = None  # the chain's FIRST frame's: fixes which world frame the chain uses
     timestamp: float | None = None  # the last frame's
+    view: View | None = None  # what its frames are detected over: a frame of another view starts a new chain
+    tracks: TrackerState = field(default_factory=TrackerState.empty)  # its boxes' tracks (rafd.tracking)
+    token: str = field(default_factory=lambda: secrets.token_hex(4))  # its track ids' prefix: new with every chain
 
     def advanced(
-        self, model: StreamState, odometry: OdometryMemory, pose: np.ndarray, pose_source: str, timestamp: float
+        self,
+        model: StreamState,
+        odometry: OdometryMemory,
+        pose: np.ndarray,
+        pose_source: str,
+        timestamp: float,
+        view: View,
+        tracks: TrackerState,
     ) -> Chain:
         """The chain once one more frame is accepted."""
-        return Chain(model, odometry, pose, self.pose_source or pose_source, timestamp)
+        return Chain(model, odometry, pose, self.pose_source or pose_source, timestamp, view, tracks, self.token)
 
     @property
     def nbytes(self) -> int:
-        """What the chain's model state holds (the odometry's memory is counted apart: GET /streams)."""
-        return self.model.nbytes
+        """What the chain's model state and tracks hold (the odometry's memory is counted apart)."""
+        return self.model.nbytes + self.tracks.nbytes
 
 
 @dataclass(eq=False)

@@ -48,10 +48,13 @@ class DetectCall:
 
 async def detect_call(
     flow: bool = Query(True, description="false leaves the flow field out"),
-    flow_format: Literal["list", "base64"] = Query(
+    flow_format: Literal["list", "base64", "png"] = Query(
         "list",
         description="list: nested [2][Hf][Wf] metres rounded to 1 mm (validity: [Hf][Wf], rounded down to 0.01); "
-        "base64: little-endian float16 bytes, row-major [2, Hf, Wf] (validity: [Hf, Wf])",
+        "base64: little-endian float16 bytes, row-major [2, Hf, Wf] (validity: [Hf, Wf]); png: a base64 16-bit "
+        "greyscale PNG of [2 Hf, Wf], the x rows over the y rows, millimetres + 32768 (validity: an 8-bit PNG of "
+        "[Hf, Wf], k for k / 100). A whole 1152 px scan's flow is 288 x 288 cells: about 1.3 MB of JSON as a list, "
+        "0.66 MB as base64, 0.25 MB as png",
     ),
     x_stream_id: str | None = Header(
         default=None,

@@ -8,7 +8,7 @@ from rafd.scans.native import NATIVE_FORMAT_RULE, NATIVE_FORMATS, SENSOR_SHAPE, 
 from rafd.scans.polar import RADIATE_POLAR_SHAPE, accepts_polar
 from service.dependencies import get_service
 from service.pipeline.detector import DetectService
-from service.schemas import ModelInfo, RuntimeOut
+from service.schemas import FullScanOut, ModelInfo, RuntimeOut
 
 router = APIRouter(tags=["model"])
 
@@ -44,4 +44,5 @@ async def model_info(service: DetectService = Depends(get_service)) -> ModelInfo
         score_threshold=service.score_threshold,
         # how the graph runs: runtime, precision, threads per run, concurrent runs, start-up timings
         runtime=RuntimeOut.model_validate(service.runner.describe()),
+        full_scan=None if service.full_scan is None else FullScanOut.model_validate(service.full_scan_cost()),
     )

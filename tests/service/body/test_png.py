@@ -32,14 +32,16 @@ def chunks_of(data: bytes) -> dict[bytes, bytes]:
 
 
 def test_real_scans_decode_to_the_pixels_of_a_plain_decode(radiate_sample: Path):
-    """Every tiny_foggy scan (1152 px, libpng's Sub/Average/Paeth filters): the crop and the odometry view equal the
-    centre of opencv's own decode of the file."""
+    """Every tiny_foggy scan (1152 px, libpng's Sub/Average/Paeth filters): the square detected over (the whole
+    scan, or within 30 m of the radar) and the odometry view equal opencv's own decode of the file."""
     for path in sorted((radiate_sample / "Navtech_Cartesian").glob("*.png")):
         data = path.read_bytes()
         reference = cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_UNCHANGED)
-        for input_size in (256, 128):
-            frame = decode_frame(data, input_size, RESOLUTION)
-            assert np.array_equal(frame.crop, model_crop(reference, input_size)), path.name
+        for input_size, range_m in ((256, None), (128, 30.0)):
+            frame = decode_frame(data, input_size, RESOLUTION, range_m=range_m)
+            side = frame.covered.shape[0]
+            assert side == (1152 if range_m is None else 346), path.name
+            assert np.array_equal(frame.covered, model_crop(reference, side)), path.name
             assert np.array_equal(frame.odometry_view, model_crop(reference, ODOMETRY_VIEW_SIZE)), path.name
 
 

@@ -153,17 +153,18 @@ def test_real_polar_scans_answer_as_their_cartesian_conversion(shipped_client, r
         assert comparable(from_polar) == comparable(from_cartesian) == comparable(raw)
 
 
-@pytest.mark.parametrize("input_size", [128, 256, 640])
-def test_only_the_centre_is_converted_and_it_equals_the_whole_conversion(input_size):
-    """The service converts a polar scan only over the odometry view (512 px, or the model's input if larger): the
-    crop and the view are the very pixels of the whole 1152 px conversion's centre."""
+@pytest.mark.parametrize("input_size, range_m", [(128, None), (256, 30.0), (256, 10.0), (640, 60.0)])
+def test_only_what_is_looked_at_is_converted_and_it_equals_the_whole_conversion(input_size, range_m):
+    """The service converts a polar scan only over the square it detects over (the whole scan, or within the range
+    asked) and odometry's view (512 px): the very pixels of the whole 1152 px conversion's centre."""
     from rafd.preprocess import model_crop
+    from rafd.view import covered_side
     from service.body.images import decode_frame
 
     polar = polar_scan(3)
     whole = polar_to_cartesian(polar)
-    decoded = decode_frame(png(polar), input_size, 0.173611)
-    view = max(input_size, 512)
-    assert decoded.posted_size == 1152 and decoded.crop_offset == (1152 - input_size) // 2
-    np.testing.assert_array_equal(decoded.crop, model_crop(whole, input_size))
-    np.testing.assert_array_equal(decoded.odometry_view, model_crop(whole, view))
+    decoded = decode_frame(png(polar), input_size, 0.173611, range_m=range_m)
+    side = covered_side(1152, input_size, 0.173611, range_m)
+    assert decoded.posted_size == 1152 and decoded.covered.shape == (side, side)
+    np.testing.assert_array_equal(decoded.covered, model_crop(whole, side))
+    np.testing.assert_array_equal(decoded.odometry_view, model_crop(whole, 512))

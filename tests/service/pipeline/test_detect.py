@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import base64
+from dataclasses import replace
 
 import numpy as np
 import pytest
@@ -11,8 +12,17 @@ from fastapi.testclient import TestClient
 from rafd.detections import decode_detections
 from rafd.geometry import box_polygons_pixels, compose_poses
 from service.app import create_app
+from tests.utils.answers_testing import chain_free
 from tests.utils.fake_runner import FakeRunner
-from tests.utils.service_testing import blob_frame, detect_json, png, wait_ready, wait_until
+from tests.utils.service_testing import (
+    FakeOdometry,
+    blob_frame,
+    detect_json,
+    png,
+    stream_state,
+    wait_ready,
+    wait_until,
+)
 
 FRAMES = [blob_frame(128, [(8 + 4 * t, 16, 250), (64, 40 + 4 * t, 120), (100, 100, 90)]) for t in range(6)]
 POSES = [(1.0 * t, 0.5 * t, 0.05 * t) for t in range(6)]
@@ -52,8 +62,8 @@ def test_json_stream_warms_up_then_uses_full_window(client):
         assert answer["input"] == {
             "posted_size": 128,
             "model_size": 128,
-            "crop_offset_px": 0,
             "posted_format": "cartesian",
+            "covered": {"side_px": 128, "offset_px": 0, "side_m": 22.222, "range_m": None, "tiles": 1},
         }
         assert answer["model"]["version"] == "fake-1"
         stages = ("read_ms", "decode_ms", "wait_ms", "odometry_ms", "model_ms", "post_ms")
@@ -69,27 +79,57 @@ def test_json_stream_warms_up_then_uses_full_window(client):
             np.testing.assert_allclose(np.array(flow["values"]), expected[t].flow, atol=5e-4)
 
 
-def test_full_scan_is_centre_cropped_and_polygons_use_its_pixels(client):
+def test_a_range_within_the_models_crop_detects_over_that_crop_and_polygons_use_the_scans_pixels(settings, runner):
     crop = FRAMES[0]
     scan = np.zeros((1152, 1152), np.uint8)
     scan[512:640, 512:640] = crop  # the model's 128 crop around the radar at (576, 576)
     scan[0:50, 0:50] = 255  # outside the crop: must not matter
-    from_scan = client.post("/detect", json=detect_json("scan", 1.0, scan, POSES[0])).json()
-    from_crop = client.post("/detect", json=detect_json("crop", 1.0, crop, POSES[0])).json()
+    near = settings.model_copy(update={"detect_range_m": 10.0})
+    with TestClient(create_app(near, runner=runner, odometry=FakeOdometry())) as client:
+        wait_ready(client)
+        from_scan = client.post("/detect", json=detect_json("scan", 1.0, scan, POSES[0])).json()
+        from_crop = client.post("/detect", json=detect_json("crop", 1.0, crop, POSES[0])).json()
+        second = client.post("/detect", json=detect_json("scan", 2.0, scan, POSES[1])).json()
     assert from_scan["input"] == {
         "posted_size": 1152,
         "model_size": 128,
-        "crop_offset_px": 512,
         "posted_format": "cartesian",
+        "covered": {"side_px": 128, "offset_px": 512, "side_m": 22.222, "range_m": 10.0, "tiles": 1},
     }
     assert [b["score"] for b in from_scan["boxes"]] == [b["score"] for b in from_crop["boxes"]]
     scan_polygons = np.array([b["polygon"] for b in from_scan["boxes"]])
     crop_polygons = np.array([b["polygon"] for b in from_crop["boxes"]])
     np.testing.assert_allclose(scan_polygons, crop_polygons + 512, atol=0.011)
-    assert_boxes_match(from_scan["boxes"], offline([crop], POSES[:1])[0], 1152)
-    second = client.post("/detect", json=detect_json("scan", 2.0, scan, POSES[1])).json()
+    expected = offline([crop], POSES[:1])[0]
+    inside = np.hypot(*expected.boxes[:, :2].T) <= 10.0  # the range cuts the crop's corners off
+    assert_boxes_match(
+        from_scan["boxes"], replace(expected, boxes=expected.boxes[inside], scores=expected.scores[inside]), 1152
+    )
     assert second["flow"]["grid"]["origin_px"] == [512, 512]
-    assert second["flow"]["grid"]["stride_px"] == 4
+    assert second["flow"]["grid"]["stride_px"] == 4 and second["flow"]["shape"] == [2, 32, 32]
+
+
+def test_a_full_scan_is_detected_over_the_whole_scan(client):
+    """A vehicle 79 m ahead, far outside the model's crop, is found where it is; the answer says what was covered
+    and the flow covers the whole scan."""
+    scan = np.zeros((1152, 1152), np.uint8)
+    scan[120:124, 574:578] = 255  # 4 x 4 px centred 454 px ahead of the radar: y = 454 * 0.173611 m
+    first = client.post("/detect", json=detect_json("whole", 1.0, scan, POSES[0]))
+    assert first.status_code == 200, first.text
+    answer = first.json()
+    covered = answer["input"]["covered"]
+    assert covered["side_px"] == 1152 and covered["offset_px"] == 0 and covered["range_m"] is None
+    assert covered["tiles"] > 100  # the tiny model's 128 px tiles
+    boxes = np.array([[b["x"], b["y"]] for b in answer["boxes"]])
+    assert len(boxes) and np.hypot(boxes[:, 0], boxes[:, 1] - 454 * 0.173611).min() < 0.7  # one cell
+    polygon = np.array(answer["boxes"][0]["polygon"]).mean(0)  # the best box: the vehicle, in the scan's pixels
+    assert np.abs(polygon - [576.0, 122.0]).max() < 4.0
+    second = client.post("/detect", json=detect_json("whole", 2.0, scan, POSES[1])).json()
+    assert second["flow"]["shape"] == [2, 288, 288] and second["flow"]["grid"]["origin_px"] == [0, 0]
+    cost = client.get("/model").json()["full_scan"]  # what a full scan costs, from the two served
+    assert cost["side_px"] == 1152 and cost["tiles"] == covered["tiles"] and cost["frames"] == 2
+    held = stream_state(client, "whole")["state_bytes"]  # the model's state and the tracks' (a few kB)
+    assert cost["model_ms"] > 0 and 0 <= held - cost["state_bytes"] < 100_000
 
 
 def test_multipart_gives_the_same_answer_as_json(client):
@@ -105,7 +145,8 @@ def test_multipart_gives_the_same_answer_as_json(client):
         form = client.post("/detect", data=data, files=files)
         assert form.status_code == 200, form.text
         js = client.post("/detect", json=detect_json("json", 10.0 + t, FRAMES[t], POSES[t])).json()
-        for key in ("boxes", "flow", "frames_used", "pose", "pose_source"):
+        assert chain_free(form.json()["boxes"]) == chain_free(js["boxes"])
+        for key in ("flow", "frames_used", "pose", "pose_source"):
             assert form.json()[key] == js[key]
 
 
@@ -136,8 +177,9 @@ def test_without_pose_the_service_uses_odometry_composed_onto_the_last_pose(clie
     assert answers[2]["boxes"][0]["yaw"] == pytest.approx(2 * odometry.motion[2], abs=1e-5)
 
 
-def test_odometry_registers_the_centre_512_px_of_a_full_scan(client, odometry):
-    """The model sees its small crop; odometry sees more of the scene, and copes with a size switch."""
+def test_odometry_registers_the_centre_512_px_of_a_full_scan_and_a_size_switch_starts_a_new_chain(client, odometry):
+    """Odometry registers the centre 512 px of full scans; a frame of another size is detected over another view, so
+    it starts a new chain (the model's state is per tile), and says so."""
     rng = np.random.default_rng(3)
     scans = [rng.integers(0, 255, (1152, 1152), dtype=np.uint8) for _ in range(2)]
     for t, scan in enumerate(scans):
@@ -145,13 +187,12 @@ def test_odometry_registers_the_centre_512_px_of_a_full_scan(client, odometry):
     previous, current, _ = odometry.calls[-1]
     np.testing.assert_array_equal(previous, scans[0][320:832, 320:832])
     np.testing.assert_array_equal(current, scans[1][320:832, 320:832])
-    # Then a model-size frame on the same stream: both sides are cut to the common centre.
-    small = FRAMES[0]
-    assert client.post("/detect", json=detect_json("wide", 2.0, small)).status_code == 200
-    previous, current, _ = odometry.calls[-1]
-    half = small.shape[0] // 2
-    np.testing.assert_array_equal(previous, scans[1][576 - half : 576 + half, 576 - half : 576 + half])
-    np.testing.assert_array_equal(current, small)
+    calls = len(odometry.calls)
+    switched = client.post("/detect", json=detect_json("wide", 2.0, FRAMES[0]))
+    assert switched.status_code == 200, switched.text
+    answer = switched.json()
+    assert answer["stream_restarted"] == "view_changed" and answer["frames_used"] == 1
+    assert answer["pose"] == {"x": 0.0, "y": 0.0, "yaw": 0.0} and len(odometry.calls) == calls
 
 
 def test_pose_mixing_rule(client, odometry):

@@ -82,7 +82,7 @@ def test_a_full_queue_drops_frames_and_counts_them(live_client):
     idle = LiveView.from_settings(stopped)
     assert idle is not None
     idle._queue = queue.Queue(maxsize=1)  # the publisher's queue with no publisher draining it
-    decoded = types.SimpleNamespace(odometry_view=None, crop=None, posted_size=128)
+    decoded = types.SimpleNamespace(odometry_view=None, covered=None, posted_size=128)
     idle.offer({"stream_id": "s"}, decoded)
     idle.offer({"stream_id": "s"}, decoded)  # returns at once: dropped, not waited for
     assert idle.dropped._value.get() == 1.0 and idle._queue.qsize() == 1
@@ -136,7 +136,7 @@ def test_only_the_shown_keys_answers_leave_the_service():
 
     live = LiveView("127.0.0.1", 0, 4, key="alice")
     live._queue = queue.Queue(maxsize=4)  # no publisher: only what is offered
-    decoded = types.SimpleNamespace(odometry_view=None, crop=None, posted_size=128)
+    decoded = types.SimpleNamespace(odometry_view=None, covered=None, posted_size=128)
     live.offer({"stream_id": "car-2", "pose": "bob's"}, decoded, "bob")
     live.offer({"stream_id": "car-2", "pose": "alice's"}, decoded, "alice")
     live.offer({"stream_id": "car-3"}, decoded, None)

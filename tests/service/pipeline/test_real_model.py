@@ -1,13 +1,13 @@
 """The service on the SHIPPED model (ONNX, streaming) answers what offline PyTorch inference answers.
 
-Offline reference: the shipped checkpoint's model.forward on the same padded window (warm-up rule of
-rafd.runtime.export.verify.window_from_history) built from the same crops and the poses the service reports using.
+Offline references: for crops posted at the model's size, the shipped checkpoint's model.forward on the same padded
+window (export.verify.window_from_history) at the poses the service reports using; for whole scans, `rafd eval
+--full-scan`'s own prediction (rafd.eval.fullscan) on the same scans and poses.
 """
 
 from __future__ import annotations
 
 from collections.abc import Iterator
-from pathlib import Path
 
 import cv2
 import httpx
@@ -15,7 +15,6 @@ import numpy as np
 import pytest
 from fastapi.testclient import TestClient
 
-from rafd.geometry import centre_crop
 from tests.utils.service_testing import b64png, serve_in_thread, wait_ready
 
 torch = pytest.importorskip("torch", reason="the offline PyTorch reference needs the train extra")
@@ -81,23 +80,48 @@ def assert_same_answer(answer: dict, reference: dict[str, np.ndarray], frames_us
         np.testing.assert_allclose(flow, reference["flow"][-1], atol=FLOW_ATOL)
 
 
-def test_tiny_foggy_stream_matches_offline_pytorch(client, shipped, radiate_sample: Path):
-    """10 real RADIATE scans (1152 px, no poses: the service's odometry) against offline PyTorch."""
+def test_whole_tiny_foggy_scans_are_answered_as_rafd_eval_full_scan_detects_them(
+    client, shipped, radiate_sample, tmp_path
+):
+    """6 real RADIATE scans (1152 px, no poses: the service's odometry) posted whole: the boxes are those of
+    `rafd eval --full-scan` (rafd.eval.fullscan.predict_full_scan, the PyTorch model streamed over the same tiles by
+    the same rafd.view) on the same scans at the poses the service used; and the flow covers the whole scan."""
+    from rafd.data import RadarWindowDataset
+    from rafd.data.poses import write_ego_poses
+    from rafd.eval.fullscan import predict_full_scan, scan_config
+
     runner, model = shipped
-    size = runner.config.input_size
-    paths = sorted((radiate_sample / "Navtech_Cartesian").glob("*.png"))[:10]
-    crops, poses = [], []
-    for k, path in enumerate(paths):
-        scan = cv2.imread(str(path), cv2.IMREAD_GRAYSCALE)
+    folder = tmp_path / "foggy"
+    (folder / "Navtech_Cartesian").mkdir(parents=True)
+    lines = (radiate_sample / "Navtech_Cartesian.txt").read_text().splitlines()[:6]
+    (folder / "Navtech_Cartesian.txt").write_text("\n".join(lines) + "\n")
+    (folder / "meta.json").write_text((radiate_sample / "meta.json").read_text())
+    (folder / "annotations").mkdir()
+    (folder / "annotations" / "annotations.json").write_text("[]")  # no labels: only the detections are compared
+    answers, poses, stamps = [], [], []
+    for k, line in enumerate(lines):
+        name = f"{int(line.split()[1]):06d}.png"
+        (folder / "Navtech_Cartesian" / name).write_bytes((radiate_sample / "Navtech_Cartesian" / name).read_bytes())
+        scan = cv2.imread(str(radiate_sample / "Navtech_Cartesian" / name), cv2.IMREAD_GRAYSCALE)
         answer = client.post(
             "/detect", json={"stream_id": "foggy", "timestamp": 100.0 + 0.25 * k, "image": b64png(scan)}
         )
         assert answer.status_code == 200, answer.text
         body = answer.json()
-        assert body["pose_source"] == "odometry" and body["frames_used"] == min(k + 1, model.num_frames)
-        crops.append(centre_crop(scan, size))
-        poses.append(np.array([body["pose"]["x"], body["pose"]["y"], body["pose"]["yaw"]]))
-        assert_same_answer(body, offline(model, crops, poses), body["frames_used"])
+        assert body["pose_source"] == "odometry" and body["input"]["covered"]["tiles"] == 21
+        answers.append(body)
+        poses.append([body["pose"][key] for key in ("x", "y", "yaw")])
+        stamps.append(line.split()[3])
+    write_ego_poses(folder / "ego_poses.csv", range(1, 7), stamps, np.array(poses))
+    cfg = runner.config
+    dataset = RadarWindowDataset(tmp_path, cfg=scan_config(cfg, 1152), warm_up=True)
+    results = predict_full_scan(model, dataset, cfg, progress=False)
+    assert len(results) == 6
+    for body, result in zip(answers, results):
+        rows = result.predictions  # [N, 6], all K of every tile, merged
+        reference = {"boxes": rows[:, :5], "scores": rows[:, 5]}
+        assert_same_answer(body, reference, 1)
+    assert answers[-1]["flow"]["shape"] == [2, 288, 288]
 
 
 def test_simulated_stream_over_real_uvicorn_matches_offline_pytorch(shipped):

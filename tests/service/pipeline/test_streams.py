@@ -8,6 +8,7 @@ import numpy as np
 import pytest
 from fastapi.testclient import TestClient
 
+from rafd.view import View
 from service.app import create_app
 from service.pipeline.poses import OdometryMemory
 from service.pipeline.streams import Chain, StreamStore
@@ -16,6 +17,7 @@ from tests.utils.fake_runner import FakeRunner
 from tests.utils.service_testing import blob_frame, detect_json, wait_ready
 
 FRAME = blob_frame(128, [(8, 8, 255)])
+VIEW = View.of(128, 128, 0.173611, 4)
 
 
 class Clock:
@@ -33,7 +35,7 @@ def make_store(max_streams=3, ttl_s=10.0):
 
 
 def _advanced(chain: Chain, timestamp: float) -> Chain:
-    return chain.advanced(chain.model, OdometryMemory(FRAME, timestamp), np.zeros(3), "request", timestamp)
+    return chain.advanced(chain.model, OdometryMemory(FRAME, timestamp), np.zeros(3), "request", timestamp, VIEW)
 
 
 async def feed(store: StreamStore, stream_id: str, timestamp: float) -> None:

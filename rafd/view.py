@@ -1,0 +1,250 @@
+"""The whole view: what a stream detects over, and one frame of it through a streaming runner (numpy only).
+
+One implementation for the service and `rafd eval --full-scan`: a posted scan is covered by the model's S x S
+input as tiles, stepped together as the views of one stream state (rafd.runtime), and merged back at tile borders.
+
+Tiles (TileGrid): n x n tiles of side S over the COVERED square (side C, centred on the radar), centres at offsets
+(i - (n - 1) / 2) * stride pixels from the radar (stride < S, so neighbours overlap by S - stride pixels), covering it
+exactly: (n - 1) * stride + S = C. A tile is a crop whose centre is not the radar: its frame is the ego frame shifted
+by the tile's offset (same axes), so its world pose is pose o (offset, 0), and every relative pose between two scans
+is the motion of that shifted frame (tile_poses).
+
+View: the covered square is the whole posted scan, or the smallest square holding the disc within `range_m` of the
+radar (RAFD_DETECT_RANGE_M), at least S: a scan of the model's size is one tile, as the model was trained. Only tiles
+whose centre lies in the covered disc (the scan's inscribed circle: the radar's range) are stepped: on a whole 1152 px
+scan, 21 of 25 (the four corner tiles lie mostly outside the circle; the part of the disc only they would see, 82-100 m
+on the diagonals, 4% of it, is not covered, for 16% of the cost). Detections farther than the disc's radius are not
+answered.
+
+Merging: a detection is kept only by the tile whose core holds its centre (the square of side `stride` around the
+tile centre, unbounded outwards at the edge), so a vehicle on a border is reported once, by the tile that sees most
+around it; a centre-distance suppression between tiles (`merge_distance`) removes what is left near corners. One
+tile's own detections are never suppressed: a scan of the model's size is answered as the model answers it. Dense
+maps (the flow, its validity) are put together the same way: each cell of the covered square from the tile whose
+core holds it.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from functools import cached_property
+from typing import TYPE_CHECKING
+
+import numpy as np
+
+from rafd.detections import Detections, decode_detections
+from rafd.geometry import RADIATE_RESOLUTION, RADIATE_SCAN_SIZE, rotation_matrix
+from rafd.preprocess import to_model_input
+
+if TYPE_CHECKING:
+    from rafd.runtime import Runner, StepResult, StreamState
+
+DEFAULT_OVERLAP = 32  # pixels shared by neighbouring tiles (5.6 m at RADIATE's resolution)
+MERGE_DISTANCE_M = 1.5  # two merged detections closer than this are one vehicle seen by two tiles
+
+
+@dataclass(frozen=True)
+class TileGrid:
+    scan_size: int = RADIATE_SCAN_SIZE  # side of the covered square, pixels
+    tile: int = 256
+    stride: int = 224
+    resolution: float = RADIATE_RESOLUTION
+
+    def __post_init__(self) -> None:
+        if not 0 < self.stride <= self.tile <= self.scan_size:
+            raise ValueError(f"need 0 < stride <= tile <= scan_size, got {self.stride}, {self.tile}, {self.scan_size}")
+        if (self.scan_size - self.tile) % self.stride or (self.scan_size - self.tile) % 2:
+            raise ValueError(
+                f"tiles of {self.tile} px every {self.stride} px do not cover a {self.scan_size} px scan "
+                "symmetrically (choose stride dividing scan_size - tile)"
+            )
+
+    @classmethod
+    def for_model(
+        cls,
+        input_size: int,
+        scan_size: int = RADIATE_SCAN_SIZE,
+        overlap: int = DEFAULT_OVERLAP,
+        resolution: float = RADIATE_RESOLUTION,
+        step: int = 1,
+    ) -> TileGrid:
+        """The grid of the fewest tiles overlapping by at least `overlap` pixels whose stride is a multiple of `step`
+        (the model's output stride, so the tiles' feature cells line up)."""
+        span = scan_size - input_size
+        count = max(1, math.ceil(span / max(input_size - overlap, 1))) if span else 0
+        while count and (span % count or (span // count) % step):
+            count += 1
+        return cls(scan_size, input_size, span // count if count else input_size, resolution)
+
+    @property
+    def per_side(self) -> int:
+        return (self.scan_size - self.tile) // self.stride + 1
+
+    @property
+    def offsets_px(self) -> np.ndarray:
+        """[n*n, 2] tile-centre offsets (du right, dv down) in pixels from the scan centre, row-major."""
+        steps = (np.arange(self.per_side) - (self.per_side - 1) / 2.0) * self.stride
+        du, dv = np.meshgrid(steps, steps, indexing="xy")
+        return np.stack([du.ravel(), dv.ravel()], -1)
+
+    @property
+    def offsets_m(self) -> np.ndarray:
+        """[n*n, 2] tile-centre offsets (x right, y forward) in metres in the ego frame."""
+        px = self.offsets_px
+        return np.stack([px[:, 0], -px[:, 1]], -1) * self.resolution
+
+    def crops(self, scan: np.ndarray, tiles: tuple[int, ...] | None = None) -> np.ndarray:
+        """uint8 [C, C] covered square -> [V, S, S] crops of `tiles` (all by default), views of the scan."""
+        scan = np.asarray(scan)
+        if scan.shape != (self.scan_size, self.scan_size):
+            raise ValueError(f"expected a {self.scan_size} px scan, got shape {scan.shape}")
+        half = self.scan_size // 2 - self.tile // 2
+        offsets = self.offsets_px if tiles is None else self.offsets_px[list(tiles)]
+        return np.stack(
+            [
+                scan[half + int(dv) : half + int(dv) + self.tile, half + int(du) : half + int(du) + self.tile]
+                for du, dv in offsets
+            ]
+        )
+
+    def owner(self, xy: np.ndarray) -> np.ndarray:
+        """[M, 2] ego metres -> [M] index of the tile whose core holds each point."""
+        steps = np.round(np.asarray(xy, np.float64) / (self.stride * self.resolution) + (self.per_side - 1) / 2.0)
+        column = np.clip(steps[:, 0], 0, self.per_side - 1).astype(int)
+        row = np.clip((self.per_side - 1) - steps[:, 1], 0, self.per_side - 1).astype(int)  # y forward = rows up
+        return row * self.per_side + column
+
+
+def tile_poses(poses: np.ndarray, offsets_m: np.ndarray) -> np.ndarray:
+    """World poses [..., 3] of the ego and tile offsets [n, 2] -> [n, ..., 3] world poses of the tiles' frames."""
+    poses = np.asarray(poses, np.float64)
+    rotation = rotation_matrix(poses[..., 2])  # [..., 2, 2]
+    shifted = poses[None, ..., :2] + np.einsum("...ij,nj->n...i", rotation, offsets_m)
+    return np.concatenate([shifted, np.broadcast_to(poses[None, ..., 2:], shifted.shape[:-1] + (1,))], -1)
+
+
+def covered_side(posted_size: int, input_size: int, resolution: float, range_m: float | None = None) -> int:
+    """Side in pixels of the square a posted scan is detected over: the whole scan, or the smallest even square
+    holding the disc within `range_m` of the radar, at least the model's input."""
+    if range_m is None or posted_size <= input_size:
+        return posted_size
+    side = 2 * math.ceil(range_m / resolution)
+    return int(min(posted_size, max(input_size, side + side % 2)))
+
+
+@dataclass(frozen=True)
+class View:
+    """The tiles a stream's frames are detected over, the disc they answer for, and the scan they lie in."""
+
+    grid: TileGrid
+    tiles: tuple[int, ...]  # the grid's tiles stepped, row-major: those whose centre lies in the covered disc
+    range_m: float | None  # detections farther from the radar are not answered (None: all the tiles see)
+    posted_size: int  # side of the Cartesian scan posted (or converted from a polar or native one)
+    cell_px: int  # pixels per cell of the model's output maps (its output stride)
+
+    @classmethod
+    def of(
+        cls,
+        posted_size: int,
+        input_size: int,
+        resolution: float,
+        cell_px: int,
+        range_m: float | None = None,
+        overlap: int = DEFAULT_OVERLAP,
+    ) -> View:
+        side = covered_side(posted_size, input_size, resolution, range_m)
+        grid = TileGrid.for_model(input_size, side, overlap, resolution, step=cell_px)
+        radius = side / 2.0 * resolution if range_m is None else min(range_m, side / 2.0 * resolution)
+        # a tile is stepped when its centre lies within the disc (a corner tile of a whole scan, mostly outside the
+        # radar's circle, is not: its core's share of the disc, 82-100 m on the diagonals, is not covered)
+        tiles = tuple(int(t) for t in np.flatnonzero(np.hypot(*grid.offsets_m.T) <= radius + 1e-6))
+        return cls(grid, tiles, None if range_m is None else float(radius), int(posted_size), int(cell_px))
+
+    @property
+    def side_px(self) -> int:
+        return self.grid.scan_size
+
+    @property
+    def origin_px(self) -> int:
+        """Posted pixel (u and v) of the covered square's top-left corner."""
+        return (self.posted_size - self.side_px) // 2
+
+    @property
+    def offsets_m(self) -> np.ndarray:
+        """[V, 2] the stepped tiles' centres, ego metres."""
+        return self.grid.offsets_m[list(self.tiles)]
+
+    def crops(self, covered: np.ndarray) -> np.ndarray:
+        """uint8 [C, C] covered square -> float32 [V, S, S] model inputs of the stepped tiles."""
+        return to_model_input(np.ascontiguousarray(self.grid.crops(covered, self.tiles)))
+
+    def tile_poses(self, pose: np.ndarray) -> np.ndarray:
+        """The ego's world pose [3] -> [V, 3] the stepped tiles' world poses."""
+        return tile_poses(np.asarray(pose, np.float64)[None], self.offsets_m)[:, 0]
+
+    def merge(
+        self,
+        boxes: np.ndarray,
+        scores: np.ndarray,
+        score_threshold: float = 0.0,
+        merge_distance: float = MERGE_DISTANCE_M,
+    ) -> Detections:
+        """The stepped tiles' outputs (boxes [V, K, 5] in each tile's frame, scores [V, K]) -> detections in the ego
+        frame within the view's range, best first: each from the tile whose core holds it, one per vehicle."""
+        kept_boxes, kept_scores, kept_labels, kept_tiles = [], [], [], []
+        for tile, tile_boxes, tile_scores in zip(self.tiles, boxes, scores):
+            found = decode_detections(tile_boxes, tile_scores, score_threshold)
+            ego = found.boxes.copy()
+            ego[:, :2] += self.grid.offsets_m[tile]
+            mine = self.grid.owner(ego[:, :2]) == tile
+            if self.range_m is not None:
+                mine &= np.hypot(ego[:, 0], ego[:, 1]) <= self.range_m
+            kept_boxes.append(ego[mine])
+            kept_scores.append(found.scores[mine])
+            kept_labels.append(found.labels[mine])
+            kept_tiles.append(np.full(int(mine.sum()), tile))
+        merged_boxes, merged_scores = np.concatenate(kept_boxes).reshape(-1, 5), np.concatenate(kept_scores)
+        merged_labels, merged_tiles = np.concatenate(kept_labels), np.concatenate(kept_tiles)
+        order = np.argsort(-merged_scores, kind="stable")
+        centres, tiles = merged_boxes[order, :2], merged_tiles[order]
+        distance = np.hypot(*(centres[:, None] - centres[None]).transpose(2, 0, 1))  # [N, N] metres
+        conflict = (distance <= merge_distance) & (tiles[:, None] != tiles[None])  # [N, N]
+        kept = np.zeros(len(order), bool)
+        for i in range(len(order)):  # best first: drop what another tile saw near a kept detection
+            kept[i] = not (conflict[i] & kept).any()
+        keep = order[kept]
+        return Detections(merged_boxes[keep], merged_scores[keep], merged_labels[keep])
+
+    @cached_property
+    def _cells(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """For every cell of the covered square: the stepped view whose core holds it (-1: none) and its row and
+        column in that view's map."""
+        cells = self.side_px // self.cell_px
+        centres = (np.arange(cells) + 0.5) * self.cell_px  # pixel coordinates along one side
+        u, v = np.meshgrid(centres, centres, indexing="xy")  # [H, W]
+        half = self.side_px / 2.0
+        xy = np.stack([(u - half).ravel(), (half - v).ravel()], -1) * self.grid.resolution
+        owner = self.grid.owner(xy).reshape(cells, cells)  # [H, W] grid tile index
+        view = np.full(self.grid.per_side**2, -1)
+        view[list(self.tiles)] = np.arange(len(self.tiles))
+        origin = self.side_px // 2 - self.grid.tile // 2 + self.grid.offsets_px[owner]  # [H, W, 2] tile top-left
+        column = ((u - origin[..., 0]) // self.cell_px).astype(np.intp)
+        row = ((v - origin[..., 1]) // self.cell_px).astype(np.intp)
+        return view[owner], row, column
+
+    def mosaic(self, maps: np.ndarray) -> np.ndarray:
+        """[V, ..., h, w] per-view maps (h = w = S / cell_px) -> [..., H, W] over the covered square (H = C / cell_px),
+        each cell from the view whose core holds it; 0 where no view was stepped."""
+        view, row, column = self._cells
+        out = np.asarray(maps)[np.maximum(view, 0), ..., row, column]  # [H, W, ...]
+        out = np.moveaxis(out, (0, 1), (-2, -1))
+        return np.where(view >= 0, out, 0).astype(maps.dtype)
+
+
+def step_view(
+    runner: Runner, state: StreamState, view: View, covered: np.ndarray, pose: np.ndarray
+) -> tuple[StepResult, StreamState]:
+    """One frame of a stream over its view: the covered square (uint8 [C, C]) and the ego's world pose [3] -> (each
+    stepped tile's result, the stream's new state), every tile in one run of the runner."""
+    return runner.step(state, view.crops(covered), view.tile_poses(pose))
