@@ -67,7 +67,7 @@ MAX_ECC_SHIFT_PX = 3.0  # ECC refinements further than this (fine pixels) from t
 MAX_ECC_YAW_DEG = 1.0  # ... or turning further than this
 # ECC's iterations (rafd.odometry.ecc, inverse compositional: one warp and four dot products each): from the
 # correlation's start, 10 keep the Oxford sample's mean yaw error at 0.1079 degrees (20: 0.1078);
-# 5 give 0.1089 and 3 0.1115, past the 0.108 kept as the bar. Measured with `python -m tools.odometry_cost`.
+# 5 give 0.1089 and 3 0.1115, past the 0.108 kept as the bar (docs/archive.md, "Odometry").
 ECC_ITERATIONS = 10
 ECC_EPS = 1e-4
 PRIOR_YAW_WINDOW_DEG = 4.0  # coarse yaw search around the prior's yaw (the yaw rate changes less per scan)
@@ -484,7 +484,7 @@ class Odometer:
         yaw search to +-PRIOR_YAW_WINDOW_DEG around it; without one, or with the best yaw on that window's edge, the
         wide search over +-MAX_YAW_DEG centres a +-WIDE_YAW_WINDOW_DEG one. With `refine` the coarse level's pose is
         returned: finish's ECC starts from it (starting it from a fine-level shift at the coarse yaw left every error
-        of `python -m tools.odometry_cost` unchanged at 0.3 of this stage's cost); without, the fine level is searched
+        of the odometry's accuracy check unchanged at 0.3 of this stage's cost); without, the fine level is searched
         +-0.5 degree."""
         coarse, fine = self._levels(size)
         if not (previous.fine.image.any() and current.fine.image.any()):
@@ -548,7 +548,7 @@ class Odometer:
         and the re-de-skew decision taken from the unrefined search moved the Oxford sample's mean yaw error from 0.108
         to 0.136 degrees (the first pair's velocity taken unrefined: to 0.119). A re-de-skewed pair starts its ECC from
         the pose before it instead of searching again: the de-skew moves the scene by a fraction of ECC's reach, and
-        every error of `python -m tools.odometry_cost` stayed as it was."""
+        every error of the odometry's accuracy check stayed as it was."""
         if previous.size != current.size:
             raise ValueError(f"odometry needs two scans of the same size, got {previous.size} and {current.size}")
         compensate = previous.timing is not None and current.timing is not None and dt is not None and dt > 0
