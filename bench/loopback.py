@@ -1,6 +1,6 @@
 """The shipped scale-out (deploy/nginx.conf) on loopback: N `rafd-serve` processes behind Debian's nginx.
 
-Used by tests/deploy/test_scaleout.py and `python -m tools.scaleout`. The nginx configuration is the
+Used by tests/deploy/test_scaleout.py and `python -m tools.fault_drill`. The nginx configuration is the
 shipped one with only the addresses changed (the replicas' loopback ports, nginx's own port) and, because it
 runs unprivileged here, its temporary files and pid in a work folder. Standard library and bench.server only.
 """

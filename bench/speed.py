@@ -114,8 +114,6 @@ class ModelBench:
     threads: int
     repeats: int
     report: Report
-    # sets of module scopes kept in float32, a row each: bf16 with float32 islands (export/islands.py; () for none)
-    islands: tuple[tuple[str, ...], ...] = ()
     inputs: list[np.ndarray] = field(default_factory=list)  # model inputs [S, S] float32, window frames first
     poses: np.ndarray = field(default_factory=lambda: np.zeros((0, 3)))  # their true world poses [N, 3]
 
@@ -149,26 +147,13 @@ class ModelBench:
 
         frames_per_window = self.cfg.num_frames
         step_flops = count_step_flops(self.model, self.cfg)
-        from export.islands import write_islands
         from export.quantize import calibrate, quantize_model
-        from rafd.runtime import OpenVinoRunner
 
-        calibration = None
         if ("openvino", "int8") in choices:  # int8 runs its own quantized graph, made as `rafd gate` makes it
             # within this stage (MODEL_STAGES counts the stages); a short calibration: the kernels' speed does not
             # depend on the activation ranges, only the accuracy does (which `rafd gate` judges on its own)
-            calibration = calibrate(step_onnx, sequences=1, frames=8)
-            quantize_model(step_onnx, calibration=calibration)
+            quantize_model(step_onnx, calibration=calibrate(step_onnx, sequences=1, frames=8))
         runners = {f"{r}/{p}": open_runner(step_onnx, r, p, self.threads, islands=False) for r, p in choices}
-        for k, islands in enumerate(self.islands):  # each set as bf16's islands and as int8's, where the CPU runs them
-            named = f"float32 islands {' '.join(islands)}"
-            if ("openvino", "bf16") in choices:
-                folder = write_islands(step_onnx, islands, step_onnx.with_name(f"{step_onnx.stem}.islands-{k}"))
-                runners[f"openvino/bf16, {named}"] = OpenVinoRunner(step_onnx, "bf16", self.threads, islands=folder)
-            if calibration is not None:
-                out = step_onnx.with_name(f"{step_onnx.stem}.islands-{k}.int8.onnx")
-                quantize_model(step_onnx, out, islands, calibration)
-                runners[f"openvino/int8, {named}"] = OpenVinoRunner(step_onnx, "int8", self.threads, quantized=out)
         states = {}
         for key, runner in runners.items():  # past the warm-up: every timed step is a steady-state frame
             state = runner.new_state()
@@ -271,7 +256,6 @@ def bench_model(
     peaks: dict[str, float],
     report: Report,
     stages: Stages | None = None,
-    islands: tuple[tuple[str, ...], ...] = (),
 ) -> dict[str, Any]:
     """PyTorch window, the streaming step on every runtime, concurrency and the gate -> rows + facts
     (MODEL_STAGES stages, the gate's included, on `stages`)."""
@@ -283,7 +267,7 @@ def bench_model(
 
     torch.set_num_threads(threads)
     model, cfg, _ = load_checkpoint(checkpoint)
-    bench = ModelBench(name, model, cfg, threads, repeats, report, islands)
+    bench = ModelBench(name, model, cfg, threads, repeats, report)
     choices = supported_choices()
 
     begin(f"{name}: PyTorch eager window x {repeats}")
@@ -401,78 +385,6 @@ def bench_http(
         }
     finally:
         server.stop()
-
-
-LIVE_VIEW_ROUNDS = 3  # servers started with the live view off and on each, alternating
-
-
-def bench_live_view(
-    name: str,
-    model: Path,
-    size: int,
-    threads: int,
-    frames: int,
-    runtime: str,
-    precision: str,
-    report: Report,
-    stages: Stages | None = None,
-    full_scans: bool = True,
-) -> dict[str, Any]:
-    """HTTP /detect with the Foxglove live view off and on (a viewer subscribed to every channel), one stream, in
-    LIVE_VIEW_ROUNDS rounds of one server each, alternating off / on (and which goes first) so machine noise hits both
-    alike -> two rows
-    (median over the rounds of each round's p50 and frames/s) and facts["live_view"]."""
-    from bench.server import free_port
-
-    begin = stages.begin if stages is not None else (lambda _: None)
-    scan = max(FULL_SCAN, size) if full_scans else size
-    images, poses = simulated_frames(scan, 16, seed=11)
-    bodies = [encode_png(image) for image in images]  # full scans: the largest scan the live view publishes
-    env = {"RAFD_RUNTIME": runtime, "RAFD_PRECISION": precision, "RAFD_SCORE_THRESHOLD": "0.3"}
-    rounds: dict[str, list[dict[str, Any]]] = {"off": [], "on": []}
-    for index in range(LIVE_VIEW_ROUNDS):
-        for mode in (
-            ("off", "on") if index % 2 == 0 else ("on", "off")
-        ):  # each goes first as often (off, on, on, off, ...)
-            begin(f"{name}: live view {mode}, round {index + 1} of {LIVE_VIEW_ROUNDS}")
-            port = free_port()
-            extra = ["--foxglove-port", str(port)] if mode == "on" else []
-            server = start_server(model, threads, env=env, extra=extra)
-            viewer = None
-            try:
-                if mode == "on":
-                    try:
-                        from bench.live_viewer import SubscribeAll
-
-                        viewer = SubscribeAll(port)
-                    except ImportError:
-                        log.warning("no websockets package: the live view runs without a subscribed viewer")
-                tag = f"live-{mode}-{index}"
-                load_streams(server.url, bodies, poses, 1, 4, tag + "-warm")  # first runs, first channels
-                result = load_streams(server.url, bodies, poses, 1, frames, tag)
-                p50, _ = percentiles(result["latencies"])
-                received = viewer.stop() if viewer is not None else None
-                viewer = None
-                rounds[mode].append({"p50_ms": p50, "fps": result["fps"], "viewer_messages": received})
-            finally:
-                if viewer is not None:
-                    viewer.stop()
-                server.stop()
-    summary: dict[str, Any] = {"rounds": rounds}
-    for mode in ("off", "on"):
-        p50 = statistics.median(r["p50_ms"] for r in rounds[mode])
-        fps = statistics.median(r["fps"] for r in rounds[mode])
-        summary[mode] = {"p50_ms": round(p50, 2), "fps": round(fps, 2)}
-        note = f"{'full ' + str(scan) + ' px scans' if full_scans else 'model-size frames'}, 1 stream, median of "
-        note += f"{LIVE_VIEW_ROUNDS} servers' p50 and frames/s"
-        if mode == "on":
-            ratio = summary["on"]["fps"] / summary["off"]["fps"]
-            summary["on_over_off_fps"] = round(ratio, 3)
-            messages = [r["viewer_messages"] for r in rounds["on"]]
-            note += f"; {ratio:.3f}x the frames/s with it off; the viewer received {messages} messages"
-        report.rows.append(Row(name, f"HTTP /detect, {runtime}/{precision}, live view {mode}", p50, None, fps, note))
-    report.facts.setdefault(name, {})["live_view"] = summary
-    return summary
 
 
 # ----------------------------------------------------------------------------- table

@@ -1,6 +1,5 @@
 """rafd bench speed: speed, accuracy drift and memory of every runtime and precision, side by side in one run
-(bench.speed; docs "Performance"); with --profile, the streaming step's time module by module instead
-(bench.speed_profile)."""
+(bench.speed; docs "Performance")."""
 
 from __future__ import annotations
 
@@ -16,17 +15,14 @@ from bench.flops import matmul_peaks_gflops
 from bench.machine import machine_description
 from bench.speed import (
     CONFIGS,
-    LIVE_VIEW_ROUNDS,
     MODEL_STAGES,
     Report,
     bench_http,
-    bench_live_view,
     bench_model,
     config_checkpoint,
     format_report,
     http_stages,
 )
-from bench.speed_profile import PROFILE_THREADS
 from rafd.cli import flags
 from rafd.cpu import usable_cpus
 from rafd.progress import Stages
@@ -46,15 +42,6 @@ def build_parser() -> argparse.ArgumentParser:
     )
     flags.add_threads(parser, usable_cpus(), "onnxruntime's / OpenVINO's threads per run (default: the CPUs)")
     parser.add_argument("--repeats", type=int, default=20, help="timed calls per model path (default %(default)s)")
-    parser.add_argument(
-        "--islands",
-        action="append",
-        default=[],
-        metavar="SCOPES",
-        help="also time OpenVINO bf16 and int8 with these module scopes kept in float32 (comma list, e.g. "
-        "/propagation/,/head/ or '/flow/*,/head/heatmap/'; export/islands.py, export/quantize.py), where the CPU "
-        "runs bf16 / int8; repeatable, a row per set and precision",
-    )
     parser.add_argument(
         "--concurrency-frames",
         type=int,
@@ -90,36 +77,7 @@ def build_parser() -> argparse.ArgumentParser:
         help="comma list of runtime/precision (or auto/auto) to serve over HTTP; unsupported ones are skipped",
     )
     parser.add_argument("--no-http", action="store_true", help="model paths only")
-    parser.add_argument(
-        "--live-view",
-        action="store_true",
-        help="also time HTTP /detect with the Foxglove live view off and on (a viewer subscribed), alternating, "
-        "3 servers each (needs the live extra)",
-    )
     parser.add_argument("--json", type=Path, metavar="FILE", help="also write the figures as JSON")
-    profile = parser.add_argument_group(
-        'by-module profile (instead of the benchmark; bench.speed_profile, docs "Profiling the step by module")'
-    )
-    profile.add_argument(
-        "--profile",
-        action="store_true",
-        help="profile the streaming step of CHECKPOINT (a .pt, or a step .onnx) with onnxruntime's profiler "
-        f"(fp32, {PROFILE_THREADS} thread) over --repeats steps and print ms per step by module",
-    )
-    profile.add_argument(
-        "--profile-config",
-        metavar="RECIPES",
-        help="comma list of training recipes to profile with random weights, side by side in one run "
-        "(e.g. default,cpu; implies --profile; with CHECKPOINT, that too)",
-    )
-    profile.add_argument(
-        "--profile-depth",
-        type=flags.positive_int,
-        default=2,
-        metavar="N",
-        help="module levels of the rows: 1 encoder, flow, propagation, head; 2 encoder/backbone, ... "
-        "(default %(default)s)",
-    )
     flags.add_quiet(parser)
     return parser
 
@@ -130,8 +88,6 @@ def main(argv: Sequence[str] | None = None) -> int:
     flags.apply_quiet(args)
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(levelname)s %(name)s: %(message)s")
     logging.getLogger("httpx").setLevel(logging.WARNING)  # one line per request would bury the table
-    if args.profile or args.profile_config:
-        return run_profile(args)
     configs = [c.strip() for c in args.configs.split(",") if c.strip()]
     unknown = set(configs) - set(CONFIGS)
     if unknown:
@@ -161,8 +117,6 @@ def main(argv: Sequence[str] | None = None) -> int:
     gate = None if args.no_gate else (args.gate_sequences, args.gate_frames)
     per_config = MODEL_STAGES + (0 if args.no_http else len(http_runtimes) * http_stages(concurrency, False))
     total = len(configs) * per_config + (0 if args.no_http or "default" not in configs else len(http_runtimes))
-    if args.live_view:
-        total += LIVE_VIEW_ROUNDS * 2
     stages = Stages("bench speed", total)
     with stages, tempfile.TemporaryDirectory(prefix="rafd-bench-") as tmp:
         work = Path(tmp)
@@ -191,7 +145,6 @@ def main(argv: Sequence[str] | None = None) -> int:
                 peaks,
                 report,
                 stages,
-                tuple(tuple(scope for scope in scopes.split(",") if scope) for scopes in args.islands),
             )
             if not args.no_http:
                 for choice in http_runtimes:
@@ -209,19 +162,6 @@ def main(argv: Sequence[str] | None = None) -> int:
                         report,
                         stages,
                     )
-            if args.live_view and name == "default":
-                runtime, precision = (http_runtimes[0] if http_runtimes else "onnxruntime/fp32").split("/")
-                bench_live_view(
-                    name,
-                    paths["step_onnx"],
-                    paths["cfg"].input_size,
-                    args.threads,
-                    args.http_frames,
-                    runtime,
-                    precision,
-                    report,
-                    stages,
-                )
         # measured again at the end: the peaks of the same run, before and after (the machine may be shared)
         after = matmul_peaks_gflops(args.threads)
         report.facts["machine"]["matmul_peak_gflops_at_end"] = {k: round(v, 1) for k, v in after.items()}
@@ -229,49 +169,6 @@ def main(argv: Sequence[str] | None = None) -> int:
     print(text)
     if args.json:
         args.json.write_text(json.dumps({"rows": [r.__dict__ for r in report.rows], "facts": report.facts}, indent=2))
-    return 0
-
-
-def run_profile(args: argparse.Namespace) -> int:
-    """--profile: the by-module table of each step (CHECKPOINT, or the shipped model when no recipe is named, then
-    every --profile-config recipe with random weights), all in one run so that their ratios share a machine state."""
-    from bench.speed_profile import (
-        format_profiles,
-        profile_steps,
-        profiler_cost_us,
-        profiles_json,
-        recipe_checkpoint,
-        step_onnx,
-    )
-    from rafd.train.recipes import RECIPES
-
-    recipes = [c.strip() for c in (args.profile_config or "").split(",") if c.strip()]
-    unknown = sorted(set(recipes) - set(RECIPES))
-    if unknown:
-        print(f"rafd bench speed: error: unknown recipes {unknown} (known: {', '.join(RECIPES)})", file=sys.stderr)
-        return 2
-    with tempfile.TemporaryDirectory(prefix="rafd-profile-") as tmp:
-        work = Path(tmp)
-        checkpoints: dict[str, Path] = {}
-        if args.checkpoint is not None or not recipes:
-            if args.checkpoint is not None:
-                checkpoint = Path(args.checkpoint)
-            else:
-                from rafd.assets import default_checkpoint
-
-                checkpoint = Path(default_checkpoint())
-            if not checkpoint.is_file():
-                print(f"rafd bench speed: error: checkpoint {checkpoint} not found", file=sys.stderr)
-                return 2
-            checkpoints[checkpoint.name] = checkpoint
-        for name in recipes:
-            checkpoints[name] = recipe_checkpoint(work, name)
-        paths = {name: step_onnx(checkpoint, work) for name, checkpoint in checkpoints.items()}
-        profiles = profile_steps(paths, args.repeats, args.profile_depth)
-    cost = profiler_cost_us(args.repeats)
-    print(format_profiles(profiles, args.profile_depth, machine_description(PROFILE_THREADS), cost))
-    if args.json:
-        args.json.write_text(json.dumps(profiles_json(profiles, args.profile_depth, cost), indent=2))
     return 0
 
 

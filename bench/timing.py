@@ -37,7 +37,7 @@ def time_interleaved(calls: dict[str, Callable[[int], Any]], repeats: int) -> di
 
     Each timed call follows one untimed call of the same path: a run leaves its runtime's pool threads busy after
     it returns (onnxruntime's threads spin on the cores for several milliseconds), which would slow whichever path came
-    next (measured: OpenVINO bf16 right after onnxruntime 34 ms, after its own untimed call 24 ms)."""
+    next."""
     samples: dict[str, list[float]] = {name: [] for name in calls}
     for i in range(repeats):
         for name, call in calls.items():

@@ -26,9 +26,8 @@ class GateThresholds:
 
 @dataclass(frozen=True)
 class GateOptions:
-    # ~700 compared windows: with fewer, bf16's flips of single boxes across IoU 0.7 move mAP by a point or more
-    # either way (measured on the shipped model: 222 windows gave mAP@0.5/0.7 differences of 1.4 / 1.3 points,
-    # 684 windows 0.0 / 0.5)
+    # ~700 compared windows: with fewer (222), bf16's flips of single boxes across IoU 0.7 moved mAP by a point or
+    # more either way
     sequences: int = 12
     frames: int = 60
     seed: int = DEFAULT_SEED

@@ -1,8 +1,8 @@
 """bf16 with float32 islands: an exported step graph cut into consecutive segments, each whole in one precision, so
-OpenVINO can compile the islands in float32 and the rest in bf16 (issue 41 item 2).
+OpenVINO can compile the islands in float32 and the rest in bf16.
 
 Why segments and not per-node marks: OpenVINO 2026.4's CPU plugin does not honour the `precise_0` rt_info mark under
-bf16 (`python -m tools.precision_marks`, docs/performance.md), so the only way to keep a node in float32 is to compile
+bf16 (docs/archive.md), so the only way to keep a node in float32 is to compile
 it in a float32 model. An island is a module scope of the export's node names: "/head/heatmap/" is every node under it,
 "/propagation/*" the nodes directly in it (the module's own arithmetic, not its layers'), "/*" those at the top. The
 search (export/islands_gate.py) judges the graph's units (search_units) by measurement.

@@ -1,6 +1,6 @@
-"""Choosing float32 islands by measurement, where plain reduced precision fails its accuracy gate (issue 41 items 2
-and 3): bf16 with float32 islands (its graph cut into segments, export/islands.py) and int8 with float32 islands (its
-matrix operations in the islands left unquantized, export/quantize.py).
+"""Choosing float32 islands by measurement, where plain reduced precision fails its accuracy gate: bf16 with float32
+islands (its graph cut into segments, export/islands.py) and int8 with float32 islands (its matrix operations in the
+islands left unquantized, export/quantize.py).
 
 The candidates are the graph's units (export/islands.search_units): bf16's are each module two levels down
 ("/flow/match/") and each scope's own nodes ("/propagation/*"); int8's one level deeper ("/encoder/backbone/stem/"),
@@ -281,9 +281,7 @@ def _by_sensitivity(search: _Search, matrix: list[str]) -> GateReport | None:
 
     Why not bf16's forward selection: int8's error is spread over many layers, each adding a little, so with every
     unit quantized no single unit returned to float32 brings a short gate near passing, and the greedy steps
-    wander (measured on the shipped model: five steps of 15-19 short gates each without one passing); the damage
-    of a unit quantized alone separates the units cleanly (the backbone's stem and the heatmap head against the
-    rest)."""
+    wander; the damage of a unit quantized alone separates the units cleanly."""
     alone = {u: search.short(search.ordered([v for v in matrix if v != u])) for u in matrix}
     order = sorted(matrix, key=lambda u: (rank(alone[u]), matrix.index(u)))
     quantized: list[str] = []

@@ -8,9 +8,8 @@ sampling-position arithmetic of the flow-guided propagation (the flow scaled and
 rotation), the GridSample that reads the past features at those positions, the softmaxes and the box decoding. Of
 the matrix operations, those in the float32 islands (units of export.islands.search_units, chosen by the gate's
 search where quantizing every one fails: export/islands_gate.py) stay float32 too; the file names them in its
-metadata (rafd.model_files.FLOAT32_ISLANDS_KEY). Why NNCF and not onnxruntime's quantize_static: the same islands
-quantized by onnxruntime ran slower on OpenVINO than float32 (the paper network at 256 px, 2 threads, AMD EPYC Zen 4:
-343 against 312 ms), by NNCF 1.61x faster (205 against 329 ms): docs/performance.md "int8". The activation
+metadata (rafd.model_files.FLOAT32_ISLANDS_KEY). NNCF, not onnxruntime's quantize_static: OpenVINO ran the latter's
+graphs slower than float32 (docs/archive.md, "int8: why NNCF"). The activation
 statistics come from simulated sequences streamed through the float32 model (the step graph's inputs as the service
 feeds them, its state included), from a seed apart from the gate's: the gate then judges on data the calibration
 never saw.

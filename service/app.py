@@ -85,7 +85,7 @@ def create_app(
             service_metrics.track_active_streams(lambda: len(store))
             # Decode and odometry jobs get their parallelism from their executors (one thread each by default);
             # opencv's own thread pool inside a job would compete with the model's threads for the same cores.
-            # One thread costs a lone stream's odometry 6-11% (docs/performance.md, "Odometry").
+            # One thread costs a lone stream's odometry 6-11% (docs/archive.md, "Odometry").
             cv2.setNumThreads(1)
             app.state.service = DetectService(
                 loaded, settings, store, service_metrics, odometry, Executors.from_settings(settings, service_metrics)

@@ -8,8 +8,7 @@ the README's curl, at the radar's 4 Hz, each answer awaited; meanwhile a probe o
 /health/ready every 50 ms.
 "alone" has nothing else; "under flood" runs beside --flood-connections clients on their own process posting,
 back to back, a valid scan padded with zTXt chunks to --flood-bytes (default 2.4 MB, just under the service's body
-limit; the 7.7 MB file of the original finding, 27 s of libpng time each before the fix, now gets 413 from its
-Content-Length at once).
+limit: a larger file gets 413 from its Content-Length at once).
 The conditions alternate in --rounds blocks (a shared machine's background load drifts; both see the same).
 Prints the normal stream's p50/p99 latency, readiness latency and the flood's answers per status, and exits 1
 when the normal stream's p99 under the flood exceeds 2x its unloaded p99, a readiness probe took 100 ms or more
@@ -84,33 +83,19 @@ def model_crops(scans: list[bytes], size: int) -> list[bytes]:
 
 
 def padded_png(scan: bytes, target_bytes: int = 7_700_000) -> bytes:
-    """The finding-1 file: a valid scan with zTXt chunks (each inflating to 8 MB of text) right after IHDR."""
+    """A valid scan with zTXt chunks (each inflating to 8 MB of text) right after IHDR."""
     text = png_chunk(b"zTXt", b"comment\x00\x00" + zlib.compress(b"A" * 8_000_000, 9))
     return scan[:33] + text * max(1, (target_bytes - len(scan)) // len(text)) + scan[33:]
 
 
 def multipart_request(png: bytes, stream_id: str, timestamp: float) -> bytes:
     """A whole POST /detect request (multipart, like curl -F), ready to send on a raw socket."""
-    boundary = b"hostileloadboundary"
-    body = (
-        b"--"
-        + boundary
-        + b'\r\nContent-Disposition: form-data; name="stream_id"\r\n\r\n'
-        + stream_id.encode()
-        + b"\r\n--"
-        + boundary
-        + b'\r\nContent-Disposition: form-data; name="timestamp"\r\n\r\n'
-        + str(timestamp).encode()
-        + b"\r\n--"
-        + boundary
-        + b'\r\nContent-Disposition: form-data; name="image"; filename="scan.png"\r\n'
-        b"Content-Type: image/png\r\n\r\n" + png + b"\r\n--" + boundary + b"--\r\n"
-    )
+    body = detect_client.multipart_body(detect_client.FrameFields(timestamp, stream_id), png)
     head = (
         f"POST /detect HTTP/1.1\r\nHost: {HOST}\r\nConnection: close\r\n"
-        f"Content-Type: multipart/form-data; boundary={boundary.decode()}\r\nContent-Length: {len(body)}\r\n\r\n"
+        f"Content-Type: {body.content_type}\r\nContent-Length: {len(body.content)}\r\n\r\n"
     )
-    return head.encode() + body
+    return head.encode() + body.content
 
 
 # ------------------------------------------------------------------------------------------------ the flood

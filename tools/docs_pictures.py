@@ -127,22 +127,10 @@ def onnx_metadata(path: Path) -> dict[str, str]:
     return dict(session.get_modelmeta().custom_metadata_map)
 
 
-def export_onnx(checkpoint: Path, out: Path) -> Path:
-    """`rafd export CHECKPOINT --out OUT --batch dynamic` (the service's form), in its own process and without
-    RAFD_RADIATE_SAMPLE: its parity check then runs on random inputs only (the RADIATE sample is a test set)."""
-    env = {k: v for k, v in os.environ.items() if k != "RAFD_RADIATE_SAMPLE"}
-    command = [sys.executable, "-m", "export.cli", str(checkpoint), "--out", str(out), "--batch", "dynamic", "--quiet"]
-    print(f"$ rafd export {checkpoint} --out {out} --batch dynamic --quiet")
-    done = subprocess.run(command, env=env, capture_output=True, text=True)
-    if done.returncode != 0:
-        raise PictureError(f"rafd export {checkpoint} failed:\n{(done.stdout + done.stderr)[-3000:]}")
-    return out
-
-
-def resolve_model(model: Path | None, work: Path) -> Model:
+def resolve_model(model: Path | None) -> Model:
     """The ONNX model to serve and the checkpoint to evaluate: the shipped pair by default; for MODEL.onnx its
-    MODEL.pt beside it (else no evaluation pictures); for MODEL.pt its MODEL.onnx beside it when that is its export
-    (same checkpoint sha256), else an export made here."""
+    MODEL.pt beside it (else no evaluation pictures); for MODEL.pt its export MODEL.onnx beside it (same checkpoint
+    sha256; `rafd export MODEL.pt` makes it)."""
     from rafd.model_files import file_kind
 
     checkpoint: Path | None
@@ -162,11 +150,9 @@ def resolve_model(model: Path | None, work: Path) -> Model:
             )
     elif file_kind(model) == "checkpoint":
         checkpoint, beside = model, model.with_suffix(".onnx")
-        wanted = file_sha256(model)
-        if beside.is_file() and onnx_metadata(beside).get("checkpoint_sha256") == wanted:
-            onnx = beside
-        else:
-            onnx = export_onnx(model, work / f"{model.stem}.onnx")
+        if not (beside.is_file() and onnx_metadata(beside).get("checkpoint_sha256") == file_sha256(model)):
+            raise PictureError(f"no export of {model} beside it: run `rafd export {model} --out {beside}` first")
+        onnx = beside
     else:
         raise PictureError(f"--model {model} is neither an ONNX model nor a checkpoint")
     onnx_sha = file_sha256(onnx)
@@ -813,13 +799,12 @@ def build_parser() -> argparse.ArgumentParser:
         default=None,
         metavar="MODEL.onnx|.pt",
         help="the model to picture (default: the shipped one): an ONNX model (its checkpoint MODEL.pt beside it for "
-        "the rafd eval plots) or a checkpoint (its export MODEL.onnx beside it, else exported here)",
+        "the rafd eval plots) or a checkpoint (its export MODEL.onnx beside it)",
     )
     parser.add_argument("--quick", action="store_true", help="tiny settings: checks that every step runs (CI)")
     parser.add_argument(
         "--only", default=None, metavar="NAMES", help=f"comma list of pictures to make: {', '.join(PICTURES)}"
     )
-    parser.add_argument("--keep-work", type=Path, default=None, metavar="DIR", help="keep the intermediate files here")
     return parser
 
 
@@ -838,14 +823,10 @@ def main(argv: Sequence[str] | None = None) -> int:
         return 2
     shown_argv = " ".join(["python -m tools.docs_pictures", *(argv if argv is not None else sys.argv[1:])])
     args.out.mkdir(parents=True, exist_ok=True)
-    with contextlib.ExitStack() as stack:
-        if args.keep_work is not None:
-            work = args.keep_work
-            work.mkdir(parents=True, exist_ok=True)
-        else:
-            work = Path(stack.enter_context(tempfile.TemporaryDirectory(prefix="rafd-docs-pictures-")))
+    with tempfile.TemporaryDirectory(prefix="rafd-docs-pictures-") as tmp:
+        work = Path(tmp)
         try:
-            model = resolve_model(args.model, work)
+            model = resolve_model(args.model)
         except (PictureError, OSError, ValueError, RuntimeError) as error:
             print(f"docs_pictures: error: {error}", file=sys.stderr)
             return 1

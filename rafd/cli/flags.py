@@ -208,15 +208,6 @@ def int_in(low: int, high: int) -> Callable[[str], int]:
     return parse
 
 
-def add_count(
-    parser: argparse.ArgumentParser | argparse._ArgumentGroup, flag: str, default: int, high: int, what: str
-) -> None:
-    """A bounded count of a benchmark (--rounds, --repeats, ...): 1 to `high`, `what` its help."""
-    parser.add_argument(
-        flag, type=int_in(1, high), default=default, metavar="N", help=f"{what}, 1-{high} (default %(default)s)"
-    )
-
-
 def int_list(text: str) -> list[int]:
     """'1,2,8' -> [1, 2, 8]."""
     try:

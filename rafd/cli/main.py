@@ -4,8 +4,8 @@
 when that command runs, so `rafd --help` stays fast and this package imports none of the layers above it (export,
 service). `rafd bench NAME` runs the command `bench-NAME`. Each command outside a group has a `rafd-*` script, an
 alias of it (`rafd-serve` = `rafd serve`; pyproject.toml's [project.scripts], which a test checks against this
-table); the benchmarks are `rafd bench NAME` only. Experiments whose findings the docs record are scripts in tools/
-(`python -m tools.NAME`), not commands.
+table); the benchmarks are `rafd bench NAME` only. An experiment is not a command: it is a script in tools/ while
+it is needed, and goes once its finding is recorded (docs/archive.md).
 
 Another package adds a command by declaring an entry point of the group `rafd.commands` (found with
 importlib.metadata); a name of this table stays this table's.

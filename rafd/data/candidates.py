@@ -33,10 +33,6 @@ class Candidate:
     peak: int  # brightest grey level of the blob
     area_m2: float
 
-    @property
-    def range_m(self) -> float:
-        return float(np.hypot(self.x, self.y))
-
 
 def propose(
     scan: np.ndarray, resolution: float = RADIATE_RESOLUTION, max_range_m: float = 40.0, contrast: float = 18.0

@@ -105,13 +105,6 @@ def prepare_poses(seq_dir: Path, out: Path | None, force: bool) -> tuple[str, in
     return "written", len(numbers), 1e3 * float(np.mean(seconds))
 
 
-def pose_errors(seq_dir: Path, numbers: list[int], relatives: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Per-pair (translation error m, yaw error deg) against the folder's true poses: its ego_poses.csv (the
-    simulator's), or a native folder's ground-truth odometry (Oxford's gt/radar_odometry.csv)."""
-    truth = signed_errors(seq_dir, numbers, relatives)
-    return np.hypot(truth[:, 0], truth[:, 1]), np.abs(np.rad2deg(truth[:, 2]))
-
-
 def signed_errors(seq_dir: Path, numbers: list[int], relatives: np.ndarray) -> np.ndarray:
     """[N-1, 3] estimated minus true relative pose per pair (x m, y m, yaw rad wrapped), in the previous ego frame."""
     sequence = read_sequence(seq_dir, estimate_poses=False)

@@ -18,8 +18,7 @@ CPU in docs/performance.md, "Odometry"):
    objects, the correlation peak is not). ECC results that fail or move far from 2 are rejected (2's yaw stands).
    With refine=False the fine level is searched instead (+-0.5 degree).
 
-(Fourier-Mellin yaw from polar magnitude spectra was tried first: its peak drowns in speckle on many
-simulated scans and gave errors of tens of degrees; the correlative search does not.)
+A correlative search, not Fourier-Mellin: the polar magnitude spectra's peak drowns in speckle.
 
 Conventions (geometry.py): pixel (u, v) with the radar at the image centre, metres x = (u - c) * res right,
 y = (c - v) * res forward. The returned pose (x, y, yaw) is the CURRENT ego's pose in the PREVIOUS ego
@@ -27,12 +26,9 @@ frame: a static point seen at q_cur in the current frame is at R(yaw) q_cur + (x
 and compose_poses(previous_world_pose, relative) is the current world pose. In geometry's terms this is
 relative_pose(current_world_pose, previous_world_pose) (relative_pose(a, b) maps a's frame into b's).
 
-Accuracy against the simulator's true poses: `rafd-odometry SEQ_DIR... --evaluate` (rafd/cli/odometry.py).
-On simulated 384-1152 px scans (+-33 to +-100 m) the per-pair error is ~0.02 m mean / 0.05 m p95 and
-~0.03 deg mean / 0.08 deg p95; the bound is tested in tests/rafd/odometry/test_registration.py. Known limit: on small
-crops (256 px, +-22 m) a pair whose static scene is only long lines along the road (aperture problem) while
-nearby vehicles move with the ego can lock onto the vehicles (about 1 pair in 100, errors up to ~1.5 m);
-use the full scan for odometry where it is available.
+Accuracy: `rafd odometry SEQ_DIR... --evaluate`; the bound is tested in tests/rafd/odometry/test_registration.py.
+On small crops (256 px) a pair whose static scene is only long lines along the road while nearby vehicles move with
+the ego can lock onto the vehicles (aperture problem): use the full scan where it is available.
 """
 
 from __future__ import annotations
@@ -65,10 +61,7 @@ WHITENING = 0.5  # cross-power spectrum divided by |.|^this: 1 = phase correlati
 MAX_STEP_M = 8.0  # largest ego translation between consecutive scans (32 m/s at 4 Hz): bounds the peak search
 MAX_ECC_SHIFT_PX = 3.0  # ECC refinements further than this (fine pixels) from the search result are rejected
 MAX_ECC_YAW_DEG = 1.0  # ... or turning further than this
-# ECC's iterations (rafd.odometry.ecc, inverse compositional: one warp and four dot products each): from the
-# correlation's start, 10 keep the Oxford sample's mean yaw error at 0.1079 degrees (20: 0.1078);
-# 5 give 0.1089 and 3 0.1115, past the 0.108 kept as the bar. Measured with `python -m tools.odometry_cost`.
-ECC_ITERATIONS = 10
+ECC_ITERATIONS = 10  # fewer put the Oxford sample's mean yaw error past its 0.108 degree bar; more gain nothing
 ECC_EPS = 1e-4
 PRIOR_YAW_WINDOW_DEG = 4.0  # coarse yaw search around the prior's yaw (the yaw rate changes less per scan)
 WIDE_YAW_WINDOW_DEG = 2.0  # ... around the wide search's best yaw (WIDE_STEP_DEG steps, sub-stepped)
@@ -101,7 +94,7 @@ def _radial_window(size: int, resolution: float) -> np.ndarray:
 
 def _percentile_of_nonnegative(image: np.ndarray, q: float) -> float:
     """np.percentile(image, q) (linear interpolation) of an image >= 0, partitioning only its positive pixels: after
-    the background is removed most pixels are 0 (63% of an Oxford scan's at 256 px: 0.14 against 0.36 ms)."""
+    the background is removed most pixels are 0."""
     flat = image.reshape(-1)
     positive = flat[flat > 0]
     zeros = flat.size - positive.size
@@ -208,8 +201,7 @@ def _peak_vertex(left: float, mid: float, right: float) -> float:
 def _whitened_spectrum(image: np.ndarray) -> np.ndarray:
     """[n, n] real image -> [n, n] float32 its 2-D DFT in opencv's packed (CCS) form, each coefficient divided by
     |.|^WHITENING. Whitening each spectrum on its own is the whitening of their product (|a b|^w = |a|^w |b|^w), so a
-    scan's spectrum is whitened once and reused by every search it takes part in, and the packed real DFT costs less
-    than half of the complex one (0.10 against 0.23 ms at 256 px)."""
+    scan's spectrum is whitened once and reused by every search it takes part in."""
     spectrum = cv2.dft(np.asarray(image, np.float32))  # [n, n] CCS
     n = spectrum.shape[0]
     power = cv2.mulSpectrums(spectrum, spectrum, 0, conjB=True)  # |X|^2 in each coefficient's real slot, 0 in its imag
@@ -484,7 +476,7 @@ class Odometer:
         yaw search to +-PRIOR_YAW_WINDOW_DEG around it; without one, or with the best yaw on that window's edge, the
         wide search over +-MAX_YAW_DEG centres a +-WIDE_YAW_WINDOW_DEG one. With `refine` the coarse level's pose is
         returned: finish's ECC starts from it (starting it from a fine-level shift at the coarse yaw left every error
-        of `python -m tools.odometry_cost` unchanged at 0.3 of this stage's cost); without, the fine level is searched
+        of the odometry's accuracy check unchanged at 0.3 of this stage's cost); without, the fine level is searched
         +-0.5 degree."""
         coarse, fine = self._levels(size)
         if not (previous.fine.image.any() and current.fine.image.any()):
@@ -544,11 +536,9 @@ class Odometer:
         """[3] pose (x m, y m, yaw rad) of the current ego in the previous ego frame. With both scans' timings and the
         time between them `dt`, motion-compensated (the class docstring); `prior`: the previous pair's pose.
 
-        Every registration is finished (ECC), the one a re-de-skew replaces too: finishing only the last was measured,
-        and the re-de-skew decision taken from the unrefined search moved the Oxford sample's mean yaw error from 0.108
-        to 0.136 degrees (the first pair's velocity taken unrefined: to 0.119). A re-de-skewed pair starts its ECC from
-        the pose before it instead of searching again: the de-skew moves the scene by a fraction of ECC's reach, and
-        every error of `python -m tools.odometry_cost` stayed as it was."""
+        Every registration is finished (ECC), the one a re-de-skew replaces too: the re-de-skew decision needs the
+        refined pose. A re-de-skewed pair starts its ECC from the pose before it instead of searching again: the
+        de-skew moves the scene by a fraction of ECC's reach."""
         if previous.size != current.size:
             raise ValueError(f"odometry needs two scans of the same size, got {previous.size} and {current.size}")
         compensate = previous.timing is not None and current.timing is not None and dt is not None and dt > 0
@@ -558,8 +548,7 @@ class Odometer:
         size = current.size
         if prior is None:
             # A stream's first pair: no motion is known to de-skew with. It is registered raw, and its motion de-skews
-            # the current scan, which the next pair registers against (de-skewing both scans and registering them
-            # again, as before, cost 1.4x this pair's CPU for errors within noise: docs/performance.md, "Odometry").
+            # the current scan, which the next pair registers against.
             pose = self.register(previous.raw, current.raw, size)
             self._deskewed(current, pose / dt)
             return pose

@@ -13,11 +13,8 @@ One PNG per scan, 8-bit grey, one row per azimuth (400 per turn):
 Conventions, established on the 13 real Oxford scans of `oxford_radar_sample` (docs/data.md "Native polar scans";
 tests/rafd/scans/test_native.py checks them on the sample): the encoder angle counts CLOCKWISE seen from above from the
 vehicle's forward direction (angle 0 = straight ahead = image up, a quarter turn = right), the radar sits at the centre
-of the converted image, and the azimuths are swept in row order (timestamps increase with the encoder angle).
-Established by radar odometry between consecutive converted scans against the dataset's ground-truth radar odometry:
-under this convention the estimated motion agrees in sign and size with the ground truth on every pair (forward
-0.9-2.5 m per scan); read counter-clockwise the estimated yaw has the opposite sign of the truth, read with forward
-at azimuth 180 degrees the forward motion has.
+of the converted image, and the azimuths are swept in row order (timestamps increase with the encoder angle): the
+only reading under which radar odometry between converted scans agrees with the dataset's ground truth in sign.
 
 Formats (NATIVE_FORMATS, overridable by passing a NativeFormat): the range bin size per dataset and what column 10
 holds; the number of range bins and azimuths is read from the PNG itself. A scan that comes without its dataset's name

@@ -49,14 +49,3 @@ class Scatterers:
             self.owner[keep],
             self.diffuse[keep],
         )
-
-    def transformed(self, rotation: np.ndarray, translation: np.ndarray) -> Scatterers:
-        """Apply p -> rotation @ p + translation (rotation [2, 2]) to points and normals."""
-        return Scatterers(
-            self.xy @ rotation.T + translation,
-            self.amplitude,
-            self.normal @ rotation.T,
-            self.occluder,
-            self.owner,
-            self.diffuse,
-        )

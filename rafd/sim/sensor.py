@@ -29,9 +29,9 @@ FLOOR_FAR_SCALE = 1.0  # scales Conditions.floor_far (the floor's rise with rang
 NOISE_FLOOR = 0.55  # receiver noise power (grey ~13 where nothing reflects, as on real carriageways)
 CLUTTER_PERSISTENCE_RANGE = (0.7, 1.0)  # real bright returns mostly persist from scan to scan (rafd.sim.realism)
 STRIPING_FIXED = 0.5  # share of the per-beam log-gain variance fixed in the sensor's frame (repeats every rotation)
-ECHO_SPECKLE = 0.3  # share of the echo power that is speckle, redrawn every scan (the rest, dominant scatterers,
-# persists): 0.3 puts the scan-to-scan stability of bright returns at the real sample's (rafd.sim.realism, three draws
-# per weather: 0.52-0.58, real 0.57; 0.5 gave 0.41-0.44)
+# share of the echo power that is speckle, redrawn every scan (the rest, dominant scatterers, persists): puts the
+# scan-to-scan stability of bright returns at the real sample's (rafd.sim.realism)
+ECHO_SPECKLE = 0.3
 WEATHERS = ("clear", "fog", "rain")
 WEATHER_PROBABILITIES = (0.45, 0.3, 0.25)  # a drive's weather, when not forced
 MOUNT_SEED = 20191127  # the sensor's fixed mounting pattern is the same in every drive (one vehicle, one radar)
@@ -116,13 +116,12 @@ class NavtechConfig:
     azimuth_sidelobe: float = 0.015  # power of the wide azimuth sidelobe relative to the main lobe
     range_sigma_bins: float = 1.8  # 0.16 m: real point returns are soft blobs along range too
     speckle_azimuth_sigma: float = 0.7  # adjacent beams overlap (the beam is twice the azimuth step)
-    radial_streak: float = 0.0  # fraction of an azimuth's echo energy smeared along its whole ray (real scans: none
-    # such uniform rays -- a real-vs-simulated patch classifier picked them out; kept as a knob)
+    radial_streak: float = 0.0  # fraction of an azimuth's echo energy smeared along its whole ray (real scans: none)
     shadow: float = 0.25  # power left behind an occluder (diffraction, multipath)
     shadow_margin: float = 0.7  # metres behind the nearest occluder before the shadow starts
     gain: float = 17.0  # grey level per unit amplitude (noise floor power = 1)
-    attenuation_range: float = 1000.0  # metres: signal power falls as 1 / (1 + r / this). Real structure 40 m away
-    # is about as bright as at 10 m (rafd.sim.realism's rings; presumably range compensation): 90 m made ours too dark
+    # metres: signal power falls as 1 / (1 + r / this); real structure 40 m away is about as bright as at 10 m
+    attenuation_range: float = 1000.0
     mount_rays: int = 45  # starburst rays of the mounting pattern
     mount_reach: float = 1.8  # metres over which the starburst rays fade
     mount_streak_azimuth: float = 203.0  # bin of the streak behind the radar (bin 200 = straight back)

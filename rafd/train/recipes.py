@@ -59,14 +59,13 @@ RECIPES: dict[str, Recipe] = {
         ),
         Recipe(
             "default",
-            "the shipped model's network: tiny RaFD at 256 px, 4 frames, flow at stride 8, 16-cell attention "
-            "windows, gain-robust input, pre-norm propagation; AdamW 1e-3 with "
-            "cosine decay, batch 4, 6 epochs, bf16-friendly; flip + rotation, radar intensity changes and crops up to "
-            "65 m from the radar (full-scan tiles)",
+            "the `cpu` recipe's base (the network shipped until 2026-12-02): tiny RaFD at 256 px, 4 frames, flow at "
+            "stride 8, 16-cell attention windows, gain-robust input, pre-norm propagation; AdamW 1e-3 with cosine "
+            "decay, batch 4, 6 epochs, bf16-friendly; flip + rotation, radar intensity changes and crops up to 65 m "
+            "from the radar (full-scan tiles)",
             (
                 # The speed options (neither is the paper's), the gain-robust input, and pre-norm propagation blocks
-                # that start as the identity (so a single-frame model's weights start a multi-frame run). The
-                # shipped model was this network until 2026-12-02 (76e6099a); it is now `cpu`'s, built on this one.
+                # that start as the identity (so a single-frame model's weights start a multi-frame run).
                 "model.input_size=256",
                 "model.input.normalisation=local_contrast",
                 "model.input.window=47",
@@ -89,9 +88,8 @@ RECIPES: dict[str, Recipe] = {
                 # docs/model.md, "The CPU network": residual dilated-convolution enhancement in place of window
                 # attention, a local cost volume (radius 3 flow cells at stride 8: motions up to 4.2 m per frame,
                 # 16.7 m/s at 4 Hz, relative to the static world) without the cross-attention blocks, and one joint
-                # propagation block that samples all past frames at once, one point per frame, with a narrow FFN (1
-                # and 1x: 0.19 of the default's step against 0.21 with 2 points and 2x, side by side, random
-                # weights); the input, backbone, neck and head are the default's.
+                # propagation block that samples all past frames at once, one point per frame, with a narrow FFN (a
+                # fifth of the default's step); the input, backbone, neck and head are the default's.
                 "model.enhance.kind=conv",
                 "model.enhance.window=0",
                 "model.flow.num_cross_blocks=0",
@@ -121,5 +119,5 @@ def recipe_config(name: str) -> RunConfig:
 
 
 def recipe_model(name: str) -> RaFDConfig:
-    """A recipe's network (the speed profile and the tests build recipes' networks with random weights)."""
+    """A recipe's network (the tests build recipes' networks with random weights)."""
     return recipe_config(name).model

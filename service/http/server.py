@@ -3,8 +3,8 @@
 - HTTP: uvicorn's httptools parser through `service.http.head_limits.LimitedHttpToolsProtocol`, which refuses a request
   line over RAFD_MAX_REQUEST_LINE_BYTES (414), more than RAFD_MAX_HEADERS header fields or RAFD_MAX_HEADER_BYTES of them
   (431), and a head slower than RAFD_HEADER_TIMEOUT_S (408) before the app sees the request. Chosen over uvicorn's
-  h11 mode, which bounds the head's size but answers 400 and costs more per request (docs/performance.md, "Server
-  overhead", `python -m tools.server_overhead`).
+  h11 mode, which bounds the head's size but answers 400 and costs more per request (docs/archive.md, "Server
+  overhead").
 - Graceful shutdown: on SIGTERM the server stops accepting, lets requests in progress finish for at most
   RAFD_SHUTDOWN_TIMEOUT_S, then cancels what is left (a slow client cannot hold the exit).
 - Keep-alive: idle connections stay open RAFD_KEEP_ALIVE_TIMEOUT_S (75 s), longer than a proxy's upstream keep-alive

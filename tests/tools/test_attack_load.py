@@ -10,6 +10,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from rafd.detect_client import FORM_BOUNDARY
 from tools.attack_load import multipart_request, padded_png, percentile
 
 pytestmark = pytest.mark.network
@@ -25,7 +26,7 @@ def test_the_flood_request_is_a_valid_multipart_post_of_a_padded_png():
     request = multipart_request(padded, "flood", 1.0)
     head, _, body = request.partition(b"\r\n\r\n")
     assert head.startswith(b"POST /detect HTTP/1.1") and f"Content-Length: {len(body)}".encode() in head
-    assert body.endswith(b"--hostileloadboundary--\r\n")
+    assert body.endswith(f"--{FORM_BOUNDARY}--\r\n".encode()) and b'name="stream_id"\r\n\r\nflood\r\n' in body
     assert percentile([1.0, 2.0, 3.0], 50) == 2.0 and np.isnan(percentile([], 99))
 
 

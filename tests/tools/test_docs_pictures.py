@@ -155,14 +155,14 @@ def test_the_model_is_named_by_its_checkpoint_and_found_beside_either_file(tmp_p
     from rafd.assets import default_checkpoint, default_onnx
     from tools.docs_pictures import resolve_model
 
-    shipped = resolve_model(None, tmp_path)
+    shipped = resolve_model(None)
     assert (shipped.onnx, shipped.checkpoint) == (default_onnx(), default_checkpoint())
     assert shipped.checkpoint_sha256[:8] == shipped_model_name()
-    from_pt = resolve_model(default_checkpoint(), tmp_path)  # its export beside it: nothing exported
-    assert from_pt.onnx == default_onnx() and not list(tmp_path.iterdir())
+    from_pt = resolve_model(default_checkpoint())  # its export beside it
+    assert from_pt.onnx == default_onnx()
     alone = tmp_path / "alone.onnx"
     alone.write_bytes(default_onnx().read_bytes())
-    from_onnx = resolve_model(alone, tmp_path)  # no checkpoint beside it: named by the one it was exported from
+    from_onnx = resolve_model(alone)  # no checkpoint beside it: named by the one it was exported from
     assert from_onnx.checkpoint is None and from_onnx.checkpoint_sha256 == shipped.checkpoint_sha256
     with pytest.raises(PictureError, match="does not exist"):
-        resolve_model(tmp_path / "missing.onnx", tmp_path)
+        resolve_model(tmp_path / "missing.onnx")
