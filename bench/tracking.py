@@ -20,8 +20,8 @@ import time
 import numpy as np
 
 from rafd.cli import flags
+from rafd.runtime.view import TileGrid
 from rafd.tracking import VELOCITY_MODES, FlowField, FlowGrid, TrackerSettings, TrackerState, step
-from rafd.view import TileGrid
 
 PERIOD_S = 0.25
 CELL_M = 0.694  # the shipped model's flow cells (256 px at 0.1736 m / px, 64 x 64)
@@ -29,9 +29,14 @@ CELL_M = 0.694  # the shipped model's flow cells (256 px at 0.1736 m / px, 64 x 
 
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="python -m bench.tracking", description=__doc__.splitlines()[0])
-    flags.add_count(parser, "--boxes", 32, 1000, "vehicles (and so boxes) per scan")
-    flags.add_count(parser, "--frames", 400, 100000, "scans timed per case and round (after 20 of warm-up)")
-    flags.add_count(parser, "--rounds", 5, 100, "rounds of every case, interleaved")
+    for flag, default, high, what in (
+        ("--boxes", 32, 1000, "vehicles (and so boxes) per scan"),
+        ("--frames", 400, 100000, "scans timed per case and round (after 20 of warm-up)"),
+        ("--rounds", 5, 100, "rounds of every case, interleaved"),
+    ):
+        parser.add_argument(
+            flag, type=flags.int_in(1, high), default=default, metavar="N", help=f"{what} (%%(default)s)"
+        )
     flags.add_quiet(parser)
     return parser
 

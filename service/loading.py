@@ -10,8 +10,8 @@ import numpy as np
 
 from rafd.config import RaFDConfig
 from rafd.geometry import RADIATE_SCAN_SIZE
+from rafd.runtime.view import View
 from rafd.scans.cartesian import accepted_sizes
-from rafd.view import View
 from service.settings import Settings
 
 if TYPE_CHECKING:  # the runtime (onnxruntime, OpenVINO) is imported when the model loads, never at service import

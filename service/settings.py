@@ -349,8 +349,8 @@ class Settings(BaseSettings):
         le=1000.0,
         description=(
             "Detect only within this distance of the radar (metres); None: over the whole posted scan. The model's "
-            "input is stepped as tiles over the smallest square holding that disc (rafd.view): fewer tiles, less "
-            "CPU per frame; a value within the model's own crop (22 m for the shipped model) is one tile, the "
+            "input is stepped as tiles over the smallest square holding that disc (rafd.runtime.view): fewer tiles, "
+            "less CPU per frame; a value within the model's own crop (22 m for the shipped model) is one tile, the "
             "cheapest."
         ),
     )

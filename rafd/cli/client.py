@@ -321,28 +321,6 @@ def post_with_retries(
     raise AssertionError("unreachable")  # the loop returns or raises
 
 
-def served_flow_geometry(url: str, timeout: float, api_key: str | None = None) -> tuple[int, int] | None:
-    """(flow stride px, local radius) of the served model (GET /model's config); None, said on stderr, when the
-    service does not tell them."""
-    request = urllib.request.Request(f"{url.rstrip('/')}/model", headers=api_key_header(api_key), method="GET")
-    try:
-        with urllib.request.urlopen(request, timeout=timeout) as response:
-            flow = json.loads(response.read())["config"]["flow"]
-        return int(flow["stride"]), int(flow.get("local_radius", 0))
-    except (OSError, ValueError, KeyError, TypeError) as exc:
-        print(f"rafd-client: GET /model gave no flow geometry ({exc}): flow drawn in every cell", file=sys.stderr)
-        return None
-
-
-def picture_validity(url: str, timeout: float, api_key: str | None = None) -> Any:
-    """The flow validity of each answer for the pictures and the MCAP log (rafd.viz.answer.AnswerValidity): the
-    answer's own flow.validity; from a service that does not answer it, computed from the served model's flow
-    geometry (asked of GET /model once, when first needed) and the answers' poses."""
-    from rafd.viz.answer import AnswerValidity
-
-    return AnswerValidity(geometry=functools.partial(served_flow_geometry, url, timeout, api_key))
-
-
 def truth_polygons(frame: ClientFrame, annotated: bool) -> np.ndarray | None:
     """[M, 4, 2] ground-truth corners in the scan's pixels; None for an unlabelled folder."""
     if not annotated:
@@ -499,7 +477,7 @@ def main(argv: list[str] | None = None) -> int:
     flags.apply_quiet(args)
     try:
         sequence = read_sequence_or_bag(args)
-        from rafd.viz.answer import AnswerView, draw_answer
+        from rafd.viz.answer import AnswerView, decode_validity, draw_answer
         from rafd.viz.trails import Trails
 
         view = AnswerView(view_px=args.view, flow_step=args.flow_step, flow_scale=args.flow_scale)
@@ -540,9 +518,6 @@ def main(argv: list[str] | None = None) -> int:
         if args.reset:
             existed = reset_stream(args.url, stream_id, args.timeout, args.api_key)
             print(f"stream {stream_id}: {'deleted on the service' if existed else 'not on the service'} (--reset)")
-        validity_of = None
-        if out is not None or log is not None:  # pictures: flow arrows only where valid
-            validity_of = picture_validity(args.url, args.timeout, args.api_key)
         print(f"posting {len(frames)} frames of {sequence.name} to stream {stream_id} at {args.url}")
         bar = progress.bar(desc=f"post {stream_id}", total=len(frames), unit="frame")
         boxes = 0
@@ -592,7 +567,7 @@ def main(argv: list[str] | None = None) -> int:
                 f"{answer['timing']['total_ms']:.0f} ms",
                 refresh=False,
             )
-            validity = None if validity_of is None else validity_of(answer)
+            validity = None if not answer.get("flow") else decode_validity(answer["flow"])  # arrows only where valid
             if answer_bag is not None:
                 answer_bag.write(
                     answer, frame.source.timestamp_ns, scan if args.bag_scan else None, sequence.resolution

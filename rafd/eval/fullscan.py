@@ -2,7 +2,7 @@
 
 The dataset is opened at the scan's own size (no crop, so every annotated vehicle counts, not only those inside the
 protocol's 256 px crop). Each sequence is walked frame by frame like a stream, through the same code as the service:
-the whole view's tiles (rafd.view) stepped by rafd.runtime.StreamRunner, here on the model's own step
+the whole view's tiles (rafd.runtime.view) stepped by rafd.runtime.StreamRunner, here on the model's own step
 (rafd.eval.torch_backend), merged at tile borders; every window of the dataset is the stream's window at its newest
 frame.
 
@@ -30,7 +30,7 @@ from rafd.geometry import relative_pose
 from rafd.model import RaFD
 from rafd.progress import bar as progress_bar
 from rafd.runtime import StreamRunner
-from rafd.view import View, step_view
+from rafd.runtime.view import View, step_view
 
 
 def scan_config(cfg: RaFDConfig, scan_size: int) -> RaFDConfig:
@@ -61,7 +61,7 @@ def predict_full_scan(
     range_m: float | None = None,
 ) -> list[FrameResult]:
     """Every window of a whole-scan RadarWindowDataset (opened with scan_config) -> FrameResults with the merged
-    detections of the newest scan's view (rafd.view: the whole scan, or within `range_m` of the radar; ego frame, all
+    detections of the newest view (rafd.runtime.view: whole scan, or within `range_m` of the radar; ego frame, all
     K of every tile kept: AP wants the tail); keep_flow also keeps each scan's newest real pair's flow as the tiles'
     FlowFields (FrameResult.flow_fields)."""
     runner = StreamRunner(TorchBackend(model, cfg, device, precision))

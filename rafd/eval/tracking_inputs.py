@@ -41,7 +41,7 @@ def reach_of(cfg: Any) -> float:
 def flow_mosaic(
     tiles: Any, flows: np.ndarray, relative: np.ndarray, cfg: Any, interval_s: float
 ) -> tuple[FlowField, ...]:
-    """A whole scan's newest pair flow by tiles (a rafd.view.View, flows [V, 2, Hf, Wf] metres in each tile's frame =
+    """Newest pair flow by tiles (rafd.runtime.view.View; flows [V, 2, Hf, Wf] metres in each tile's frame =
     the ego axes shifted, each tile's relative pose [V, 3]) -> one FlowField per stepped tile."""
     height, width = flows.shape[-2:]
     cell = cfg.input_size * cfg.resolution / width

@@ -10,16 +10,15 @@
     |                                      | status of the answer|
     +--------------------------------------+---------------------+
 
-A small area is zoomed by an integer factor (crisp pixels), a whole scan shrunk to fit. Given a validity map of the
-flow grid (AnswerValidity: the answer's own flow.validity, or rafd.flow_validity from the answers' poses for a
-service that does not answer it) the arrows are drawn only where the flow was measured over the network's whole
-search range.
+A small area is zoomed by an integer factor (crisp pixels), a whole scan shrunk to fit. Given the answer's flow
+validity (decode_validity) the arrows are drawn only where the flow was measured over the network's whole search
+range.
 """
 
 from __future__ import annotations
 
 import base64
-from collections.abc import Callable, Mapping
+from collections.abc import Mapping
 from dataclasses import dataclass
 from typing import Any
 
@@ -27,8 +26,7 @@ import cv2
 import numpy as np
 
 from rafd import flow_png
-from rafd.flow_validity import flow_validity, search_reach_m
-from rafd.geometry import RADIATE_RESOLUTION, relative_pose
+from rafd.geometry import RADIATE_RESOLUTION
 from rafd.viz.drawing import (
     FLOW_COLOUR,
     FONT,
@@ -77,8 +75,7 @@ def decode_flow(flow: dict[str, Any]) -> np.ndarray:
 
 
 def decode_validity(flow: dict[str, Any]) -> np.ndarray | None:
-    """The answer's flow validity (in the values' encoding) -> float64 [Hf, Wf]; None when the answer carries none
-    (a service before it)."""
+    """The answer's flow validity (in the values' encoding) -> float64 [Hf, Wf]; None when the answer carries none."""
     if flow.get("validity") is None:
         return None
     shape = (int(flow["grid"]["height"]), int(flow["grid"]["width"]))
@@ -110,67 +107,6 @@ def flow_arrows(
 def track_number(track_id: str) -> str:
     """A track id's number within its chain (CHAIN-N -> N): what a picture labels a box with."""
     return track_id.rsplit("-", 1)[-1]
-
-
-def answer_validity(
-    answer: dict[str, Any], flow_stride_px: int, local_radius: int, pair_pose: np.ndarray | None = None
-) -> np.ndarray | None:
-    """The validity [Hf, Wf] (rafd.flow_validity) of an answer's flow grid: the model's flow stride (model-input
-    pixels per flow cell, config flow.stride) and local_radius (flow.local_radius) from GET /model, `pair_pose` the
-    relative pose of the flow's pair (geometry.relative_pose(pose of the previous answer, pose of this one)),
-    None: identity. None when the answer has no flow."""
-    flow = answer.get("flow")
-    if not flow:
-        return None
-    grid = flow["grid"]
-    resolution = float(grid["cell_size_m"]) / float(grid["stride_px"])
-    reach = search_reach_m(int(flow_stride_px), resolution, int(local_radius))
-    pose = np.zeros(3) if pair_pose is None else np.asarray(pair_pose, np.float64)
-    return flow_validity(
-        pose, int(grid["height"]), int(answer["input"]["model_size"]), resolution, int(flow_stride_px), reach
-    )
-
-
-class AnswerValidity:
-    """The validity of each answer's flow, for a stream's pictures: the answer's own flow.validity when it carries
-    one; else (a service before it) computed here from the model's flow geometry, (flow stride px, local radius)
-    given or asked of `geometry()` once when first needed (None: not known, then no validity), and the pair's
-    relative pose from the poses of the answers at its two timestamps (flow["pair"]), identity where the previous
-    one was not seen (a stream's first pair, a restarted chain). Call it with every answer, in order."""
-
-    def __init__(
-        self,
-        flow_stride_px: int | None = None,
-        local_radius: int = 0,
-        geometry: Callable[[], tuple[int, int] | None] | None = None,
-        remember: int = 8,
-    ) -> None:
-        self._geometry: tuple[int, int] | None = (
-            None if flow_stride_px is None else (int(flow_stride_px), int(local_radius))
-        )
-        self._ask = geometry if flow_stride_px is None else None
-        self.remember = remember
-        self._poses: dict[float, np.ndarray] = {}
-
-    def __call__(self, answer: dict[str, Any]) -> np.ndarray | None:
-        pose = np.array([answer["pose"][k] for k in ("x", "y", "yaw")], dtype=np.float64)
-        self._poses[float(answer["timestamp"])] = pose
-        while len(self._poses) > self.remember:
-            self._poses.pop(next(iter(self._poses)))
-        flow = answer.get("flow")
-        if not flow:
-            return None
-        answered = decode_validity(flow)
-        if answered is not None:
-            return answered
-        if self._ask is not None:
-            self._geometry, self._ask = self._ask(), None
-        if self._geometry is None:
-            return None
-        before = flow["pair"][0]
-        previous = None if before is None else self._poses.get(float(before))
-        pair_pose = None if previous is None else relative_pose(previous, pose)
-        return answer_validity(answer, *self._geometry, pair_pose)
 
 
 def _flow_scale(px_per_m: float, chosen: float | None) -> float:

@@ -39,7 +39,6 @@ from rafd.scans.native import (
 )
 from rafd.scans.native import to_cartesian as native_to_cartesian
 from rafd.scans.polar import RADIATE_POLAR_SHAPE, accepts_polar
-from rafd.view import covered_side
 from service.body import png
 from service.http.errors import ApiError
 
@@ -57,7 +56,7 @@ PostedImage = bytes | str
 
 @dataclass(frozen=True)
 class DecodedFrame:
-    covered: np.ndarray  # [C, C] uint8, the square detected over (rafd.view), centred on the radar
+    covered: np.ndarray  # [C, C] uint8, the square detected over (rafd.runtime.view), centred on the radar
     # Side of the Cartesian scan that polygons and the flow grid are answered in: the posted image, or the
     # RADIATE scan a posted polar or native scan was converted to (1152).
     posted_size: int
@@ -135,15 +134,16 @@ def decode_frame(
     resolution: float,
     native: NativeShape = SENSOR_SHAPE,
     range_bin_m: float | None = None,
-    range_m: float | None = None,
+    covered: Callable[[int], int] | None = None,
 ) -> DecodedFrame:
     """A posted PNG (bytes, or base64 text; Cartesian, polar or native) -> the uint8 square it is detected over (the
-    whole scan, or within `range_m` of the radar: rafd.view.covered_side) and odometry's view; 422 naming what was
-    expected. `range_bin_m` (the request's range_resolution_m): a native scan's metres per range bin, in place of its
-    format's; 422 for any other scan. No input gives anything else: a failure of the decoding libraries on a posted
-    file is that file's fault (422 `invalid_image`, logged as a warning), never a 500."""
+    whole scan; `covered`: the side of that square, centred on the radar, for a Cartesian scan of that side, e.g.
+    within a range: rafd.runtime.view) and odometry's view; 422 naming what was expected. `range_bin_m` (the request's
+    range_resolution_m): a native scan's metres per range bin, in place of its format's; 422 for any other scan. No
+    input gives anything else: a failure of the decoding libraries on a posted file is that file's fault (422
+    `invalid_image`, logged as a warning), never a 500."""
     try:
-        return _decode_frame(image, input_size, resolution, native, range_bin_m, range_m)
+        return _decode_frame(image, input_size, resolution, native, range_bin_m, covered)
     except ApiError:
         raise
     except Exception as exc:
@@ -157,7 +157,7 @@ def _decode_frame(
     resolution: float,
     native: NativeShape,
     range_bin_m: float | None,
-    range_m: float | None,
+    covered: Callable[[int], int] | None,
 ) -> DecodedFrame:
     layout = check_posted_image(image, input_size, resolution, native)
     if range_bin_m is not None and layout.header.width == layout.header.height:
@@ -172,7 +172,7 @@ def _decode_frame(
     header = layout.header
     square = header.width == header.height
     cartesian = header.width if square else RADIATE_SCAN_SIZE  # the side of the Cartesian scan it is or becomes
-    side = covered_side(cartesian, input_size, resolution, range_m)
+    side = cartesian if covered is None else covered(cartesian)
     # The square read: the covered one and odometry's view around the radar (a square scan is read only down to its
     # last row: the rows below are never unfiltered; a polar or native scan is converted only that far).
     read = max(side, min(cartesian, ODOMETRY_VIEW_SIZE))

@@ -37,9 +37,9 @@ from rafd import flow_png, tracking
 from rafd.flow_validity import FLOW_VALID_MIN, config_validity, search_reach_m
 from rafd.geometry import box_polygons_pixels, relative_pose
 from rafd.protocol import operating_threshold, warming_up
+from rafd.runtime.view import View, step_view
 from rafd.scans.cartesian import accepted_sizes
 from rafd.scans.native import NativeShape
-from rafd.view import View, step_view
 from service.body.images import (
     DecodedFrame,
     PostedImage,
@@ -251,8 +251,12 @@ class DetectService:
     def accepted_sizes(self) -> tuple[int, ...]:
         return accepted_sizes(self.config.input_size, self.config.resolution)
 
+    def covered_side(self, posted_size: int) -> int:
+        """The side of the square a Cartesian scan of this side is detected over (view_for)."""
+        return self.view_for(posted_size).side_px
+
     def view_for(self, posted_size: int) -> View:
-        """What a Cartesian scan of this side is detected over (rafd.view: the whole scan, or within
+        """What a Cartesian scan of this side is detected over (rafd.runtime.view: the whole scan, or within
         RAFD_DETECT_RANGE_M of the radar; a scan of the model's size is one tile)."""
         view = self._views.get(posted_size)
         if view is None:
@@ -391,7 +395,7 @@ class DetectService:
             _decode_and_digest,
             fields.pose,
             fields.range_resolution_m,
-            self.settings.detect_range_m,
+            self.covered_side,
             image,
             *self.image_rule,
         )
@@ -442,7 +446,7 @@ class DetectService:
             return "gap"
         if fields.previous_timestamp is not None and fields.previous_timestamp != entry.last_timestamp:
             return "previous_timestamp_mismatch"
-        if entry.chain.view is not None and entry.chain.view != view:
+        if entry.chain.view is not None and entry.chain.view.tiling != view.tiling:
             return "view_changed"
         return None
 
@@ -565,7 +569,7 @@ class DetectService:
         self, view: View, result: StepResult, chain: Chain, located: FramePose, timestamp: float, options: DetectOptions
     ) -> FlowOut | None:
         """The newest pair's flow [2, H, W] over the view and its validity [H, W] (each cell from the tile whose core
-        holds it, rafd.view); None when not asked for or no real pair exists yet."""
+        holds it, rafd.runtime.view); None when not asked for or no real pair exists yet."""
         if not options.flow or result.flow is None or result.frames_used < 2 or chain.pose is None:
             return None
         flow = view.mosaic(np.asarray(result.flow))  # [2, H, W] the newest pair
@@ -650,14 +654,14 @@ def frame_digest(pose: Pose | None, image: bytes | str, range_bin_m: float | Non
 def _decode_and_digest(
     pose: Pose | None,
     range_bin_m: float | None,
-    range_m: float | None,
+    covered: Callable[[int], int],
     image: bytes | str,
     input_size: int,
     resolution: float,
     native: NativeShape,
 ) -> tuple[DecodedFrame, bytes]:
     """One decode-executor job: the decoded frame and its digest."""
-    decoded = decode_frame(image, input_size, resolution, native, range_bin_m, range_m)
+    decoded = decode_frame(image, input_size, resolution, native, range_bin_m, covered)
     return decoded, frame_digest(pose, image, range_bin_m)
 
 

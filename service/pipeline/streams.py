@@ -46,8 +46,8 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from rafd.runtime import StreamState
+from rafd.runtime.view import View
 from rafd.tracking import TrackerState
-from rafd.view import View
 from service.http.errors import ApiError, timestamp_error
 from service.schemas import DetectResponse, RestartReason
 

@@ -474,11 +474,12 @@ def test_9_frames_named_only_in_the_body_are_served_in_arrival_order():
     in the JSON body: 1-3 of 8 answered 409 in every run, the order being taken once a body was parsed. Here large
     full scans, their bodies arriving over ~50 ms, alternate with small crops, so a later small body is parsed before
     the earlier large one (with the hold off, RAFD_ORDER_HOLD_S=0, the large frames are answered 409 here): every
-    frame is still served, each after the one sent before it."""
+    frame is still served, each after the one sent before it (the full scans detected within 10 m of the radar: over
+    the same tile as the crops, so one chain)."""
     bodies = [
         json.dumps(detect_json("order", float(i), scan(i, i % 2 == 1), (float(i), 0, 0))).encode() for i in range(1, 9)
     ]
-    with served(max_requests_per_client=32) as (url, app, http):
+    with served(max_requests_per_client=32, detect_range_m=10.0) as (url, app, http):
         for run in range(2):
             assert http.delete("/streams/order").status_code in (204, 404)
             answers = post_in_order(port_of(url), bodies, gap_s=0.005)

@@ -57,8 +57,9 @@ def test_client_streams_a_sequence_and_writes_drawings_and_video(sequence, servi
     assert all(a["pose_source"] == "request" for a in answers)
     np.testing.assert_allclose([[a["pose"][k] for k in ("x", "y", "yaw")] for a in answers], POSES, atol=1e-9)
     drawn = cv2.imread(str(out / "frames" / "000003.png"))
-    assert drawn.shape == (768, 768 + 300, 3)  # the 128 px model crop zoomed 6x, beside the side panel
-    offset, zoom = answers[2]["input"]["crop_offset_px"], 6
+    assert drawn.shape == (768, 768 + 300, 3)  # what was covered (the whole scan) fitted to 768 px, beside the panel
+    covered = answers[2]["input"]["covered"]
+    offset, zoom = covered["offset_px"], 768 / covered["side_px"]
     polygon = (np.asarray(answers[2]["boxes"][0]["polygon"]) - offset) * zoom  # [4, 2] in the zoomed view
     assert red_pixels_along(drawn, polygon) > 0.8  # the best box is outlined in the prediction colour
     video = cv2.VideoCapture(str(out / "sequence.mp4"))
@@ -66,7 +67,6 @@ def test_client_streams_a_sequence_and_writes_drawings_and_video(sequence, servi
     captured = capsys.readouterr()
     out_text = captured.out
     assert f"stream {stream}: 3 frames answered" in out_text and "answers.jsonl" in out_text
-    assert "no flow geometry" not in captured.err  # the answers carry their validity, or GET /model told its geometry
     assert "frame 000003" not in out_text  # no line per frame: a progress bar on stderr instead
 
 
@@ -248,16 +248,3 @@ def test_a_lost_answer_is_posted_again_with_backoff_and_the_previous_frame_named
         )
     assert not isinstance(refused.value, client.RetryableError) and len(sent) == calls + 1
     assert client.retry_delay(10) == client.RETRY_MAX_S and client.retry_delay(1, 60.0) == client.RETRY_MAX_S
-
-
-def test_pictures_draw_every_flow_cell_when_the_service_tells_no_flow_geometry(monkeypatch, capsys):
-    import urllib.error
-
-    from rafd.cli import client
-
-    def unreachable(request, timeout):
-        raise urllib.error.URLError("refused")
-
-    monkeypatch.setattr(client.urllib.request, "urlopen", unreachable)
-    assert client.served_flow_geometry("http://127.0.0.1:9", 1.0) is None
-    assert "GET /model gave no flow geometry" in capsys.readouterr().err

@@ -85,10 +85,18 @@ def assert_bag_holds_the_answers(out: Path, answers: list[dict], stamps: list[in
             assert detection.results[0].hypothesis.class_id == box["class"]
             assert abs(detection.results[0].hypothesis.score - box["score"]) < 1e-9
             assert (track.position.x, track.position.y) == pytest.approx((expected.x, expected.y), abs=1e-3)
-            assert math.isnan(track.velocity.x) and all(math.isnan(v) for v in track.position_covariance)
-            assert len(bytes(track.uuid.uuid)) == 16
-    uuids = [bytes(t.uuid.uuid) for _, array in tracks for t in array.tracks]
-    assert len(set(uuids)) == len(uuids)  # no tracking: every box its own object
+            assert detection.id == box["track_id"]
+            if box["velocity"] is None:
+                assert math.isnan(track.velocity.x) and math.isnan(track.velocity.y)
+            else:  # the ground velocity turned into REP-103 axes (x forward = service y, y left = -service x)
+                velocity = (track.velocity.x, track.velocity.y)
+                assert velocity == pytest.approx((box["velocity"]["y"], -box["velocity"]["x"]), abs=1e-4)
+            assert all(math.isnan(v) for v in track.position_covariance)  # the answer gives no position covariance
+    uuid_of: dict[str, bytes] = {}  # one UUID per track id, the same in every scan, never shared by two tracks
+    for answer, (_, track_array) in zip(answers, tracks):
+        for box, track in zip(answer["boxes"], track_array.tracks):
+            assert uuid_of.setdefault(box["track_id"], bytes(track.uuid.uuid)) == bytes(track.uuid.uuid)
+    assert len(set(uuid_of.values())) == len(uuid_of) and all(len(u) == 16 for u in uuid_of.values())
     for answer, (_, odometry) in zip(answers, decoded["/rafd/odometry"]):
         pose = odometry.pose.pose.position
         assert (pose.x, pose.y) == pytest.approx((answer["pose"]["y"], -answer["pose"]["x"]), abs=1e-9)

@@ -29,6 +29,7 @@ SCHEMAS = {
     "/radar/detections": "foxglove.SceneUpdate",
     "/radar/detections/image": "foxglove.ImageAnnotations",
     "/radar/flow": "foxglove.SceneUpdate",
+    "/radar/velocity": "foxglove.SceneUpdate",
     "/radar/ground_truth": "foxglove.SceneUpdate",
     "/radar/ground_truth/image": "foxglove.ImageAnnotations",
 }
@@ -103,8 +104,11 @@ def check_log_against_answers(path: Path, answers: list[dict], folder: Path, lab
         scan = sequence.frames[k].load()
         assert image.format == "png"
         np.testing.assert_array_equal(cv2.imdecode(np.frombuffer(image.data, np.uint8), cv2.IMREAD_GRAYSCALE), scan)
+        _, velocities = messages["/radar/velocity"][k]  # one arrow per box with a ground velocity
+        moving = [b for b in answer["boxes"] if b["velocity"] and (b["velocity"]["x"], b["velocity"]["y"]) != (0, 0)]
+        assert len(velocities.entities[0].arrows) == len(moving)
         _, grid = messages["/radar/scan/grid"][k]
-        offset, size = answer["input"]["crop_offset_px"], answer["input"]["model_size"]
+        offset, size = answer["input"]["covered"]["offset_px"], answer["input"]["covered"]["side_px"]
         assert grid.column_count == size and grid.row_stride == size and grid.fields[0].name == "intensity"
         cells = np.frombuffer(grid.data, np.uint8).reshape(size, size)[::-1]  # row 0 of a Grid is its smallest y
         np.testing.assert_array_equal(cells, scan[offset : offset + size, offset : offset + size])

@@ -1,4 +1,4 @@
-"""Full-scan evaluation: the model streamed over a whole scan's tiles (rafd.view, through the runner's cache) gives
+"""Full-scan evaluation: the model streamed over a whole scan's tiles (rafd.runtime.view, via the runner's cache) gives
 each tile what the model's forward gives on that tile's own padded window."""
 
 from __future__ import annotations
@@ -13,7 +13,7 @@ from export.verify import window_from_history
 from rafd.data import RadarWindowDataset
 from rafd.eval.fullscan import predict_full_scan, scan_config
 from rafd.geometry import relative_pose
-from rafd.view import View
+from rafd.runtime.view import View
 
 
 def _scan_size() -> int:

@@ -93,9 +93,9 @@ def test_concurrent_runs_give_the_serial_results(shipped_onnx):
             np.testing.assert_array_equal(a[name], b[name])
 
 
-def test_a_batched_run_compiles_the_free_batch_on_first_use_and_agrees_with_single_runs(shipped_onnx):
-    """Single runs take the batch-1 compilation; the dynamic one is made by the first batched run only (a service
-    that never batches never pays for it), and its rows equal the single runs'."""
+def test_a_batched_run_compiles_its_batch_size_on_first_use_and_agrees_with_single_runs(shipped_onnx):
+    """Single runs take the batch-1 compilation; each other batch size is compiled static by its first run only (a
+    service that never batches never pays for it), and its rows equal the single runs'."""
     runner = OpenVinoRunner(shipped_onnx, "fp32", threads=1)
     backend = runner.backend
     rng = np.random.default_rng(5)
@@ -103,9 +103,9 @@ def test_a_batched_run_compiles_the_free_batch_on_first_use_and_agrees_with_sing
     assert any(DYNAMIC in s for s in backend.input_shapes.values()), "the shipped step has a free batch axis"
     singles = [{name: rng.random(shape, dtype=np.float32) for name, shape in shapes.items()} for _ in range(2)]
     outputs = [runner.run(feeds) for feeds in singles]
-    assert backend._batched is None  # not compiled yet
+    assert set(backend._compiled) == {1}  # batch 2 not compiled yet
     stacked = runner.run({name: np.concatenate([f[name] for f in singles]) for name in shapes})
-    assert backend._batched is not None and backend._batched is not backend.single
+    assert set(backend._compiled) == {1, 2} and backend.compiled(2) is not backend.single
     for row, single in enumerate(outputs):
         for name, value in single.items():
             np.testing.assert_allclose(stacked[name][row : row + 1], value, rtol=1e-4, atol=1e-4)

@@ -44,6 +44,8 @@ def answer_for(posted: int, model: int, flow_format: str = "list") -> dict:
                 "score": 0.77,
                 "class": "vehicle",
                 "polygon": polygon,
+                "track_id": "0a1b2c3d-1",
+                "velocity": None,
             }
         ],
         "flow": {
@@ -58,13 +60,17 @@ def answer_for(posted: int, model: int, flow_format: str = "list") -> dict:
                 "origin_px": [offset, offset],
             },
         },
-        "input": {"posted_size": posted, "model_size": model, "crop_offset_px": offset},
+        "input": {
+            "posted_size": posted,
+            "model_size": model,
+            "covered": {"side_px": model, "offset_px": offset, "side_m": model * RES, "range_m": None, "tiles": 1},
+        },
         "timing": {"model_ms": 12.0},
     }
 
 
-@pytest.mark.parametrize("posted, model, zoom", [(1152, 128, 6), (1152, 256, 3), (128, 128, 6), (1152, 1152, 1)])
-def test_the_model_crop_is_zoomed_and_the_side_panel_sits_beside_it(posted, model, zoom):
+@pytest.mark.parametrize("posted, model, zoom", [(1152, 128, 6), (1152, 256, 3), (128, 128, 6), (1152, 1152, 2 / 3)])
+def test_the_covered_area_is_fitted_to_the_view_and_the_side_panel_sits_beside_it(posted, model, zoom):
     scan = np.full((posted, posted), 30, np.uint8)
     picture = draw_answer(scan, answer_for(posted, model), truth_polygons=np.zeros((0, 4, 2)), resolution=RES)
     assert picture.shape == (max(model * zoom, picture.shape[0]), model * zoom + AnswerView().panel_px, 3)
@@ -107,29 +113,9 @@ def test_the_answer_picture_skips_invalid_flow_cells():
     np.testing.assert_array_equal(default, drawn)
 
 
-def test_answer_validity_from_the_answers_poses_identity_when_the_previous_is_unknown():
-    from rafd.viz.answer import AnswerValidity, answer_validity
-
-    first, second = answer_for(1152, 128), answer_for(1152, 128)
-    first["timestamp"], first["flow"], first["pose"] = 1.0, None, {"x": 0.0, "y": 0.0, "yaw": 0.0}
-    cell = 4 * RES  # one detection cell, 0.69 m
-    second["timestamp"], second["pose"] = 2.0, {"x": 0.0, "y": 2 * cell, "yaw": 0.0}  # two cells forward
-    second["flow"]["pair"] = [1.0, 2.0]
-    at_rest = answer_validity(second, 4, 0)  # identity: only the outermost ring
-    assert at_rest.shape == (32, 32) and np.all(at_rest[0] == 0) and np.all(at_rest[1:-1, 1:-1] == 1)
-    track = AnswerValidity(geometry=lambda: (4, 0))  # asked of GET /model when first needed
-    assert track(first) is None  # no flow: nothing to validate
-    moved = track(second)
-    assert np.all(moved[1:3, 3:-3] == 0) and np.all(moved[3, 3:-3] == 1)  # ahead: outside the previous crop
-    assert np.all(moved[-2, 3:-3] == 1)
-    lost = answer_for(1152, 128)
-    lost["timestamp"], lost["pose"], lost["flow"]["pair"] = 3.0, second["pose"], [2.5, 3.0]  # a pair not seen
-    np.testing.assert_array_equal(AnswerValidity(4)(lost), at_rest)
-
-
 @pytest.mark.parametrize("flow_format", ["list", "base64"])
-def test_the_answers_own_validity_is_used_when_it_carries_one(flow_format):
-    from rafd.viz.answer import AnswerValidity, decode_validity
+def test_the_answers_own_validity_decodes_in_the_flows_encoding(flow_format):
+    from rafd.viz.answer import decode_validity
 
     answer = answer_for(1152, 128, flow_format)
     answer["pose"], answer["flow"]["pair"] = {"x": 0.0, "y": 0.0, "yaw": 0.0}, [12.4, 12.5]
@@ -142,10 +128,4 @@ def test_the_answers_own_validity_is_used_when_it_carries_one(flow_format):
     )
     decoded = decode_validity(answer["flow"])
     assert decoded is not None and decoded.shape == (32, 32) and decoded[16, 16] < 1.0 and decoded[0, 0] == 1.0
-
-    def never():
-        raise AssertionError("GET /model is not needed when the answer carries its validity")
-
-    np.testing.assert_array_equal(AnswerValidity(geometry=never)(answer), decoded)
-    assert decode_validity(answer_for(1152, 128)["flow"]) is None  # a service before validity
-    assert AnswerValidity(geometry=lambda: None)(answer_for(1152, 128) | {"pose": answer["pose"]}) is None
+    assert decode_validity(answer_for(1152, 128)["flow"]) is None  # a flow without validity: none drawn from it

@@ -87,7 +87,11 @@ def test_logged_answers_carry_flow_arrows_only_for_valid_cells():
     answer = {
         "pose": {"x": 0.0, "y": 0.0, "yaw": 0.0},
         "boxes": [],
-        "input": {"posted_size": 16, "model_size": 16, "crop_offset_px": 0},
+        "input": {
+            "posted_size": 16,
+            "model_size": 16,
+            "covered": {"side_px": 16, "offset_px": 0, "side_m": 8.0, "range_m": None, "tiles": 1},
+        },
         "flow": {
             "shape": [2, 4, 4],
             "encoding": "list",

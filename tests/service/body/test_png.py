@@ -13,6 +13,7 @@ import numpy as np
 import pytest
 
 from rafd.preprocess import model_crop
+from rafd.runtime.view import View
 from service.body import png
 from service.body.images import ODOMETRY_VIEW_SIZE, decode_frame
 from service.http.errors import ApiError
@@ -38,9 +39,10 @@ def test_real_scans_decode_to_the_pixels_of_a_plain_decode(radiate_sample: Path)
         data = path.read_bytes()
         reference = cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_UNCHANGED)
         for input_size, range_m in ((256, None), (128, 30.0)):
-            frame = decode_frame(data, input_size, RESOLUTION, range_m=range_m)
+            view = View.of(1152, input_size, RESOLUTION, 4, range_m)
+            frame = decode_frame(data, input_size, RESOLUTION, covered=lambda _, side=view.side_px: side)
             side = frame.covered.shape[0]
-            assert side == (1152 if range_m is None else 346), path.name
+            assert side == view.side_px == (1152 if range_m is None else 356), path.name
             assert np.array_equal(frame.covered, model_crop(reference, side)), path.name
             assert np.array_equal(frame.odometry_view, model_crop(reference, ODOMETRY_VIEW_SIZE)), path.name
 

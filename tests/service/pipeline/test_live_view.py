@@ -70,7 +70,8 @@ def test_a_viewer_receives_the_boxes_of_the_http_answer(live_client):
         yaw = 2 * math.atan2(cube.pose.orientation.z, cube.pose.orientation.w)
         assert math.isclose(math.remainder(yaw - box["yaw"], 2 * math.pi), 0.0, abs_tol=1e-9)
     labels = [entity.metadata[0].value for entity in update.entities]
-    assert labels == [f"{b['class']} {b['score']:.2f}" for b in answer["boxes"]]
+    tracks = [b["track_id"].rsplit("-", 1)[1] for b in answer["boxes"]]
+    assert labels == [f"{b['class']} {b['score']:.2f} #{t}" for b, t in zip(answer["boxes"], tracks)]
 
 
 def test_a_full_queue_drops_frames_and_counts_them(live_client):

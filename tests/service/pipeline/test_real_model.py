@@ -85,7 +85,7 @@ def test_whole_tiny_foggy_scans_are_answered_as_rafd_eval_full_scan_detects_them
 ):
     """6 real RADIATE scans (1152 px, no poses: the service's odometry) posted whole: the boxes are those of
     `rafd eval --full-scan` (rafd.eval.fullscan.predict_full_scan, the PyTorch model streamed over the same tiles by
-    the same rafd.view) on the same scans at the poses the service used; and the flow covers the whole scan."""
+    the same rafd.runtime.view) on the same scans at the poses the service used; and the flow covers the whole scan."""
     from rafd.data import RadarWindowDataset
     from rafd.data.poses import write_ego_poses
     from rafd.eval.fullscan import predict_full_scan, scan_config

@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 from fastapi.testclient import TestClient
 
-from rafd.view import View
+from rafd.runtime.view import View
 from service.app import create_app
 from service.pipeline.poses import OdometryMemory
 from service.pipeline.streams import Chain, StreamStore
@@ -35,7 +35,8 @@ def make_store(max_streams=3, ttl_s=10.0):
 
 
 def _advanced(chain: Chain, timestamp: float) -> Chain:
-    return chain.advanced(chain.model, OdometryMemory(FRAME, timestamp), np.zeros(3), "request", timestamp, VIEW)
+    memory = OdometryMemory(FRAME, timestamp)
+    return chain.advanced(chain.model, memory, np.zeros(3), "request", timestamp, VIEW, chain.tracks)
 
 
 async def feed(store: StreamStore, stream_id: str, timestamp: float) -> None:

@@ -1,4 +1,4 @@
-"""rafd.view: tile geometry, tile frames' poses, what a view covers, border merging, the mosaic of maps, and a whole
+"""rafd.runtime.view: tile geometry, tile frames' poses, what a view covers, merging, the mosaic of maps, and a whole
 scan stepped through a runner."""
 
 from __future__ import annotations
@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 
 from rafd.geometry import invert_pose, pixels_to_metres, relative_pose, transform_points
-from rafd.view import TileGrid, View, covered_side, step_view, tile_poses
+from rafd.runtime.view import TileGrid, View, step_view, tile_poses
 
 RES = 0.173611
 
@@ -54,8 +54,12 @@ def test_a_view_covers_the_scan_the_range_asks_for() -> None:
     assert whole.side_px == 1152 and whole.origin_px == 0 and whole.range_m is None
     assert len(whole.tiles) == 21 and not {0, 4, 20, 24} & set(whole.tiles)  # the corners lie outside the circle
     near = View.of(1152, 256, RES, 4, range_m=50.0)
-    assert near.side_px == covered_side(1152, 256, RES, 50.0) == 576 and near.origin_px == 288
-    assert near.range_m == 50.0 and len(near.tiles) == 9
+    assert (near.side_px, near.grid.stride, near.origin_px) == (584, 164, 284) and len(near.tiles) == 9
+    assert near.range_m == 50.0 and near.side_px * RES >= 100.0
+    for range_m, tiles in ((30.0, 4), (60.0, 9), (75.0, 12), (99.0, 21)):  # the fewest tiles holding the disc
+        assert len(View.of(1152, 256, RES, 4, range_m=range_m).tiles) == tiles, range_m
+    with pytest.raises(ValueError, match="no grid"):
+        TileGrid.for_model(256, 578, step=4)
     crop = View.of(1152, 256, RES, 4, range_m=10.0)  # the model's size is the least a view covers
     assert (crop.side_px, crop.tiles, crop.origin_px) == (256, (0,), 448)
     posted_crop = View.of(256, 256, RES, 4)  # a crop posted: one tile, as today
@@ -85,16 +89,16 @@ def test_a_vehicle_on_a_tile_border_is_reported_once_where_it_is_and_none_beyond
 
 
 def test_the_mosaic_takes_each_cell_from_the_tile_whose_core_holds_it() -> None:
-    view = View.of(1152, 256, RES, 4, range_m=50.0)  # 3 x 3 tiles, stride 160 px = 40 cells
+    view = View.of(1152, 256, RES, 4, range_m=50.0)  # 3 x 3 tiles over 584 px, stride 164 px = 41 cells
     views, cells = len(view.tiles), 256 // 4
     rows, columns = np.meshgrid(np.arange(cells), np.arange(cells), indexing="ij")
     maps = np.stack([np.stack([np.full((cells, cells), t), rows * 100 + columns]) for t in range(views)])
-    mosaic = view.mosaic(maps.astype(np.float32))  # [2, 144, 144]
-    assert mosaic.shape == (2, 144, 144)
-    assert mosaic[0, 72, 72] == view.tiles.index(4) and mosaic[0, 0, 0] == view.tiles.index(0)
-    # the centre cell of the covered square is the centre tile's cell (32, 32); a cell 40 cells right is tile 5's
-    assert mosaic[1, 72, 72] == 32 * 100 + 32 and mosaic[0, 72, 112] == view.tiles.index(5)
-    assert mosaic[1, 72, 112] == 32 * 100 + 32
+    mosaic = view.mosaic(maps.astype(np.float32))  # [2, 146, 146]
+    assert mosaic.shape == (2, 146, 146)
+    assert mosaic[0, 73, 73] == view.tiles.index(4) and mosaic[0, 0, 0] == view.tiles.index(0)
+    # the centre cell of the covered square is the centre tile's cell (32, 32); a cell 41 cells right is tile 5's
+    assert mosaic[1, 73, 73] == 32 * 100 + 32 and mosaic[0, 73, 114] == view.tiles.index(5)
+    assert mosaic[1, 73, 114] == 32 * 100 + 32
     whole = View.of(1152, 256, RES, 4)  # cells of the skipped corner tiles are 0
     corner = whole.mosaic(np.ones((len(whole.tiles), 64, 64), np.float32))
     assert corner[0, 0] == 0 and corner[144, 144] == 1

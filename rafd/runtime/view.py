@@ -9,8 +9,9 @@ exactly: (n - 1) * stride + S = C. A tile is a crop whose centre is not the rada
 by the tile's offset (same axes), so its world pose is pose o (offset, 0), and every relative pose between two scans
 is the motion of that shifted frame (tile_poses).
 
-View: the covered square is the whole posted scan, or the smallest square holding the disc within `range_m` of the
-radar (RAFD_DETECT_RANGE_M), at least S: a scan of the model's size is one tile, as the model was trained. Only tiles
+View: the covered square is the whole posted scan, or the square of the fewest tiles holding the disc within
+`range_m` of the radar (RAFD_DETECT_RANGE_M), at least S: a scan of the model's size is one tile, as the model was
+trained. Only tiles
 whose centre lies in the covered disc (the scan's inscribed circle: the radar's range) are stepped: on a whole 1152 px
 scan, 21 of 25 (the four corner tiles lie mostly outside the circle; the part of the disc only they would see, 82-100 m
 on the diagonals, 4% of it, is not covered, for 16% of the cost). Detections farther than the disc's radius are not
@@ -38,7 +39,7 @@ from rafd.geometry import RADIATE_RESOLUTION, RADIATE_SCAN_SIZE, rotation_matrix
 from rafd.preprocess import to_model_input
 
 if TYPE_CHECKING:
-    from rafd.runtime import Runner, StepResult, StreamState
+    from rafd.runtime.streaming import Runner, StepResult, StreamState
 
 DEFAULT_OVERLAP = 32  # pixels shared by neighbouring tiles (5.6 m at RADIATE's resolution)
 MERGE_DISTANCE_M = 1.5  # two merged detections closer than this are one vehicle seen by two tiles
@@ -72,9 +73,11 @@ class TileGrid:
         """The grid of the fewest tiles overlapping by at least `overlap` pixels whose stride is a multiple of `step`
         (the model's output stride, so the tiles' feature cells line up)."""
         span = scan_size - input_size
+        if span % (2 * step):
+            raise ValueError(f"a {scan_size} px square has no grid of {input_size} px tiles on a {step} px step")
         count = max(1, math.ceil(span / max(input_size - overlap, 1))) if span else 0
         while count and (span % count or (span // count) % step):
-            count += 1
+            count += 1  # ends at span // step at the latest: a stride of one step
         return cls(scan_size, input_size, span // count if count else input_size, resolution)
 
     @property
@@ -113,7 +116,8 @@ class TileGrid:
         steps = np.round(np.asarray(xy, np.float64) / (self.stride * self.resolution) + (self.per_side - 1) / 2.0)
         column = np.clip(steps[:, 0], 0, self.per_side - 1).astype(int)
         row = np.clip((self.per_side - 1) - steps[:, 1], 0, self.per_side - 1).astype(int)  # y forward = rows up
-        return row * self.per_side + column
+        index: np.ndarray = row * self.per_side + column
+        return index
 
 
 def tile_poses(poses: np.ndarray, offsets_m: np.ndarray) -> np.ndarray:
@@ -124,13 +128,22 @@ def tile_poses(poses: np.ndarray, offsets_m: np.ndarray) -> np.ndarray:
     return np.concatenate([shifted, np.broadcast_to(poses[None, ..., 2:], shifted.shape[:-1] + (1,))], -1)
 
 
-def covered_side(posted_size: int, input_size: int, resolution: float, range_m: float | None = None) -> int:
-    """Side in pixels of the square a posted scan is detected over: the whole scan, or the smallest even square
-    holding the disc within `range_m` of the radar, at least the model's input."""
-    if range_m is None or posted_size <= input_size:
-        return posted_size
-    side = 2 * math.ceil(range_m / resolution)
-    return int(min(posted_size, max(input_size, side + side % 2)))
+def covering_grid(
+    posted_size: int, input_size: int, resolution: float, cell_px: int, range_m: float | None, overlap: int
+) -> TileGrid:
+    """The tiles a scan is detected over: the whole scan's grid, or the fewest tiles (overlapping by at least
+    `overlap` px, their stride a whole number of cells) whose square holds the disc within `range_m` of the radar;
+    one tile, the model's input, at least."""
+    whole = TileGrid.for_model(input_size, posted_size, overlap, resolution, step=cell_px)
+    if range_m is None:
+        return whole
+    span = max(0.0, 2.0 * range_m / resolution - input_size)  # the tile centres' spread the disc needs
+    if span == 0.0:
+        return TileGrid(input_size, input_size, input_size, resolution)
+    count = math.ceil(span / max(input_size - overlap, 1))
+    stride = cell_px * math.ceil(span / count / cell_px)
+    side = input_size + count * stride
+    return whole if side >= posted_size else TileGrid(side, input_size, stride, resolution)
 
 
 @dataclass(frozen=True)
@@ -153,13 +166,19 @@ class View:
         range_m: float | None = None,
         overlap: int = DEFAULT_OVERLAP,
     ) -> View:
-        side = covered_side(posted_size, input_size, resolution, range_m)
-        grid = TileGrid.for_model(input_size, side, overlap, resolution, step=cell_px)
+        grid = covering_grid(posted_size, input_size, resolution, cell_px, range_m, overlap)
+        side = grid.scan_size
         radius = side / 2.0 * resolution if range_m is None else min(range_m, side / 2.0 * resolution)
         # a tile is stepped when its centre lies within the disc (a corner tile of a whole scan, mostly outside the
         # radar's circle, is not: its core's share of the disc, 82-100 m on the diagonals, is not covered)
         tiles = tuple(int(t) for t in np.flatnonzero(np.hypot(*grid.offsets_m.T) <= radius + 1e-6))
         return cls(grid, tiles, None if range_m is None else float(radius), int(posted_size), int(cell_px))
+
+    @property
+    def tiling(self) -> tuple[TileGrid, tuple[int, ...]]:
+        """What a stream's model state is per: the tiles stepped (a chain continues over scans of another posted
+        size when they are detected over the same tiles, e.g. a model-size crop and a scan within that range)."""
+        return self.grid, self.tiles
 
     @property
     def side_px(self) -> int:
