@@ -8,7 +8,7 @@ Regenerate docs/images with it whenever the shipped model changes (the pictures 
 
 - detection_sim.png: `rafd simulate` (held-out test drives), `rafd serve` and `rafd client --out`: the picture a
   user gets of an answer (boxes, ground truth, flow), of the first drive's frame with the most labelled vehicles
-  in the model's crop (chosen on the labels alone);
+  in the covered area (chosen on the labels alone);
 - detection_oxford.png: the same on real Oxford Radar RobotCar scans ($RAFD_OXFORD_SAMPLE with the project's labels,
   `rafd label link`; frame 11, the last of its consecutive frames 1-11; CC BY-NC-SA 4.0, the attribution drawn
   into the picture and written into its metadata);
@@ -246,8 +246,8 @@ def client_picture(out: Path, number: int) -> Path:
 
 def busiest_frame(sequence: Path, answers: list[dict[str, Any]]) -> tuple[int, int, int]:
     """The frame to show, chosen on the labels alone (never on what the model answered): of the frames answered
-    with a full window, the one with the most labelled vehicles whose centre lies in the model's crop (the earliest
-    of equals) -> (its index in the answers, its frame number, those vehicles)."""
+    with a full window, the one with the most labelled vehicles whose centre lies in what the answer covered (the
+    earliest of equals) -> (its index in the answers, its frame number, those vehicles)."""
     from rafd.cli.client import read_frames
     from rafd.data.labels import IGNORE_CLASS
 
@@ -256,7 +256,7 @@ def busiest_frame(sequence: Path, answers: list[dict[str, Any]]) -> tuple[int, i
     for index, (frame, answer) in enumerate(zip(read.frames, answers)):
         if answer["frames_used"] < answer["num_frames"]:
             continue
-        half_m = answer["input"]["model_size"] * read.resolution / 2  # the crop, in the posted scan's metres
+        half_m = answer["input"]["covered"]["side_px"] * read.resolution / 2  # the covered square, metres
         inside = sum(
             1
             for o in frame.source.objects
@@ -600,7 +600,7 @@ def make_detections(run: Run, wanted: set[str], sim_root: Path | None) -> None:
                     f"rafd client SIM/sim_{SIM_SEED}_0 --url URL --out OUT --limit {posted}",
                 ],
                 f"simulated test drive sim_{SIM_SEED}_0, frame {frame} of {posted}: of the frames answered with a full "
-                f"window, the one with the most labelled vehicles in the model's crop ({vehicles})",
+                f"window, the one with the most labelled vehicles in the covered area ({vehicles})",
                 frame=frame,
                 answer=_answer_summary(answers[index]),
             )

@@ -1,14 +1,14 @@
 """The live view: every answered frame published to a Foxglove WebSocket server (`rafd serve --foxglove-port N`,
 RAFD_FOXGLOVE_PORT; off by default), in the channels and schemas of the MCAP logs (rafd.viz.mcap.RadarChannels:
-scan, scan grid, pose, boxes on the scan and in 3D, flow), one topic prefix per stream: `/<stream_id>/radar/...`
+scan, scan grid, pose, boxes on the scan and in 3D, flow, velocities), one topic prefix per stream: `/<stream_id>/radar/...`
 and `/<stream_id>/tf`. Open Foxglove, connect to ws://HOST:N and pick a stream's topics.
 
 Off the request path, and out of the service's process: /detect only offers the answer to a bounded queue
 (`put_nowait`, microseconds) and returns; a publisher process (spawned at start-up, niced) builds the messages
 (Python objects: done in the service's process they would hold its interpreter lock from the requests) and runs
 foxglove-sdk's server. A full queue drops the frame (counted in rafd_live_view_dropped_total): a slow viewer or a
-busy CPU never slows /detect. The scan published is the centre of the posted scan that odometry reads (512 px of a
-full RADIATE scan, the model's crop in its middle), the boxes drawn on it in its pixels; flow arrows only where the
+busy CPU never slows /detect. The scan published is the square the answer covered (input.covered: the whole posted
+scan by default), the boxes drawn on it in its pixels, velocity arrows per tracked box; flow arrows only where the
 flow was measured (the answer's flow `validity` at or above its `validity_min`) and means something (cells with
 returns or near a box, rafd.viz.flow_cells.meaningful_cells).
 
