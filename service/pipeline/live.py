@@ -1,7 +1,7 @@
 """The live view: every answered frame published to a Foxglove WebSocket server (`rafd serve --foxglove-port N`,
 RAFD_FOXGLOVE_PORT; off by default), in the channels and schemas of the MCAP logs (rafd.viz.mcap.RadarChannels:
-scan, scan grid, pose, boxes on the scan and in 3D, flow, velocities), one topic prefix per stream: `/<stream_id>/radar/...`
-and `/<stream_id>/tf`. Open Foxglove, connect to ws://HOST:N and pick a stream's topics.
+scan, scan grid, pose, boxes on the scan and in 3D, flow, velocities), one topic prefix per stream:
+`/<stream_id>/radar/...` and `/<stream_id>/tf`. Open Foxglove, connect to ws://HOST:N and pick a stream's topics.
 
 Off the request path, and out of the service's process: /detect only offers the answer to a bounded queue
 (`put_nowait`, microseconds) and returns; a publisher process (spawned at start-up, niced) builds the messages
