@@ -87,12 +87,13 @@ class Settings(BaseSettings):
         ),
     )
     max_streams: int = Field(
-        default=256,
+        default=32,
         ge=1,
         description=(
             "Live streams held at once (streams with an accepted frame; a stream whose frames were all refused or "
             "are still in flight counts toward no cap). A key over its quota or over this cap evicts its OWN "
-            "least recently used idle stream, never another key's."
+            "least recently used idle stream, never another key's. Each stream of whole scans holds about 36 MB "
+            "(the state of every tile), of model-size crops about 2.4 MB: size the memory for this many."
         ),
     )
     max_streams_per_key: int | None = Field(

@@ -79,7 +79,7 @@ def test_every_setting_is_a_flag_and_a_flag_wins_over_its_variable(tmp_path, rec
     descriptions = [field.description for field in Settings.model_fields.values()]
     assert all(descriptions) and len(set(descriptions)) == len(descriptions)  # each its own, in the field's metadata
     assert helps["setting_max_streams"].startswith(Settings.model_fields["max_streams"].description)
-    assert "RAFD_MAX_STREAMS" in helps["setting_max_streams"] and "256" in helps["setting_max_streams"]
+    assert "RAFD_MAX_STREAMS" in helps["setting_max_streams"] and "32" in helps["setting_max_streams"]
     assert "onnxruntime" not in helps["setting_threads"].split("[")[0].lower()  # the runtime-neutral meaning
     model = tmp_path / "model.onnx"
     model.write_bytes(b"\x08\x08\x12\x07pytorch")
