@@ -23,6 +23,7 @@ import numpy as np
 
 from rafd.cli import flags
 from rafd.data.folders import POLAR_DIR, POLAR_TIMESTAMPS_FILE
+from rafd.data.frames import RadarSequence
 from rafd.data.native_folder import is_native_folder
 from rafd.data.poses import POSES_FILE, write_ego_poses
 from rafd.data.radiate_files import read_timestamps
@@ -124,6 +125,17 @@ def _write_scans(image_dir: Path, scans: dict[int, np.ndarray]) -> int | None:
     return None
 
 
+def _write_sequence_scans(out: Path, scans: dict[int, np.ndarray], sequence: RadarSequence) -> int | None:
+    """A converted sequence's scans as out/Navtech_Cartesian/ with their times in out/Navtech_Cartesian.txt, as
+    RADIATE lays them out; the exit status of the first failure, else None."""
+    failure = _write_scans(out / "Navtech_Cartesian", scans)
+    if failure is None:
+        (out / "Navtech_Cartesian.txt").write_text(
+            "".join(f"Frame: {f.number:06d} Time: {f.timestamp_text}\n" for f in sequence.frames)
+        )
+    return failure
+
+
 def convert_native(args: argparse.Namespace) -> int:
     """A native folder (rafd.data.native_folder) -> its scans on RADIATE's grid, timed, optionally written out."""
     if args.compare is not None or args.fit:
@@ -149,12 +161,9 @@ def convert_native(args: argparse.Namespace) -> int:
     )
     if args.out is not None:
         image_dir = args.out / "Navtech_Cartesian"
-        failure = _write_scans(image_dir, scans)
+        failure = _write_sequence_scans(args.out, scans, sequence)
         if failure is not None:
             return failure
-        (args.out / "Navtech_Cartesian.txt").write_text(
-            "".join(f"Frame: {f.number:06d} Time: {f.timestamp_text}\n" for f in sequence.frames)
-        )
         if sequence.poses is not None:
             write_ego_poses(
                 args.out / POSES_FILE,
@@ -179,12 +188,9 @@ def convert_bag(args: argparse.Namespace) -> int:
     print(f"{len(scans)} scans of {args.sequence} converted to {size} px")
     if args.out is not None:
         image_dir = args.out / "Navtech_Cartesian"
-        failure = _write_scans(image_dir, scans)
+        failure = _write_sequence_scans(args.out, scans, sequence)
         if failure is not None:
             return failure
-        (args.out / "Navtech_Cartesian.txt").write_text(
-            "".join(f"Frame: {f.number:06d} Time: {f.timestamp_text}\n" for f in sequence.frames)
-        )
         print(f"wrote {len(scans)} scans to {image_dir}")
     return 0
 
