@@ -27,7 +27,7 @@ from export.verify import Report, verify_export
 from rafd.config import RaFDConfig
 from rafd.model.checkpoint import load_checkpoint
 from rafd.model_files import file_sha256, int8_model_path, islands_dir
-from rafd.protocol import OPERATING_THRESHOLD_KEY, check_score_threshold
+from rafd.protocol import FAR_THRESHOLD_KEY, OPERATING_THRESHOLD_KEY, check_score_threshold, far_threshold
 
 BATCH_MODES = ("static", "dynamic")
 
@@ -70,9 +70,11 @@ def build_metadata(
     exporter: str,
     operating_threshold: float | None = None,
     batch: str = "static",
+    far: Any = None,
 ) -> dict[str, str]:
     """rafd.runtime.METADATA_KEYS (+ opset, exporter, and the checkpoint's operating threshold when it has one, chosen
-    by `rafd-eval --calibrate`): everything the service needs besides the graph."""
+    by `rafd-eval --calibrate`, with its far threshold from `--calibrate-far`): everything the service needs besides
+    the graph."""
     optional = (
         {}
         if operating_threshold is None
@@ -82,6 +84,11 @@ def build_metadata(
             )
         }
     )
+    parsed = far_threshold(far)
+    if parsed is not None and operating_threshold is not None:
+        from_m, threshold = parsed
+        check_score_threshold(threshold, "the checkpoint's far operating threshold")
+        optional[FAR_THRESHOLD_KEY] = json.dumps({"from_m": from_m, "threshold": threshold})
     return optional | {
         "config": cfg.to_json(),
         "input_size": str(cfg.input_size),
@@ -205,7 +212,8 @@ def export_onnx(
         _restore_unused_inputs(proto, graph.input_names, example, batch)
         with torch.no_grad():
             _declare_output_shapes(proto, graph.output_names, graph(*example))
-        metadata = build_metadata(cfg, sha, opset, exporter, operating_threshold, batch)
+        far = meta.get(FAR_THRESHOLD_KEY) if isinstance(meta, dict) else None
+        metadata = build_metadata(cfg, sha, opset, exporter, operating_threshold, batch, far)
         del proto.metadata_props[:]
         for key, value in metadata.items():
             proto.metadata_props.add(key=key, value=value)

@@ -7,7 +7,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from rafd.geometry import box_polygons_pixels
-from rafd.protocol import DEFAULT_SCORE_THRESHOLD
+from rafd.protocol import DEFAULT_SCORE_THRESHOLD, OperatingThreshold
 
 
 @dataclass(frozen=True)
@@ -46,3 +46,22 @@ def decode_detections(
     keep = np.flatnonzero(np.isfinite(scores) & (scores >= score_threshold))
     keep = keep[np.argsort(-scores[keep], kind="stable")]
     return Detections(boxes=boxes[keep], scores=scores[keep], labels=labels[keep])
+
+
+def answered_mask(centres: np.ndarray, scores: np.ndarray, threshold: OperatingThreshold | float) -> np.ndarray:
+    """Centres [N, 2] (metres from the radar), scores [N] -> [N] bool: the detections the threshold answers (its far
+    threshold applies from its range outwards)."""
+    centres = np.asarray(centres, np.float64).reshape(-1, 2)
+    scores = np.asarray(scores, np.float64).reshape(-1)
+    if not isinstance(threshold, OperatingThreshold):
+        return np.isfinite(scores) & (scores >= threshold)
+    cut = np.full(len(scores), threshold.near)
+    if threshold.far is not None and threshold.far_from_m is not None:
+        cut[np.hypot(centres[:, 0], centres[:, 1]) >= threshold.far_from_m] = threshold.far
+    return np.isfinite(scores) & (scores >= cut)
+
+
+def answered(predictions: np.ndarray, threshold: OperatingThreshold | float) -> np.ndarray:
+    """Predictions [N, 6] (x, y, width, length, yaw, score; centres from the radar) -> the rows answered."""
+    predictions = np.asarray(predictions).reshape(-1, 6)
+    return predictions[answered_mask(predictions[:, :2], predictions[:, 5], threshold)]

@@ -1,10 +1,12 @@
 """What evaluation, serving and the service's clients must agree on, defined once (numpy-free, torch-free: the service
 imports it).
 
-- Which detections are answered: scores at or above the operating threshold. A model carries its own, calibrated on
-  validation data (`rafd-eval --calibrate` writes it into the checkpoint's meta, `rafd-export` into the ONNX
-  metadata as text); a model without one is read at DEFAULT_SCORE_THRESHOLD. `operating_threshold` is the one
-  lookup, range-checked, used by `rafd-eval`, the plots, the MCAP logs and the service.
+- Which detections are answered: scores at or above the operating threshold (`OperatingThreshold`). A model carries
+  its own, calibrated on validation data (`rafd-eval --calibrate` writes it into the checkpoint's meta,
+  `rafd-export` into the ONNX metadata as text), optionally with a higher one for detections far from the radar
+  (`rafd-eval --calibrate-far`: false positives grow with range, and real labels rarely reach that far); a model
+  without one is read at DEFAULT_SCORE_THRESHOLD. `operating_threshold` is the one lookup, range-checked, used by
+  `rafd-eval`, the plots, the MCAP logs and the service; rafd.detections.answered applies it.
 - How detections are scored: oriented-box IoU thresholds of the benchmark protocol (TempoRadar, SIRA, RaFD) and the
   centre-matching distance.
 - How much evidence the accuracy gate of a reduced precision needs (export/gate_report.py): fewer compared windows or
@@ -20,15 +22,18 @@ imports it).
 
 from __future__ import annotations
 
+import json
 import math
 import re
 from collections.abc import Mapping
+from dataclasses import dataclass
 from typing import Any
 
 DEFAULT_SCORE_THRESHOLD = 0.3  # a model exported or saved without an operating threshold
 IOU_THRESHOLDS = (0.3, 0.5, 0.7)  # mAP@0.3 / 0.5 / 0.7 on oriented boxes (polygon IoU, match when IoU > t)
 CENTRE_DISTANCE_M = 2.0  # centre matching: a detection counts when its centre is within this of an unmatched vehicle's
 OPERATING_THRESHOLD_KEY = "operating_threshold"  # checkpoint meta and ONNX metadata key
+FAR_THRESHOLD_KEY = "operating_threshold_far"  # {"from_m": R, "threshold": T}: meta dict, ONNX metadata JSON text
 # The accuracy gate judges on at least this many compared windows and reference detections (all sources together):
 # its "changed detections" check (at most 2 %) needs 50 detections before one change is under the limit, and its
 # p99 figures need about 100 matched pairs to mean more than the largest value. The default gate (12 simulated
@@ -48,16 +53,67 @@ def check_score_threshold(value: Any, source: str) -> float:
     return threshold
 
 
-def operating_threshold(meta: Mapping[str, Any] | None, override: float | None = None) -> float:
-    """The score threshold to answer at: `override` when given (a user's choice), else the model's documented
-    operating threshold in `meta` (a checkpoint's meta dict or an ONNX model's metadata), else
-    DEFAULT_SCORE_THRESHOLD. ValueError when either is not a number in [0, 1]."""
-    if override is not None:
-        return check_score_threshold(override, "the score threshold")
-    value = (meta or {}).get(OPERATING_THRESHOLD_KEY)
+@dataclass(frozen=True)
+class OperatingThreshold:
+    """The scores answered: at or above `near`, or at or above `far` for a detection whose centre lies `far_from_m`
+    or farther from the radar (when the model has a far threshold)."""
+
+    near: float
+    far: float | None = None
+    far_from_m: float | None = None
+
+    def __post_init__(self) -> None:
+        check_score_threshold(self.near, "the operating threshold")
+        if (self.far is None) != (self.far_from_m is None):
+            raise ValueError("a far threshold needs both its range and its threshold")
+        if self.far is not None and self.far_from_m is not None:
+            check_score_threshold(self.far, "the far operating threshold")
+            if not (math.isfinite(self.far_from_m) and self.far_from_m > 0):
+                raise ValueError(f"the far threshold's range must be a positive number of metres: {self.far_from_m}")
+
+    @property
+    def lowest(self) -> float:
+        return self.near if self.far is None else min(self.near, self.far)
+
+    def far_json(self) -> dict[str, float] | None:
+        """FAR_THRESHOLD_KEY's value (None: one threshold at every range)."""
+        if self.far is None or self.far_from_m is None:
+            return None
+        return {"from_m": self.far_from_m, "threshold": self.far}
+
+    def __str__(self) -> str:
+        if self.far is None:
+            return f"{self.near:.3f}"
+        return f"{self.near:.3f} within {self.far_from_m:g} m, {self.far:.3f} beyond"
+
+
+def far_threshold(value: Any) -> tuple[float, float] | None:
+    """FAR_THRESHOLD_KEY's value (a dict, or its JSON text in ONNX metadata) -> (from_m, threshold); None when
+    absent. ValueError when it is malformed."""
     if value is None:
-        return DEFAULT_SCORE_THRESHOLD
-    return check_score_threshold(value, f"the model's {OPERATING_THRESHOLD_KEY}")
+        return None
+    try:
+        parsed = json.loads(value) if isinstance(value, str) else value
+        return float(parsed["from_m"]), float(parsed["threshold"])
+    except (TypeError, ValueError, KeyError) as error:
+        raise ValueError(f"the model's {FAR_THRESHOLD_KEY} is not {{from_m, threshold}}: {value!r}") from error
+
+
+def operating_threshold(meta: Mapping[str, Any] | None, override: float | None = None) -> OperatingThreshold:
+    """The scores to answer at: `override` when given (a user's choice, at every range), else the model's documented
+    operating threshold in `meta` (a checkpoint's meta dict or an ONNX model's metadata) with its far threshold when
+    it has one, else DEFAULT_SCORE_THRESHOLD. ValueError when any is not a number in [0, 1]."""
+    if override is not None:
+        return OperatingThreshold(check_score_threshold(override, "the score threshold"))
+    meta = meta or {}
+    value = meta.get(OPERATING_THRESHOLD_KEY)
+    if value is None:
+        return OperatingThreshold(DEFAULT_SCORE_THRESHOLD)
+    near = check_score_threshold(value, f"the model's {OPERATING_THRESHOLD_KEY}")
+    far = far_threshold(meta.get(FAR_THRESHOLD_KEY))
+    if far is None:
+        return OperatingThreshold(near)
+    return OperatingThreshold(near, far=far[1], far_from_m=far[0])
 
 
 def warming_up(frames_used: int, num_frames: int) -> bool:

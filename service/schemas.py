@@ -339,6 +339,11 @@ class FullScanOut(Answer):
     frames: int = Field(description="full scans that median is of (at most the last 64)")
 
 
+class FarThresholdOut(Answer):
+    from_m: float = Field(description="detections whose centre lies this far from the radar or farther use it")
+    threshold: float = Field(description="they are answered when they score at or above it")
+
+
 class ModelInfo(Answer):
     metadata: dict[str, str] = Field(description="the ONNX model's metadata (rafd.runtime.METADATA_KEYS and more)")
     config: dict[str, Any] = Field(description="the model's RaFDConfig")
@@ -357,6 +362,10 @@ class ModelInfo(Answer):
         "shape rule and each dataset's range bin in metres"
     )
     score_threshold: float = Field(description="detections scoring below it are not answered")
+    far_score_threshold: FarThresholdOut | None = Field(
+        description="the model's higher threshold for detections far from the radar (null: score_threshold at every "
+        "range; RAFD_SCORE_THRESHOLD sets one threshold for every range)"
+    )
     runtime: RuntimeOut = Field(description="how the graph runs")
     full_scan: FullScanOut | None = Field(
         description="what a full RADIATE scan (posted, or converted from a polar or native one) costs; null for a "

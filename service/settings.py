@@ -339,9 +339,10 @@ class Settings(BaseSettings):
         ge=0.0,
         le=1.0,
         description=(
-            "Detections with a score below this are dropped from the answer. None: the model's operating "
-            'threshold (ONNX metadata "operating_threshold", chosen on validation data by `rafd-eval '
-            "--calibrate`), else 0.3."
+            "Detections with a score below this are dropped from the answer, at every range. None: the model's "
+            'operating threshold (ONNX metadata "operating_threshold", chosen on validation data by `rafd-eval '
+            '--calibrate`, and "operating_threshold_far" for detections far from the radar, by `--calibrate-far`), '
+            "else 0.3."
         ),
     )
     detect_range_m: float | None = Field(

@@ -416,8 +416,11 @@ def plot_recall_by_range(overall: dict[str, Any], where: str, model_name: str) -
     for axes in (left, right):
         axes.grid(True, axis="y", alpha=0.3)
         axes.set_xlabel("range from the radar")
-    threshold = overall.get("score_threshold")
-    figure.suptitle(f"model {model_name}, {where}, {overall['frames']} frames, threshold {threshold:.3f}", fontsize=9)
+    threshold, far = overall.get("score_threshold"), overall.get("far_score_threshold")
+    beyond = f" ({far['threshold']:.3f} from {far['from_m']:g} m)" if far else ""
+    figure.suptitle(
+        f"model {model_name}, {where}, {overall['frames']} frames, threshold {threshold:.3f}{beyond}", fontsize=9
+    )
     return _figure_array(figure)
 
 

@@ -13,6 +13,15 @@ from rafd.cli import flags
 from rafd.eval.run import EvalRun
 
 
+def range_and_budget(text: str) -> tuple[float, float]:
+    """ "50:2" -> (50.0, 2.0)."""
+    try:
+        from_m, budget = (float(part) for part in text.split(":"))
+    except ValueError as error:
+        raise argparse.ArgumentTypeError(f"expected FROM_M:FP_PER_FRAME such as 50:2, got {text!r}") from error
+    return from_m, budget
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog=flags.prog("eval"), description=__doc__)
     flags.add_checkpoint(parser)
@@ -46,6 +55,15 @@ def build_parser() -> argparse.ArgumentParser:
         "with at most FP_PER_FRAME false positives per frame (centre matching), written into "
         "the checkpoint's meta (rafd export carries it into the ONNX; the service uses it). "
         "Use a validation split, never test data",
+    )
+    parser.add_argument(
+        "--calibrate-far",
+        type=range_and_budget,
+        metavar="FROM_M:FP_PER_FRAME",
+        help="with --full-scan: choose a higher threshold for the detections FROM_M or more from the radar, the "
+        "lowest at which the whole scans' false positives per frame have a 95%% upper bound (bootstrap over "
+        "sequences) of at most FP_PER_FRAME, the near threshold kept (after --calibrate when given); written into "
+        "the checkpoint's meta beside it. Use simulated validation drives where real labels do not reach",
     )
     parser.add_argument("--json", type=Path, metavar="FILE", help="write the metrics here")
     parser.add_argument(
@@ -126,8 +144,9 @@ def main(argv: Sequence[str] | None = None) -> int:
     except EvalError as error:
         print(f"rafd-eval: error: {error}", file=sys.stderr)
         return 2
-    if "calibration" in report:
-        print(report["calibration"])
+    for key in ("calibration", "calibration_far"):
+        if key in report:
+            print(report[key])
     print(format_table(report["overall"], report["per_sequence"], report["per_condition"]))
     print(format_flow_table(report["flow"]))
     if "tracking" in report:

@@ -14,13 +14,13 @@ from torch.utils.data import DataLoader, Dataset
 
 from rafd.config import RaFDConfig
 from rafd.data.collate import Collator
-from rafd.detections import decode_detections
+from rafd.detections import answered, decode_detections
 from rafd.eval.flow_split import FlowTally, tally_pair
 from rafd.eval.metrics import end_point_error, match_centres, mean_average_precision
 from rafd.flow_validity import config_validity
 from rafd.geometry import points_in_boxes, relative_pose
 from rafd.progress import bar
-from rafd.protocol import CENTRE_DISTANCE_M, IOU_THRESHOLDS
+from rafd.protocol import CENTRE_DISTANCE_M, IOU_THRESHOLDS, OperatingThreshold
 
 
 @dataclass
@@ -166,12 +166,13 @@ RANGE_BANDS_M = (0.0, 25.0, 50.0, 75.0, 100.0, float("inf"))  # the Navtech reac
 def summarise(
     results: Sequence[FrameResult],
     iou_thresholds: Sequence[float] = IOU_THRESHOLDS,
-    score_threshold: float | None = None,
+    score_threshold: OperatingThreshold | float | None = None,
 ) -> dict[str, Any]:
     """mAP@IoU (in percent, like the paper's tables), centre-distance detection figures and pooled EPE:
     centre_AP (VOC AP with centre within CENTRE_DISTANCE_M as the match), recall_at_1fp (recall with at most one
     false positive per frame, and the score threshold that gives it), and with a score_threshold its recall and
-    false positives per frame."""
+    false positives per frame, overall and by range: of the detections it answers (rafd.detections.answered, the
+    service's rule), matched among themselves."""
     summary: dict[str, Any] = {"frames": len(results)}
     if not results:
         return summary
@@ -185,11 +186,16 @@ def summarise(
     summary["recall_at_1fp"] = 100.0 * recall
     summary["threshold_at_1fp"] = threshold_at
     if score_threshold is not None:
-        recall, fp_per_frame = centres.at_threshold(score_threshold)
-        summary["score_threshold"] = score_threshold
+        answering = (
+            score_threshold if isinstance(score_threshold, OperatingThreshold) else OperatingThreshold(score_threshold)
+        )
+        kept = match_centres([answered(p, answering) for p in predictions], ground_truths, CENTRE_DISTANCE_M)
+        recall, fp_per_frame = kept.at_threshold(0.0)
+        summary["score_threshold"] = answering.near
+        summary["far_score_threshold"] = answering.far_json()
         summary["recall_at_threshold"] = 100.0 * recall
         summary["fp_per_frame_at_threshold"] = fp_per_frame
-        summary["by_range_at_threshold"] = centres.by_range(score_threshold, RANGE_BANDS_M)
+        summary["by_range_at_threshold"] = kept.by_range(0.0, RANGE_BANDS_M)
     summary["epe_all"] = _pooled([r.epe_all for r in results], [r.cells_all for r in results])
     summary["epe_foreground"] = _pooled([r.epe_foreground for r in results], [r.cells_foreground for r in results])
     summary["objects"] = int(sum(len(r.ground_truth) for r in results))
@@ -197,7 +203,7 @@ def summarise(
 
 
 def _summarise_groups(
-    results: Sequence[FrameResult], group_of: Mapping[str, str], score_threshold: float | None
+    results: Sequence[FrameResult], group_of: Mapping[str, str], score_threshold: OperatingThreshold | float | None
 ) -> dict[str, dict[str, Any]]:
     """Summaries pooled over the frames of each group ({sequence name: group}), keyed by group (sorted)."""
     return {
@@ -207,7 +213,9 @@ def _summarise_groups(
 
 
 def summarise_by_condition(
-    results: Sequence[FrameResult], conditions: Mapping[str, str | None], score_threshold: float | None = None
+    results: Sequence[FrameResult],
+    conditions: Mapping[str, str | None],
+    score_threshold: OperatingThreshold | float | None = None,
 ) -> dict[str, dict[str, Any]]:
     """Summaries pooled over the sequences of each recording condition ({sequence name: condition}: the
     simulator's weather, RADIATE's type such as fog), keyed by condition (sorted); sequences without one are
@@ -220,7 +228,7 @@ def summarise_by_condition(
 
 
 def summarise_by_sequence(
-    results: Sequence[FrameResult], score_threshold: float | None = None
+    results: Sequence[FrameResult], score_threshold: OperatingThreshold | float | None = None
 ) -> dict[str, dict[str, Any]]:
     """Per-sequence summaries, keyed by sequence name (sorted)."""
     return _summarise_groups(results, {r.sequence: r.sequence for r in results}, score_threshold)

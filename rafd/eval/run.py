@@ -12,7 +12,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-from rafd.protocol import DEFAULT_SCORE_THRESHOLD, IOU_THRESHOLDS, operating_threshold
+from rafd.protocol import IOU_THRESHOLDS, OperatingThreshold, operating_threshold
 
 log = logging.getLogger("rafd.eval")
 
@@ -28,6 +28,7 @@ class EvalRun:
     full_scan: bool = False  # whole scans by tiles instead of the protocol's centre crop
     score_threshold: float | None = None  # None: the checkpoint's operating threshold (rafd.protocol)
     calibrate: float | None = None  # choose and write the operating threshold at this many FP per frame
+    calibrate_far: tuple[float, float] | None = None  # (from_m, FP per frame): choose and write the far threshold
     json: Path | None = None
     detections: Path | None = None  # every frame's detections and GT, for rafd bench accuracy compare
     plots: Path | None = None
@@ -54,6 +55,12 @@ def check_run(run: EvalRun) -> None:
         raise EvalError(f"checkpoint {run.checkpoint} does not exist")
     if run.calibrate is not None and not (math.isfinite(run.calibrate) and run.calibrate > 0):
         raise EvalError(f"--calibrate needs a positive number of false positives per frame, got {run.calibrate}")
+    if run.calibrate_far is not None:
+        from_m, budget = run.calibrate_far
+        if not run.full_scan:
+            raise EvalError("--calibrate-far chooses a threshold for far detections: run it with --full-scan")
+        if not (math.isfinite(from_m) and from_m > 0 and math.isfinite(budget) and budget > 0):
+            raise EvalError(f"--calibrate-far needs a positive range and false-positive budget, got {from_m}:{budget}")
     if run.like_frames is not None and run.like_frames < 1:
         raise EvalError(f"--like-frames needs a number of frames >= 1, got {run.like_frames}")
     if run.past_as_newest and (run.full_scan or run.plots is not None or run.mcap is not None):
@@ -82,7 +89,9 @@ class CalibrationError(EvalError):
     """--calibrate found no score threshold within the false-positive budget (the figures were computed)."""
 
 
-def calibrate(run: EvalRun, results: list[Any], cfg: Any, model: Any, meta: dict[str, Any]) -> tuple[float, str]:
+def calibrate(
+    run: EvalRun, results: list[Any], cfg: Any, model: Any, meta: dict[str, Any]
+) -> tuple[OperatingThreshold, str]:
     """--calibrate: the lowest threshold within the false-positive budget -> written into the checkpoint's meta
     (atomically; weights and config untouched). -> (threshold, a line saying so); CalibrationError when no threshold
     meets the budget."""
@@ -106,10 +115,53 @@ def calibrate(run: EvalRun, results: list[Any], cfg: Any, model: Any, meta: dict
         "frames": len(results),
     }
     save_checkpoint(run.checkpoint, model, cfg, meta)  # CPU copies of the weights, unchanged
-    return threshold, (
+    return operating_threshold(meta), (
         f"operating threshold {threshold:.4f} (recall {100 * recall:.1f}% with at most "
         f"{run.calibrate:g} false positives per frame on {list(run.split)}) written into "
         f"{run.checkpoint}"
+    )
+
+
+def calibrate_far(
+    run: EvalRun, results: list[Any], cfg: Any, model: Any, near: float
+) -> tuple[OperatingThreshold, str]:
+    """--calibrate-far FROM_M:FP: the lowest threshold for detections FROM_M or more from the radar at which the whole
+    scans' false positives per frame stay within FP with 95% confidence over sequences (rafd.eval.far_threshold),
+    the near threshold kept -> written into the checkpoint's meta. CalibrationError when none does."""
+    from rafd.eval.far_threshold import calibrate_far as choose
+    from rafd.model.checkpoint import read_checkpoint, save_checkpoint
+    from rafd.protocol import FAR_THRESHOLD_KEY
+
+    assert run.calibrate_far is not None
+    from_m, budget = run.calibrate_far
+    found = choose(
+        [r.predictions for r in results], [r.ground_truth for r in results], [r.sequence for r in results],
+        near, from_m, budget,
+    )  # fmt: skip
+    if not math.isfinite(found.threshold):
+        raise CalibrationError(
+            f"no far threshold keeps the whole scans within {budget:g} false positives per frame (95% upper bound)"
+        )
+    meta = dict(read_checkpoint(run.checkpoint)[2] or {})  # as --calibrate may have just written it
+    meta[FAR_THRESHOLD_KEY] = {"from_m": from_m, "threshold": found.threshold}
+    meta["operating_point_far"] = {
+        "rule": "the lowest threshold from from_m outwards whose whole-scan false positives per frame have a 95% "
+        "upper bound (bootstrap over sequences) within the budget, the near threshold kept",
+        "fp_per_frame_budget": budget,
+        "fp_per_frame": found.fp_per_frame,
+        "fp_per_frame_upper_bound": found.fp_per_frame_bound,
+        "recall_beyond": 100.0 * found.recall_beyond,
+        "data": str(run.data),
+        "split": list(run.split),
+        "frames": found.frames,
+        "sequences": found.sequences,
+    }
+    save_checkpoint(run.checkpoint, model, cfg, meta)  # CPU copies of the weights, unchanged
+    threshold = operating_threshold(meta)
+    return threshold, (
+        f"far operating threshold {found.threshold:.3f} from {from_m:g} m (whole scans: {found.fp_per_frame:.2f} "
+        f"false positives per frame, 95% upper bound {found.fp_per_frame_bound:.2f} <= {budget:g}; recall beyond "
+        f"{from_m:g} m {100 * found.recall_beyond:.1f}%) written into {run.checkpoint}"
     )
 
 
@@ -133,7 +185,7 @@ def write_plots(
     results: Sequence[Any],
     examples: int,
     device: Any,
-    score_threshold: float = DEFAULT_SCORE_THRESHOLD,
+    score_threshold: OperatingThreshold,
 ) -> list[Path]:
     """Precision-recall plot of all frames and a few example frames (GT green, predictions red, flow). The examples
     draw what the service would answer: the boxes at or above `score_threshold` (the operating threshold, or
@@ -143,6 +195,7 @@ def write_plots(
     import numpy as np
     from torch.utils.data import Subset
 
+    from rafd.detections import answered
     from rafd.eval.metrics import precision_recall
     from rafd.eval.predict import predict
     from rafd.flow_validity import config_validity
@@ -170,7 +223,7 @@ def write_plots(
             image = np.asarray(window["frames"])[-1].squeeze()  # [H, W] newest frame
             poses = np.asarray(window["poses"], np.float64)  # [T, 3]
             validity = config_validity(cfg, relative_pose(poses[-2], poses[-1]) if len(poses) > 1 else None)
-            shown = result.predictions[result.predictions[:, 5] >= score_threshold]  # AP keeps all K; the service not
+            shown = answered(result.predictions, score_threshold)  # AP keeps all K; the service not
             canvas = draw_detections(
                 image,
                 gt_boxes=result.ground_truth,
@@ -179,7 +232,7 @@ def write_plots(
                 resolution=cfg.resolution,
                 flow=result.flow,
                 upscale=4,  # 128 px crops are too small to read the boxes at 1:1
-                score_threshold=score_threshold,
+                score_threshold=score_threshold.near,
                 validity=validity,
             )
             path = folder / f"example_{result.sequence}_{result.frame:06d}.png"
@@ -256,6 +309,8 @@ def evaluate(run: EvalRun) -> dict[str, Any]:
     report: dict[str, Any] = {}
     if run.calibrate is not None:
         threshold, report["calibration"] = calibrate(run, results, cfg, model, meta)
+    if run.calibrate_far is not None:
+        threshold, report["calibration_far"] = calibrate_far(run, results, cfg, model, threshold.near)
     conditions = {sequence.name: sequence.condition for sequence in dataset.sequences}
     report.update(
         {
@@ -292,6 +347,7 @@ def evaluate(run: EvalRun) -> dict[str, Any]:
         report["detections"] = str(run.detections)
     if run.json is not None:
         run.json.parent.mkdir(parents=True, exist_ok=True)
-        run.json.write_text(json.dumps(jsonable({k: v for k, v in report.items() if k != "calibration"}), indent=2))
+        saved = {k: v for k, v in report.items() if k not in ("calibration", "calibration_far")}
+        run.json.write_text(json.dumps(jsonable(saved), indent=2))
         report["json"] = str(run.json)
     return report

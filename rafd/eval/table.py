@@ -67,7 +67,9 @@ def format_table(
         lines += ["", *_rows("condition", list(per_condition.items()))]
     bands = [b for b in overall.get("by_range_at_threshold", []) if b["vehicles"] or b["fp_per_frame"]]
     if bands:
-        lines.append(f"\nat the operating threshold {overall['score_threshold']:.4g}, by range from the radar:")
+        far = overall.get("far_score_threshold")
+        beyond = f" ({far['threshold']:.4g} from {far['from_m']:g} m)" if far else ""
+        lines.append(f"\nat the operating threshold {overall['score_threshold']:.4g}{beyond}, by range from the radar:")
         lines.append(f"{'range (m)':<28}{'vehicles':>15}{'recall':>15}{'fp_per_frame':>15}")
         for band in bands:
             recall = f"{band['recall']:.1f}" if band["vehicles"] else "no objects"

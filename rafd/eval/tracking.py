@@ -24,10 +24,12 @@ from typing import Any
 import numpy as np
 from scipy.optimize import linear_sum_assignment
 
+from rafd.detections import answered
 from rafd.eval.predict import RANGE_BANDS_M, outside_ignored
 from rafd.eval.tracking_inputs import TrackingFrame
 from rafd.eval.tracking_metrics import MATCH_DISTANCE_M, FrameTracks, tracking_metrics
 from rafd.geometry import rotation_matrix, transform_points
+from rafd.protocol import OperatingThreshold
 from rafd.tracking import VELOCITY_MODES, FlowField, TrackedBoxes, TrackerSettings, TrackerState, flow_velocity, step
 from rafd.tracking.state import SOURCE_NONE
 
@@ -50,14 +52,14 @@ def sequences_of(frames: Sequence[TrackingFrame]) -> dict[str, list[TrackingFram
 
 
 def run_tracker(
-    frames: Sequence[TrackingFrame], settings: TrackerSettings, score_threshold: float
+    frames: Sequence[TrackingFrame], settings: TrackerSettings, score_threshold: OperatingThreshold | float
 ) -> list[TrackedBoxes]:
     """One sequence's frames (in order) as one stream -> each frame's answer. Coasting boxes that fall in an ignore
     region are dropped like the detections there (neither true nor false)."""
     state = TrackerState.empty()
     answers = []
     for frame in frames:
-        kept = frame.detections[frame.detections[:, 5] >= score_threshold]
+        kept = answered(frame.detections, score_threshold)
         answer, state = step(
             state, kept[:, :5], frame.pose, frame.timestamp, scores=kept[:, 5], flow=frame.flow, settings=settings
         )
@@ -162,14 +164,16 @@ def identity_kept(records: Sequence[dict[str, Any]], numbers: Sequence[int]) -> 
 
 
 # ---------------------------------------------------------------- the issue's two baselines
-def baseline_records(frames: Sequence[TrackingFrame], score_threshold: float) -> dict[str, list[dict[str, Any]]]:
+def baseline_records(
+    frames: Sequence[TrackingFrame], score_threshold: OperatingThreshold | float
+) -> dict[str, list[dict[str, Any]]]:
     """Per matched detection: the flow at its centre / the interval, unchecked (any validity, no saturation test),
     and the difference of its centre and the previous scan's detection matched to the same vehicle."""
     out: dict[str, list[dict[str, Any]]] = {"flow_centre_unchecked": [], "centre_differencing": []}
     previous: dict[int, np.ndarray] = {}  # vehicle id -> world centre of its matched detection in the last scan
     previous_frame: TrackingFrame | None = None
     for frame in frames:
-        found = frame.detections[frame.detections[:, 5] >= score_threshold]
+        found = answered(frame.detections, score_threshold)
         truth_rows, rows = match(frame.truth[:, :2], found[:, :2])
         flow = _unchecked_flow(frame.flow, found[rows, :5])
         world = transform_points(frame.pose, found[rows, :2]) if len(rows) else np.zeros((0, 2))
@@ -232,7 +236,7 @@ def _band_name(lo: float, hi: float) -> str:
 
 def evaluate_tracking(
     frames: Sequence[TrackingFrame],
-    score_threshold: float,
+    score_threshold: OperatingThreshold | float,
     settings: TrackerSettings = SHIPPED,
     velocity_truth: str = "",
     detection_study: bool = True,
@@ -242,7 +246,7 @@ def evaluate_tracking(
     "baselines", "identity_kept" and (detection_study) "time_helps_detection"."""
     streams = sequences_of(frames)
     report: dict[str, Any] = {
-        "score_threshold": score_threshold,
+        "score_threshold": _threshold_json(score_threshold),
         "velocity_truth": velocity_truth,
         "settings": settings.velocity,
         "sequences": len(streams),
@@ -310,7 +314,7 @@ def identity_kept_by_stream(
 # ---------------------------------------------------------------- does time help detection
 def time_helps_detection(
     streams: dict[str, list[TrackingFrame]],
-    score_threshold: float,
+    score_threshold: OperatingThreshold | float,
     budget: float = 1.0,
     steps: int = 24,
     resamples: int = 1000,
@@ -321,7 +325,8 @@ def time_helps_detection(
     false positives per scan, and the operating threshold), and each variant's difference from the detections alone
     with a 95% bootstrap interval over streams (the threshold chosen again in every resample)."""
     frames = [f for group in streams.values() for f in group]
-    thresholds = sorted(set(_thresholds_at(frames, np.geomspace(0.25, 8.0, steps - 1))) | {score_threshold})
+    sweep = sorted(set(_thresholds_at(frames, np.geomspace(0.25, 8.0, steps - 1))))
+    thresholds: list[OperatingThreshold | float] = [*sweep, score_threshold]  # the operating one last
     counts = {name: _counts(streams, settings, thresholds) for name, settings in DETECTION_VARIANTS.items()}
     scans = np.array([len(group) for group in streams.values()], np.float64)  # [S]
     rng = np.random.default_rng(seed)
@@ -334,17 +339,17 @@ def time_helps_detection(
         per_scan = pooled[:, 2] / max(scans.sum(), 1)
         within = np.flatnonzero(per_scan <= budget)
         best = int(within[np.argmax(recall[within])]) if len(within) else -1
-        operating = thresholds.index(score_threshold)
+        operating = len(thresholds) - 1
         result[name] = {
             "at_budget": {
                 "recall": float(recall[best]) if best >= 0 else 0.0,
                 "fp_per_frame": float(per_scan[best]) if best >= 0 else math.nan,
-                "threshold": thresholds[best] if best >= 0 else math.nan,
+                "threshold": _threshold_json(thresholds[best]) if best >= 0 else math.nan,
             },
             "at_operating_threshold": {
                 "recall": float(recall[operating]),
                 "fp_per_frame": float(per_scan[operating]),
-                "threshold": score_threshold,
+                "threshold": _threshold_json(score_threshold),
             },
         }
         if name != "detections":
@@ -361,14 +366,16 @@ def time_helps_detection(
 
 
 def _counts(
-    streams: dict[str, list[TrackingFrame]], settings: TrackerSettings | None, thresholds: Sequence[float]
+    streams: dict[str, list[TrackingFrame]],
+    settings: TrackerSettings | None,
+    thresholds: Sequence[OperatingThreshold | float],
 ) -> np.ndarray:
     """-> [S, T, 3] per stream and input threshold: vehicles found, vehicles labelled, false boxes answered."""
     table = np.zeros((len(streams), len(thresholds), 3))
     for s, group in enumerate(streams.values()):
         for t, threshold in enumerate(thresholds):
             answers = (
-                [f.detections[f.detections[:, 5] >= threshold, :2] for f in group]
+                [answered(f.detections, threshold)[:, :2] for f in group]
                 if settings is None
                 else [a.boxes[:, :2] for a in run_tracker(group, settings, threshold)]
             )
@@ -376,6 +383,13 @@ def _counts(
                 truth_rows, _ = match(frame.truth[:, :2], xy)
                 table[s, t] += (len(truth_rows), len(frame.truth), len(xy) - len(truth_rows))
     return table
+
+
+def _threshold_json(threshold: OperatingThreshold | float) -> float | str:
+    """A threshold in a report: the number, or its description when it differs by range."""
+    if isinstance(threshold, OperatingThreshold):
+        return threshold.near if threshold.far is None else str(threshold)
+    return float(threshold)
 
 
 def _best_recall(counts: np.ndarray, scans: np.ndarray, budget: float) -> np.ndarray:

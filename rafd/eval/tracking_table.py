@@ -47,9 +47,11 @@ def _difference(figures: dict[str, Any] | None) -> str:
 def format_tracking(report: dict[str, Any]) -> str:
     """The tracking report of rafd.eval.tracking.evaluate_tracking as plain text."""
     kept = report["identity_kept"]
+    threshold = report["score_threshold"]  # a number, or a description when it differs by range
+    threshold_text = threshold if isinstance(threshold, str) else f"{threshold:.4f}"
     lines = [
         f"tracking ({report['frames']} scans in {report['sequences']} streams, velocity {report['settings']}, "
-        f"score threshold {report['score_threshold']:.4f}; TrackEval, 2 m centre matching; HOTA/DetA/AssA "
+        f"score threshold {threshold_text}; TrackEval, 2 m centre matching; HOTA/DetA/AssA "
         "averaged over 0.2-3.8 m, HOTA@2m at 2 m)",
     ]
     rows = [("overall", report["tracking"])]

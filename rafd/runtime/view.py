@@ -34,11 +34,12 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from rafd.detections import Detections, decode_detections
+from rafd.detections import Detections, answered_mask, decode_detections
 from rafd.geometry import RADIATE_RESOLUTION, RADIATE_SCAN_SIZE, rotation_matrix
 from rafd.preprocess import to_model_input
 
 if TYPE_CHECKING:
+    from rafd.protocol import OperatingThreshold
     from rafd.runtime.streaming import Runner, StepResult, StreamState
 
 DEFAULT_OVERLAP = 32  # pixels shared by neighbouring tiles (5.6 m at RADIATE's resolution)
@@ -206,17 +207,19 @@ class View:
         self,
         boxes: np.ndarray,
         scores: np.ndarray,
-        score_threshold: float = 0.0,
+        score_threshold: OperatingThreshold | float = 0.0,
         merge_distance: float = MERGE_DISTANCE_M,
     ) -> Detections:
         """The stepped tiles' outputs (boxes [V, K, 5] in each tile's frame, scores [V, K]) -> detections in the ego
-        frame within the view's range, best first: each from the tile whose core holds it, one per vehicle."""
+        frame within the view's range that the threshold answers (at each one's range from the radar), best first:
+        each from the tile whose core holds it, one per vehicle."""
+        lowest = score_threshold if isinstance(score_threshold, float | int) else score_threshold.lowest
         kept_boxes, kept_scores, kept_labels, kept_tiles = [], [], [], []
         for tile, tile_boxes, tile_scores in zip(self.tiles, boxes, scores):
-            found = decode_detections(tile_boxes, tile_scores, score_threshold)
+            found = decode_detections(tile_boxes, tile_scores, lowest)
             ego = found.boxes.copy()
             ego[:, :2] += self.grid.offsets_m[tile]
-            mine = self.grid.owner(ego[:, :2]) == tile
+            mine = (self.grid.owner(ego[:, :2]) == tile) & answered_mask(ego[:, :2], found.scores, score_threshold)
             if self.range_m is not None:
                 mine &= np.hypot(ego[:, 0], ego[:, 1]) <= self.range_m
             kept_boxes.append(ego[mine])

@@ -8,7 +8,7 @@ from rafd.scans.native import NATIVE_FORMAT_RULE, NATIVE_FORMATS, SENSOR_SHAPE, 
 from rafd.scans.polar import RADIATE_POLAR_SHAPE, accepts_polar
 from service.dependencies import get_service
 from service.pipeline.detector import DetectService
-from service.schemas import FullScanOut, ModelInfo, RuntimeOut
+from service.schemas import FarThresholdOut, FullScanOut, ModelInfo, RuntimeOut
 
 router = APIRouter(tags=["model"])
 
@@ -26,6 +26,7 @@ def native_description(shape: NativeShape = SENSOR_SHAPE) -> dict[str, object]:
 @router.get("/model", response_model=ModelInfo)
 async def model_info(service: DetectService = Depends(get_service)) -> ModelInfo:
     cfg = service.config
+    far = service.score_threshold.far_json()
     return ModelInfo(
         metadata=dict(service.runner.metadata),
         config=cfg.to_dict(),
@@ -41,7 +42,8 @@ async def model_info(service: DetectService = Depends(get_service)) -> ModelInfo
         accepted_native=native_description(service.native_shape)
         if accepts_polar(cfg.input_size, cfg.resolution)
         else None,
-        score_threshold=service.score_threshold,
+        score_threshold=service.score_threshold.near,
+        far_score_threshold=None if far is None else FarThresholdOut.model_validate(far),
         # how the graph runs: runtime, precision, threads per run, concurrent runs, start-up timings
         runtime=RuntimeOut.model_validate(service.runner.describe()),
         full_scan=None if service.full_scan is None else FullScanOut.model_validate(service.full_scan_cost()),

@@ -203,3 +203,32 @@ def test_tracking_scores_tracks_and_velocities(trained_checkpoint: Path, sim_roo
     assert set(tracking["candidates"]) == {"flow_centre", "flow_box", "filter", "filter_flow"}
     assert {"detections", "confirmed"} <= set(tracking["time_helps_detection"])
     assert main(args + ["--tracking", "--past-as-newest"]) == 2
+
+
+def test_calibrate_far_writes_a_far_threshold_that_the_report_scores_at(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    import shutil
+
+    from rafd.assets import default_checkpoint
+    from rafd.model.checkpoint import read_checkpoint
+    from rafd.sim import simulate_sequence
+
+    simulate_sequence(tmp_path / "scans" / "seq", seed=9, num_frames=5, split="val", size=640)  # 9 tiles, +-55 m
+    checkpoint = Path(shutil.copy(default_checkpoint(), tmp_path / "model.pt"))
+    out_json = tmp_path / "metrics.json"
+    args = [str(checkpoint), str(tmp_path / "scans"), "--split", "val", "--device", "cpu", "--quiet"]
+    assert main([*args, "--full-scan", "--calibrate-far", "20:50", "--json", str(out_json)]) == 0
+    meta = read_checkpoint(checkpoint)[2]
+    far = meta["operating_threshold_far"]
+    assert far["from_m"] == 20.0 and meta["operating_threshold"] <= far["threshold"] <= 1.0
+    assert meta["operating_point_far"]["fp_per_frame_upper_bound"] <= 50.0
+    assert "far operating threshold" in capsys.readouterr().out
+    overall = json.loads(out_json.read_text())["overall"]
+    assert overall["far_score_threshold"] == far and overall["score_threshold"] == meta["operating_threshold"]
+    # the crop protocol cannot calibrate a far threshold; a malformed one is refused by the parser
+    assert main([*args, "--calibrate-far", "20:1"]) == 2
+    assert "--full-scan" in capsys.readouterr().err
+    with pytest.raises(SystemExit) as refused:
+        main([*args, "--full-scan", "--calibrate-far", "twenty"])
+    assert refused.value.code == 2 and "FROM_M:FP_PER_FRAME" in capsys.readouterr().err

@@ -7,6 +7,7 @@ import numpy as np
 import pytest
 
 from rafd.geometry import invert_pose, pixels_to_metres, relative_pose, transform_points
+from rafd.protocol import OperatingThreshold
 from rafd.runtime.view import TileGrid, View, step_view, tile_poses
 
 RES = 0.173611
@@ -86,6 +87,13 @@ def test_a_vehicle_on_a_tile_border_is_reported_once_where_it_is_and_none_beyond
     assert len(merged) == 2
     np.testing.assert_allclose(merged.boxes[:, :2], [[0.0, 99.5], [border_x, 3.0]], atol=1e-9)
     assert merged.scores[1] == pytest.approx(0.7)  # tile 13 owns it, whatever tile 12 scored
+    # a far threshold from 50 m: the 99.5 m box (0.9) needs 0.95, the 3 m one keeps the near 0.3
+    far = view.merge(boxes, scores, score_threshold=OperatingThreshold(0.3, far=0.95, far_from_m=50.0))
+    np.testing.assert_allclose(far.boxes[:, :2], [[border_x, 3.0]], atol=1e-9)
+    # the border vehicle's owner scores 0.5 < 0.6 (near): not answered, and tile 12's 0.8 copy is not its to answer
+    scores[tiles.index(13), 0] = 0.5
+    far_only = view.merge(boxes, scores, score_threshold=OperatingThreshold(0.6, far=0.3, far_from_m=90.0))
+    assert len(far_only) == 1 and far_only.scores[0] == pytest.approx(0.9)
 
 
 def test_the_mosaic_takes_each_cell_from_the_tile_whose_core_holds_it() -> None:

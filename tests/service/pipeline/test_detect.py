@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import base64
+import json
 from dataclasses import replace
 
 import numpy as np
@@ -352,3 +353,28 @@ def test_flow_list_is_written_as_the_same_text_as_nested_lists():
     assert orjson.dumps({"values": values}, option=orjson.OPT_SERIALIZE_NUMPY) == orjson.dumps(
         {"values": values.tolist()}
     )
+
+
+def test_a_models_far_threshold_is_answered_at_each_boxs_range_and_reported(settings):
+    from rafd.detections import answered
+    from rafd.protocol import OperatingThreshold
+
+    result = offline(FRAMES[:1], POSES[:1])[0]
+    expected_all = decode_detections(result.boxes, result.scores, 0.3)
+    ranges = np.hypot(*expected_all.boxes[:, :2].T)
+    from_m = float(np.median(ranges))  # about half the fake's boxes lie beyond it
+    rule = OperatingThreshold(0.3, far=0.99, far_from_m=from_m)
+    kept = answered(expected_all.as_array(), rule)
+    assert 0 < len(kept) < len(expected_all)  # the far threshold drops something here
+    settings.score_threshold = None  # the model's own
+    runner = FakeRunner()
+    runner.metadata.update(
+        {"operating_threshold": "0.3", "operating_threshold_far": json.dumps({"from_m": from_m, "threshold": 0.99})}
+    )
+    with TestClient(create_app(settings, runner=runner)) as client:
+        wait_ready(client)
+        info = client.get("/model").json()
+        answer = client.post("/detect", json=detect_json("far", 1.0, FRAMES[0], POSES[0])).json()
+    assert info["score_threshold"] == 0.3 and info["far_score_threshold"] == {"from_m": from_m, "threshold": 0.99}
+    got = np.array([[b["x"], b["y"], b["width"], b["length"], b["yaw"], b["score"]] for b in answer["boxes"]])
+    np.testing.assert_allclose(got, kept, atol=1e-4)
