@@ -59,6 +59,8 @@ def check_run(run: EvalRun) -> None:
         from_m, budget = run.calibrate_far
         if not run.full_scan:
             raise EvalError("--calibrate-far chooses a threshold for far detections: run it with --full-scan")
+        if run.score_threshold is not None:
+            raise EvalError("--calibrate-far keeps the checkpoint's near threshold: run it without --score-threshold")
         if not (math.isfinite(from_m) and from_m > 0 and math.isfinite(budget) and budget > 0):
             raise EvalError(f"--calibrate-far needs a positive range and false-positive budget, got {from_m}:{budget}")
     if run.like_frames is not None and run.like_frames < 1:
@@ -122,9 +124,7 @@ def calibrate(
     )
 
 
-def calibrate_far(
-    run: EvalRun, results: list[Any], cfg: Any, model: Any, near: float
-) -> tuple[OperatingThreshold, str]:
+def calibrate_far(run: EvalRun, results: list[Any], cfg: Any, model: Any) -> tuple[OperatingThreshold, str]:
     """--calibrate-far FROM_M:FP: the lowest threshold for detections FROM_M or more from the radar at which the whole
     scans' false positives per frame stay within FP with 95% confidence over sequences (rafd.eval.far_threshold),
     the near threshold kept -> written into the checkpoint's meta. CalibrationError when none does."""
@@ -134,6 +134,8 @@ def calibrate_far(
 
     assert run.calibrate_far is not None
     from_m, budget = run.calibrate_far
+    meta = dict(read_checkpoint(run.checkpoint)[2] or {})  # as --calibrate may have just written it
+    near = operating_threshold(meta).near
     found = choose(
         [r.predictions for r in results], [r.ground_truth for r in results], [r.sequence for r in results],
         near, from_m, budget,
@@ -142,7 +144,6 @@ def calibrate_far(
         raise CalibrationError(
             f"no far threshold keeps the whole scans within {budget:g} false positives per frame (95% upper bound)"
         )
-    meta = dict(read_checkpoint(run.checkpoint)[2] or {})  # as --calibrate may have just written it
     meta[FAR_THRESHOLD_KEY] = {"from_m": from_m, "threshold": found.threshold}
     meta["operating_point_far"] = {
         "rule": "the lowest threshold from from_m outwards whose whole-scan false positives per frame have a 95% "
@@ -310,7 +311,7 @@ def evaluate(run: EvalRun) -> dict[str, Any]:
     if run.calibrate is not None:
         threshold, report["calibration"] = calibrate(run, results, cfg, model, meta)
     if run.calibrate_far is not None:
-        threshold, report["calibration_far"] = calibrate_far(run, results, cfg, model, threshold.near)
+        threshold, report["calibration_far"] = calibrate_far(run, results, cfg, model)
     conditions = {sequence.name: sequence.condition for sequence in dataset.sequences}
     report.update(
         {

@@ -229,6 +229,8 @@ def test_calibrate_far_writes_a_far_threshold_that_the_report_scores_at(
     # the crop protocol cannot calibrate a far threshold; a malformed one is refused by the parser
     assert main([*args, "--calibrate-far", "20:1"]) == 2
     assert "--full-scan" in capsys.readouterr().err
+    assert main([*args, "--full-scan", "--calibrate-far", "20:1", "--score-threshold", "0.5"]) == 2
+    assert "--score-threshold" in capsys.readouterr().err
     with pytest.raises(SystemExit) as refused:
         main([*args, "--full-scan", "--calibrate-far", "twenty"])
     assert refused.value.code == 2 and "FROM_M:FP_PER_FRAME" in capsys.readouterr().err
