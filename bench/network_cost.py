@@ -1,7 +1,8 @@
 """What a whole scan's model step would cost with a changed network, before anyone trains it: the shipped model's
 config and each variant (model config settings) built with random weights, exported as the service's step graph
-(dynamic batch) and run by onnxruntime fp32 on one thread at a whole scan's batch of tiles (21 for a 1152 px RADIATE
-scan), in interleaved rounds; prints the median ms per scan and its ratio to the shipped config's.
+(dynamic batch) and stepped by the service's onnxruntime fp32 runner on one thread, a started stream of a whole
+scan's tiles (21 for a 1152 px RADIATE scan), in interleaved rounds; prints the median ms per scan and its ratio to
+the shipped config's.
 
     python -m bench.network_cost --variant "neck.channels=16" --variant "neck.channels=16 enhance.num_blocks=1"
 
@@ -24,9 +25,9 @@ import numpy as np
 from rafd.cli import flags
 
 if TYPE_CHECKING:
-    import onnxruntime as ort
-
     from rafd.config import RaFDConfig
+    from rafd.runtime import OnnxRunner
+    from rafd.runtime.streaming import StreamState
 
 WHOLE_SCAN_TILES = 21  # rafd.runtime.view: a 1152 px scan's tiles whose centre lies in the radar's circle
 
@@ -46,37 +47,31 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
-def step_session(cfg: RaFDConfig, folder: Path) -> tuple[ort.InferenceSession, int]:
-    """A random-weight model of `cfg` as the service's step graph in onnxruntime, one thread -> (session, params)."""
-    import onnxruntime as ort
-
+def stream_runner(cfg: RaFDConfig, folder: Path) -> tuple[OnnxRunner, int]:
+    """A random-weight model of `cfg` exported as the service's step graph, in the service's onnxruntime runner on
+    one thread -> (runner, parameters)."""
     from export.onnx_export import export_onnx
     from rafd.model.build import build_model, count_parameters
     from rafd.model.checkpoint import save_checkpoint
+    from rafd.runtime import OnnxRunner
 
     model = build_model(cfg).eval()
     checkpoint = folder / "model.pt"
     save_checkpoint(checkpoint, model, cfg, {})
     exported = export_onnx(checkpoint, folder / "model.onnx", verify=False, log=lambda _: None)
-    options = ort.SessionOptions()
-    options.intra_op_num_threads = options.inter_op_num_threads = 1
-    session = ort.InferenceSession(str(exported.path), options, providers=["CPUExecutionProvider"])
-    return session, count_parameters(model)
+    return OnnxRunner(exported.path, threads=1), count_parameters(model)
 
 
-def scan_feeds(session: ort.InferenceSession, tiles: int) -> dict[str, np.ndarray]:
-    """Inputs of a started stream's step over `tiles` tiles: random frames and cache, no motion."""
+def started_stream(runner: OnnxRunner, tiles: int) -> tuple[StreamState, np.ndarray, np.ndarray]:
+    """A stream of `tiles` views past its warm-up (random frames, no motion) -> (its state, a frame, the poses)."""
     rng = np.random.default_rng(0)
-    feeds = {
-        i.name: rng.random([tiles if isinstance(d, str) else d for d in i.shape], dtype=np.float32)
-        for i in session.get_inputs()
-    }
-    for name in ("pose", "cache.poses"):
-        if name in feeds:
-            feeds[name][:] = 0.0
-    if "cache.frames" in feeds:
-        feeds["cache.frames"][:] = 3.0  # a started stream: the cache is used, not this frame's padding
-    return feeds
+    size = runner.config.input_size
+    frames = rng.random((tiles, size, size), dtype=np.float32)
+    poses = np.zeros((tiles, 3))
+    state = runner.new_state()
+    for _ in range(runner.config.num_frames):
+        state = runner.step(state, frames, poses)[1]
+    return state, frames, poses
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -93,19 +88,17 @@ def main(argv: list[str] | None = None) -> int:
     except ValueError as error:
         print(f"network_cost: error: {error}", file=sys.stderr)
         return 2
-    runs: dict[str, tuple[ort.InferenceSession, dict[str, np.ndarray], int, list[float]]] = {}
+    runs: dict[str, tuple[OnnxRunner, tuple[StreamState, np.ndarray, np.ndarray], int, list[float]]] = {}
     with tempfile.TemporaryDirectory(prefix="rafd-network-cost-") as tmp:
         for index, (name, cfg) in enumerate(variants.items()):
             folder = Path(tmp, str(index))
             folder.mkdir()
-            session, parameters = step_session(cfg, folder)
-            feeds = scan_feeds(session, args.tiles)
-            session.run(None, feeds)  # warm-up
-            runs[name] = (session, feeds, parameters, [])
+            runner, parameters = stream_runner(cfg, folder)
+            runs[name] = (runner, started_stream(runner, args.tiles), parameters, [])
         for _ in range(args.rounds):
-            for session, feeds, _, times in runs.values():
+            for runner, (state, frames, poses), _, times in runs.values():
                 start = time.perf_counter()
-                session.run(None, feeds)
+                runner.step(state, frames, poses)
                 times.append(time.perf_counter() - start)
     reference = statistics.median(runs["shipped"][3])
     print(f"onnxruntime fp32, one thread, {args.tiles} tiles per scan, median of {args.rounds} interleaved rounds")

@@ -53,7 +53,7 @@ def answered_mask(centres: np.ndarray, scores: np.ndarray, threshold: OperatingT
     threshold applies from its range outwards)."""
     centres = np.asarray(centres, np.float64).reshape(-1, 2)
     scores = np.asarray(scores, np.float64).reshape(-1)
-    if not isinstance(threshold, OperatingThreshold):
+    if not isinstance(threshold, OperatingThreshold):  # a swept number (evaluation), possibly just above 1
         return np.isfinite(scores) & (scores >= threshold)
     cut = np.full(len(scores), threshold.near)
     if threshold.far is not None and threshold.far_from_m is not None:

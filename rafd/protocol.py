@@ -87,6 +87,11 @@ class OperatingThreshold:
         return f"{self.near:.3f} within {self.far_from_m:g} m, {self.far:.3f} beyond"
 
 
+def as_operating_threshold(threshold: OperatingThreshold | float) -> OperatingThreshold:
+    """A plain number is one threshold at every range."""
+    return threshold if isinstance(threshold, OperatingThreshold) else OperatingThreshold(float(threshold))
+
+
 def far_threshold(value: Any) -> tuple[float, float] | None:
     """FAR_THRESHOLD_KEY's value (a dict, or its JSON text in ONNX metadata) -> (from_m, threshold); None when
     absent. ValueError when it is malformed."""

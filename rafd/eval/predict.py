@@ -20,7 +20,7 @@ from rafd.eval.metrics import end_point_error, match_centres, mean_average_preci
 from rafd.flow_validity import config_validity
 from rafd.geometry import points_in_boxes, relative_pose
 from rafd.progress import bar
-from rafd.protocol import CENTRE_DISTANCE_M, IOU_THRESHOLDS, OperatingThreshold
+from rafd.protocol import CENTRE_DISTANCE_M, IOU_THRESHOLDS, OperatingThreshold, as_operating_threshold
 
 
 @dataclass
@@ -186,9 +186,7 @@ def summarise(
     summary["recall_at_1fp"] = 100.0 * recall
     summary["threshold_at_1fp"] = threshold_at
     if score_threshold is not None:
-        answering = (
-            score_threshold if isinstance(score_threshold, OperatingThreshold) else OperatingThreshold(score_threshold)
-        )
+        answering = as_operating_threshold(score_threshold)
         kept = match_centres([answered(p, answering) for p in predictions], ground_truths, CENTRE_DISTANCE_M)
         recall, fp_per_frame = kept.at_threshold(0.0)
         summary["score_threshold"] = answering.near

@@ -37,6 +37,7 @@ import numpy as np
 from rafd.detections import Detections, answered_mask, decode_detections
 from rafd.geometry import RADIATE_RESOLUTION, RADIATE_SCAN_SIZE, rotation_matrix
 from rafd.preprocess import to_model_input
+from rafd.protocol import as_operating_threshold
 
 if TYPE_CHECKING:
     from rafd.protocol import OperatingThreshold
@@ -213,7 +214,7 @@ class View:
         """The stepped tiles' outputs (boxes [V, K, 5] in each tile's frame, scores [V, K]) -> detections in the ego
         frame within the view's range that the threshold answers (at each one's range from the radar), best first:
         each from the tile whose core holds it, one per vehicle."""
-        lowest = score_threshold if isinstance(score_threshold, float | int) else score_threshold.lowest
+        lowest = as_operating_threshold(score_threshold).lowest
         kept_boxes, kept_scores, kept_labels, kept_tiles = [], [], [], []
         for tile, tile_boxes, tile_scores in zip(self.tiles, boxes, scores):
             found = decode_detections(tile_boxes, tile_scores, lowest)
