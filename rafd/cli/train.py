@@ -67,6 +67,13 @@ def build_parser() -> argparse.ArgumentParser:
         "4-frame run); optimizer, schedule and epochs start fresh",
     )
     parser.add_argument(
+        "--teacher",
+        type=Path,
+        metavar="CKPT",
+        help="distil this trained model: its heatmap is a soft target beside the labels (weight loss.distill_weight), "
+        "e.g. a wide model teaching a narrower network; it must read the same input and see at least as many frames",
+    )
+    parser.add_argument(
         "--show-config", action="store_true", help="print the config's every KEY=VALUE (recipe and settings) and exit"
     )
     flags.add_quiet(parser)
@@ -134,6 +141,7 @@ def train_run(args: argparse.Namespace) -> TrainRun:
         recipe=args.config,
         resume=args.resume,
         init=args.init,
+        teacher=args.teacher,
         val=val,
         mix=mix,
     )

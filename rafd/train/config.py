@@ -63,6 +63,8 @@ class LossConfig:
     rotation_weight: float = 1.0
     # Weight of the flow term; 0 is the "without flow supervision" ablation (paper: L = L_det + L_flow).
     flow_weight: float = 1.0
+    # Weight of the heatmap distillation term of a run with a teacher (`rafd train --teacher CKPT`; rafd.train.distill).
+    distill_weight: float = 1.0
     # CornerNet focal loss exponents: alpha on (1 - p) / p, beta on (1 - Gaussian) for negatives.
     focal_alpha: float = 2.0
     focal_beta: float = 4.0

@@ -7,9 +7,10 @@ from torch import Tensor, nn
 from torch.nn import functional as F
 
 from rafd.train.config import LossConfig
+from rafd.train.distill import heatmap_distillation
 
 # The terms RaFDLoss returns, in a fixed order (the trainer stacks them into one tensor).
-LOSS_TERMS = ("total", "det", "heatmap", "offset", "size", "rotation", "flow")
+LOSS_TERMS = ("total", "det", "heatmap", "offset", "size", "rotation", "flow", "distill")
 
 
 def focal_loss(
@@ -62,7 +63,8 @@ def flow_l1(prediction: Tensor, target: Tensor, valid: Tensor) -> Tensor:
 
 
 class RaFDLoss(nn.Module):
-    """Model outputs + batched targets -> dict of scalar loss terms ("total" = det + flow)."""
+    """Model outputs + batched targets -> dict of scalar loss terms ("total" = det + flow, + the heatmap distillation
+    where the targets hold a teacher's heatmap: rafd.train.distill)."""
 
     def __init__(self, config: LossConfig | None = None) -> None:
         super().__init__()
@@ -90,9 +92,14 @@ class RaFDLoss(nn.Module):
             flow = flow_l1(outputs["flow"].float(), targets["flow"], targets["flow_valid"])
         else:
             flow = heatmap.new_zeros(())
+        if "teacher_heatmap" in targets:
+            num_positive = (targets["heatmap"] >= 1.0 - 1e-6).sum().float()  # the focal loss's normaliser
+            distill = heatmap_distillation(outputs["heatmap"], targets["teacher_heatmap"], num_positive)
+        else:
+            distill = heatmap.new_zeros(())
         # The flow term stays in the graph even at weight 0, so every parameter receives a
         # (zero) gradient and DDP does not see unused parameters.
-        total = det + cfg.flow_weight * flow
+        total = det + cfg.flow_weight * flow + cfg.distill_weight * distill
         return {
             "total": total,
             "det": det,
@@ -101,4 +108,5 @@ class RaFDLoss(nn.Module):
             "size": size,
             "rotation": rotation,
             "flow": flow,
+            "distill": distill,
         }

@@ -19,6 +19,7 @@ from rafd.train.config import RunConfig
 if TYPE_CHECKING:  # torch is imported when a run starts, not when it is described
     from torch.utils.data import Dataset
 
+    from rafd.train.distill import Teacher
     from rafd.train.distributed import DistContext
 
 log = logging.getLogger("rafd.train")
@@ -48,6 +49,8 @@ class TrainRun:
     # every epoch holds each of `data`'s windows once plus `mix`'s up to data.mix_share of the epoch (in turn over
     # the epochs, augmented as data.mix_augment says)
     mix: DataSource | None = None
+    # a trained model whose heatmap the run learns beside the labels (loss.distill_weight; rafd.train.distill)
+    teacher: Path | None = None
 
 
 def default_threads(world_size: int) -> int:
@@ -67,6 +70,7 @@ class _Prepared:
     val_set: Dataset[Any] | None
     ctx: DistContext
     run_meta: dict[str, Any]
+    teacher: Teacher | None
 
 
 def train(run: TrainRun) -> list[dict[str, Any]]:
@@ -89,6 +93,7 @@ def _prepare(run: TrainRun) -> _Prepared:
     from rafd.data.windows import DatasetError, open_windows
     from rafd.model.device import resolve_device
     from rafd.model.precision import check_precision
+    from rafd.train.distill import load_teacher
     from rafd.train.distributed import init_distributed
     from rafd.train.trainer import plan_batches
 
@@ -99,9 +104,10 @@ def _prepare(run: TrainRun) -> _Prepared:
     plan_batches(config.train.batch_size, world_size, config.train.micro_batch_size)
     if run.init is not None and run.resume:
         raise ValueError("--init starts a new run and --resume continues one: give one of them")
-    for flag, path in (("--resume", run.out if run.resume else None), ("--init", run.init)):
+    for flag, path in (("--resume", run.out if run.resume else None), ("--init", run.init), ("--teacher", run.teacher)):
         if path is not None and not Path(path).is_file():
             raise DatasetError(f"{flag} {path} does not exist")
+    teacher = load_teacher(run.teacher, config.model) if run.teacher is not None else None
     data = config.data
     train_set: Dataset[Any] = open_windows(
         run.data.root,
@@ -119,6 +125,8 @@ def _prepare(run: TrainRun) -> _Prepared:
         "data": str(run.data.root),
         "splits": list(run.data.splits),
     }
+    if run.teacher is not None:
+        run_meta["teacher"] = str(run.teacher)
     if run.mix is not None:
         train_set, run_meta["mix"] = _mixed(run, run.mix, train_set)
     val_set = None
@@ -134,7 +142,7 @@ def _prepare(run: TrainRun) -> _Prepared:
         )
     torch.set_num_threads(config.train.threads or default_threads(local_world))
     ctx = init_distributed(config.train.device, config.train.dist_timeout_minutes)
-    return _Prepared(run, train_set, val_set, ctx, run_meta)
+    return _Prepared(run, train_set, val_set, ctx, run_meta, teacher)
 
 
 def _mixed(run: TrainRun, mix: DataSource, primary: Dataset[Any]) -> tuple[Dataset[Any], dict[str, Any]]:
@@ -173,7 +181,9 @@ def _fit(p: _Prepared) -> list[dict[str, Any]]:
 
     config = p.run.config
     try:
-        trainer = Trainer(config, p.train_set, p.run.out, p.ctx, val_set=p.val_set, run_meta=p.run_meta)
+        trainer = Trainer(
+            config, p.train_set, p.run.out, p.ctx, val_set=p.val_set, run_meta=p.run_meta, teacher=p.teacher
+        )
         if p.run.init is not None:
             trainer.initialise_from(p.run.init)
         if p.run.resume:

@@ -37,6 +37,7 @@ from rafd.data.collate import Batch, Collator
 from rafd.model.precision import autocast, check_precision, grad_scaler
 from rafd.progress import bar as progress_bar
 from rafd.train.config import RunConfig, TrainConfig
+from rafd.train.distill import Teacher
 from rafd.train.distributed import (
     DistContext,
     all_reduce_mean,
@@ -144,6 +145,7 @@ class Trainer:
         ctx: DistContext,
         val_set: Dataset | None = None,
         run_meta: dict[str, Any] | None = None,
+        teacher: Teacher | None = None,
     ) -> None:
         from rafd import build_model  # torch model code loads lazily
 
@@ -175,6 +177,8 @@ class Trainer:
                 raise ValueError(f"freeze: this {model_cfg.num_frames}-frame model has no {name}")
             part.requires_grad_(False)  # before build_optimizer, which takes only parameters that train
         self.loss = RaFDLoss(self.loss_cfg)
+        # a frozen model whose heatmap is a soft target beside the labels (rafd.train.distill); not in the checkpoint
+        self.teacher = teacher.to(ctx.device) if teacher is not None else None
         self.optimizer = build_optimizer(self.model, train_cfg)
         self.ddp_model = wrap_model(self.model, ctx)  # converts BatchNorm in place under DDP on CUDA
         self.scaler = grad_scaler(ctx.device, train_cfg.precision)
@@ -239,14 +243,17 @@ class Trainer:
                 else cast(nn.parallel.DistributedDataParallel, self.ddp_model).no_sync()
             )
             with sync:
+                targets = batch.targets
                 with autocast(self.ctx.device, self.cfg.precision):
+                    if self.teacher is not None:
+                        targets = {**targets, "teacher_heatmap": self.teacher(batch.frames, batch.poses)}
                     outputs = self.ddp_model(
                         batch.frames,
                         batch.poses,
                         gt_indices=batch.targets["centre_index"],
                         gt_mask=batch.targets["box_mask"],
                     )
-                terms = self.loss(outputs, batch.targets)  # float32 whatever the autocast precision
+                terms = self.loss(outputs, targets)  # float32 whatever the autocast precision
                 self.scaler.scale(terms["total"] / len(group)).backward()
             terms_sum += torch.stack([terms[key].detach().float() for key in LOSS_TERMS])
         if self.cfg.grad_clip > 0:

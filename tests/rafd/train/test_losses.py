@@ -97,4 +97,5 @@ def test_single_frame_has_zero_flow_term() -> None:
     outputs, targets = _outputs_and_targets(num_pairs=0)
     terms = RaFDLoss()(outputs, targets)
     assert terms["flow"].item() == 0.0
-    assert set(terms) == {"total", "det", "heatmap", "offset", "size", "rotation", "flow"}
+    assert set(terms) == {"total", "det", "heatmap", "offset", "size", "rotation", "flow", "distill"}
+    assert terms["distill"].item() == 0.0  # no teacher
