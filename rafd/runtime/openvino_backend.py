@@ -129,41 +129,43 @@ class OpenVinoBackend:
             "NUM_STREAMS": self.concurrent_runs,
             "INFERENCE_NUM_THREADS": self.threads * self.concurrent_runs,
         }
-        # A graph with a free batch axis is compiled for each batch size it is run with, as a static shape: OpenVINO's
-        # CPU plugin runs a static shape 1.3-1.4x faster than the dynamic one (the shipped step at batch 1, one
-        # thread, AMD EPYC Zen 4: fp32 15.9 against 22.4 ms), and a stream's views (a whole scan's tiles) always come
-        # in the same number, so a service compiles a size or two: 1, and its whole-scan view's tile count.
+        # A graph with free axes is compiled for each set of shapes it is run with, as static shapes: OpenVINO's CPU
+        # plugin runs a static shape 1.3-1.4x faster than the dynamic one (the shipped step at batch 1, one thread, AMD
+        # EPYC Zen 4: fp32 15.9 against 22.4 ms), and a stream's views (a whole scan's tiles) always come in the same
+        # number, so a service compiles a size or two: 1, and its whole-scan view's tile count. The shapes are the fed
+        # arrays', input by input: a segment of a cut graph (bf16 islands) reads tensors whose free axis is not the
+        # batch (the past frames stacked, 3 rows per window).
         self._core, self._model, self._config = core, model, config
-        self._free = any(DYNAMIC in shape for shape in self.input_shapes.values())
-        self._compiled: dict[int, Any] = {}  # batch size (0: the graph's own, static) -> compiled model
-        self._idle: dict[int, queue.SimpleQueue[Any]] = {}  # idle InferRequests per compilation (untyped library)
+        self._free = tuple(name for name, shape in self.input_shapes.items() if DYNAMIC in shape)
+        self._compiled: dict[tuple[tuple[int, ...], ...], Any] = {}  # the free inputs' shapes -> compiled model
+        self._idle: dict[tuple[tuple[int, ...], ...], queue.SimpleQueue[Any]] = {}  # idle InferRequests per compilation
         self._compiling = threading.Lock()
-        self.single = self.compiled(1)
+        self.single = self.compiled(  # every free axis 1: a single run's compilation
+            {name: tuple(1 if d == DYNAMIC else d for d in shape) for name, shape in self.input_shapes.items()}
+        )
         compiled = self.single.get_property("INFERENCE_PRECISION_HINT").get_type_name()  # "bf16" / "f32"
         self.precision = "int8" if precision == "int8" else {"f32": "fp32"}.get(compiled, compiled)
 
-    def compiled(self, batch: int) -> Any:
-        """The model compiled for `batch` rows, on first use (a graph without a free batch axis: its own)."""
-        key = batch if self._free else 0
+    def _key(self, shapes: dict[str, tuple[int, ...]]) -> tuple[tuple[int, ...], ...]:
+        return tuple(tuple(shapes[name]) for name in self._free)
+
+    def compiled(self, shapes: dict[str, tuple[int, ...]]) -> Any:
+        """The model compiled for inputs of these shapes, on first use (a graph without free axes: its own)."""
+        key = self._key(shapes)
         with self._compiling:
             if key not in self._compiled:
                 model = self._model
                 if self._free:
                     model = model.clone()
-                    model.reshape(
-                        {
-                            name: [batch if d == DYNAMIC else d for d in shape]
-                            for name, shape in self.input_shapes.items()
-                        }
-                    )
+                    model.reshape({name: list(shapes[name]) for name in self._free})
                 self._compiled[key] = self._core.compile_model(model, "CPU", self._config)
                 self._idle[key] = queue.SimpleQueue()
             return self._compiled[key]
 
     def run(self, feeds: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
-        batch = len(next(iter(feeds.values())))
-        compiled = self.compiled(batch)
-        idle = self._idle[batch if self._free else 0]
+        shapes = {name: feeds[name].shape for name in self._free}
+        compiled = self.compiled(shapes)
+        idle = self._idle[self._key(shapes)]
         try:
             request = idle.get_nowait()
         except queue.Empty:

@@ -103,9 +103,37 @@ def test_a_batched_run_compiles_its_batch_size_on_first_use_and_agrees_with_sing
     assert any(DYNAMIC in s for s in backend.input_shapes.values()), "the shipped step has a free batch axis"
     singles = [{name: rng.random(shape, dtype=np.float32) for name, shape in shapes.items()} for _ in range(2)]
     outputs = [runner.run(feeds) for feeds in singles]
-    assert set(backend._compiled) == {1}  # batch 2 not compiled yet
+    assert len(backend._compiled) == 1  # batch 2 not compiled yet
     stacked = runner.run({name: np.concatenate([f[name] for f in singles]) for name in shapes})
-    assert set(backend._compiled) == {1, 2} and backend.compiled(2) is not backend.single
+    assert len(backend._compiled) == 2
+    assert {rows for key in backend._compiled for rows in {shape[0] for shape in key}} == {1, 2}
     for row, single in enumerate(outputs):
         for name, value in single.items():
             np.testing.assert_allclose(stacked[name][row : row + 1], value, rtol=1e-4, atol=1e-4)
+
+
+def test_inputs_whose_free_axes_differ_are_compiled_for_the_shapes_fed(tmp_path):
+    """A segment of a cut graph (bf16 islands) reads tensors whose free axis is not the batch: here one input of B
+    rows and one of 3B; each is compiled at the shape it is fed, not at the first input's row count."""
+    import onnx
+    from onnx import TensorProto, helper
+
+    from rafd.runtime.openvino_backend import OpenVinoBackend
+
+    inputs = [helper.make_tensor_value_info(n, TensorProto.FLOAT, ["rows_" + n, 2]) for n in ("frame", "past")]
+    outputs = [helper.make_tensor_value_info(n, TensorProto.FLOAT, None) for n in ("frame_out", "past_out")]
+    graph = helper.make_graph(
+        [helper.make_node("Relu", ["frame"], ["frame_out"]), helper.make_node("Neg", ["past"], ["past_out"])],
+        "two_free_axes",
+        inputs,
+        outputs,
+    )
+    path = tmp_path / "segment.onnx"
+    onnx.save(helper.make_model(graph, opset_imports=[helper.make_opsetid("", 17)]), path)
+    backend = OpenVinoBackend(path, "fp32", threads=1)
+    for rows in (1, 2):
+        frame = np.arange(2 * rows, dtype=np.float32).reshape(rows, 2) - 1
+        past = np.ones((3 * rows, 2), dtype=np.float32)
+        out = backend.run({"frame": frame, "past": past})
+        np.testing.assert_array_equal(out["frame_out"], np.maximum(frame, 0))
+        np.testing.assert_array_equal(out["past_out"], -past)
