@@ -71,7 +71,7 @@ def create_app(
         try:
             loaded = runner if runner is not None else await run_in_threadpool(open_runner, settings)
             check_buffer_length(settings, loaded)
-            await run_in_threadpool(warm_up, loaded)
+            await run_in_threadpool(warm_up, loaded, settings)
             store = StreamStore(
                 settings.max_streams,
                 settings.stream_ttl_s,

@@ -83,7 +83,15 @@ def full_scan_view(config: RaFDConfig, range_m: float | None) -> View | None:
     return View.of(RADIATE_SCAN_SIZE, config.input_size, config.resolution, cell_px, range_m)
 
 
-def warm_up(runner: Runner) -> None:
-    """One step on a blank frame: first-run allocations and kernel choices happen before traffic."""
+def warm_up(runner: Runner, settings: Settings) -> None:
+    """One step on a blank frame, and for the service's StreamRunner every graph run a request can take: each of its
+    backends (a lone run's, and the crowd's that concurrent streams use) at one view and at a whole scan's tiles.
+    First-run allocations, kernel choices and OpenVINO's static-shape compilations happen before traffic; left to
+    the first concurrent requests, they cost the first load level after start-up streams (`rafd bench capacity`)."""
+    from rafd.runtime.streaming import StreamRunner
+
     size = runner.config.input_size
     runner.step(runner.new_state(), np.zeros((1, size, size), np.float32), np.zeros((1, 3)))
+    if isinstance(runner, StreamRunner):
+        view = full_scan_view(runner.config, settings.detect_range_m)
+        runner.warm((1,) if view is None else (1, len(view.tiles)))

@@ -18,7 +18,7 @@ PyTorch for evaluation) only runs the graph; states hold float32 numpy arrays wh
 from __future__ import annotations
 
 import threading
-from collections.abc import Mapping
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 from types import MappingProxyType
 from typing import Protocol
@@ -174,6 +174,18 @@ class StreamRunner:
         """What a stream of `views` views holds once it has stepped (StreamState.nbytes)."""
         per_view = sum(4 * int(np.prod(shape)) for shape in self._cache_shapes.values()) + 3 * 8
         return views * per_view
+
+    def warm(self, views: Sequence[int]) -> None:
+        """Run each backend this runner may use (a lone run's and the crowd's) once per batch of `views` rows, on
+        zeros: their first-run costs (allocations, kernel choices, OpenVINO's compilation of a static shape) are paid
+        here, not by the first request, or the first concurrent ones, of each size."""
+        batches = sorted({view if self.batch == DYNAMIC else 1 for view in views})
+        for backend in (self.backend,) if self.crowd is None else (self.backend, self.crowd):
+            for batch in batches:
+                shapes = {
+                    name: tuple(batch if d == DYNAMIC else d for d in s) for name, s in backend.input_shapes.items()
+                }
+                backend.run({name: np.zeros(shape, np.float32) for name, shape in shapes.items()})
 
     def run(self, feeds: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
         """One raw graph run -> {output name: array}; a graph of static batch 1 runs a batch view by view."""

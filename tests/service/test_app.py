@@ -13,7 +13,7 @@ from fastapi.testclient import TestClient
 
 from service.app import create_app
 from service.settings import Settings
-from tests.utils.fake_runner import FakeRunner
+from tests.utils.fake_runner import WARM_UP_RUNS, FakeRunner
 from tests.utils.service_testing import blob_frame, detect_json, wait_ready
 
 
@@ -65,7 +65,7 @@ def test_ready_only_after_warm_up_and_detect_refused_before(settings):
         assert refused.status_code == 503
         gate.set()
         wait_ready(client)
-        assert runner.calls == 1  # the warm-up step on a blank frame
+        assert runner.calls == WARM_UP_RUNS
         assert client.post("/detect", json=detect_json("s", 1.0, blob_frame(128, []), (0, 0, 0))).status_code == 200
 
 

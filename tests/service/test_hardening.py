@@ -35,7 +35,7 @@ from service.app import create_app
 from service.http.errors import ERRORS
 from service.settings import Settings
 from tests.utils.answers_testing import chain_free
-from tests.utils.fake_runner import FakeRunner
+from tests.utils.fake_runner import WARM_UP_RUNS, FakeRunner
 from tests.utils.png_testing import grey_png, padded_scan
 from tests.utils.service_testing import (
     blob_frame,
@@ -160,7 +160,7 @@ def test_health_and_metrics_answer_while_the_model_queue_is_full_and_excess_work
     assert all(r.status_code == 503 and r.json()["error"]["code"] == "overloaded" for r in refused)
     assert all(r.headers["retry-after"] == "2" for r in refused)
     assert sum(r.status_code == 200 for r in answers) == 5  # 1 running + 4 queued
-    assert runner.calls == 1 + 5  # warm-up + the admitted frames: refused work was never spent
+    assert runner.calls == WARM_UP_RUNS + 5  # the admitted frames: refused work was never spent
 
 
 def test_in_flight_limit_refuses_once_the_body_has_arrived():

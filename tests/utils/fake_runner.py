@@ -122,6 +122,11 @@ class FakeBackend:
         return frame.reshape(f, s, f, s).mean(axis=(1, 3)).astype(np.float64)
 
 
+# Runs of the service's warm-up on a FakeRunner of the default config (service.loading.warm_up): a step on a blank
+# frame, then its backend at one view and at a whole scan's tiles.
+WARM_UP_RUNS = 3
+
+
 class FakeRunner(StreamRunner):
     """StreamRunner over a FakeBackend; its counters read through."""
 

@@ -137,3 +137,13 @@ def test_inputs_whose_free_axes_differ_are_compiled_for_the_shapes_fed(tmp_path)
         out = backend.run({"frame": frame, "past": past})
         np.testing.assert_array_equal(out["frame_out"], np.maximum(frame, 0))
         np.testing.assert_array_equal(out["past_out"], -past)
+
+
+def test_warm_compiles_every_backend_at_every_batch_before_traffic(shipped_onnx):
+    """The service warms the lone run's backend and the crowd's (concurrent streams) at one view and at a whole
+    scan's tiles: no request pays OpenVINO's compilation of a static shape."""
+    runner = OpenVinoRunner(shipped_onnx, "fp32", threads=2, concurrent_runs=2)
+    assert runner.crowd is not None
+    runner.warm((1, 21, 21))
+    for backend in (runner.backend, runner.crowd):
+        assert sorted({key[0][0] for key in backend._compiled}) == [1, 21]

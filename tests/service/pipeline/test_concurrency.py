@@ -10,7 +10,7 @@ from fastapi.testclient import TestClient
 
 from rafd.detections import decode_detections
 from service.app import create_app
-from tests.utils.fake_runner import FakeRunner
+from tests.utils.fake_runner import WARM_UP_RUNS, FakeRunner
 from tests.utils.service_testing import blob_frame, detect_json, stream_state, wait_ready
 
 STREAMS = 20
@@ -111,4 +111,4 @@ def test_concurrent_posts_to_one_stream_are_processed_in_timestamp_order(setting
     assert final["last_timestamp"] == float(count)
     assert final["frames_seen"] == len(accepted)
     assert final["frames_buffered"] == min(len(accepted), 4)
-    assert runner.calls == len(accepted) + 1  # + the warm-up: refused frames never reached the model
+    assert runner.calls == len(accepted) + WARM_UP_RUNS  # refused frames never reached the model
