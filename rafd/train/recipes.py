@@ -102,6 +102,14 @@ RECIPES: dict[str, Recipe] = {
             ),
             base="default",
         ),
+        Recipe(
+            "cpu-narrow",
+            "the `cpu` network at 16 feature channels instead of 32 (the shipped model's since 2026-12-08): about 0.6 "
+            "of its step, so a 2-core replica holds whole scans of more radars; trained like it, its real fine-tune "
+            "distilled from the wider model (rafd train --teacher)",
+            ("model.neck.channels=16",),
+            base="cpu",
+        ),
     )
 }
 

@@ -21,9 +21,9 @@ from rafd.train.recipes import recipe_model
 from rafd.train.trainer import Trainer
 
 
-def test_the_shipped_checkpoint_is_the_cpu_recipes_network_calibrated_on_a_validation_split() -> None:
+def test_the_shipped_checkpoint_is_the_narrow_cpu_recipes_network_calibrated_on_a_validation_split() -> None:
     _, cfg, meta = load_checkpoint(default_checkpoint())
-    assert cfg == recipe_model("cpu")
+    assert cfg == recipe_model("cpu-narrow")
     threshold = meta["operating_threshold"]
     assert math.isfinite(threshold) and 0.0 < threshold < 1.0
     point = meta["operating_point"]
