@@ -15,6 +15,9 @@ BOX_ENCODINGS = ("symmetric", "as_labelled")
 ENHANCE_KINDS = ("window_attention", "conv")
 PROPAGATION_MODES = ("chain", "joint")
 FREEZABLE = ("encoder", "flow", "propagation", "head")  # RaFD's top-level parts, for rafd-train --freeze
+# What two networks must share for one's weights (rafd train --init) or heatmap (--teacher) to mean the same to the
+# other: the pixels they read and the cells and classes they predict; width, depth and frame count may differ.
+SAME_INPUT_AND_TARGETS = ("input_size", "resolution", "output_stride", "input", "class_names", "targets")
 
 
 @dataclass(frozen=True)

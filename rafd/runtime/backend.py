@@ -11,6 +11,11 @@ DYNAMIC = -1  # an input dimension the graph leaves free (the batch axis of a ba
 PRECISIONS = ("fp32", "bf16", "int8")  # int8: the quantized MODEL.int8.onnx (OpenVINO)
 
 
+def shapes_at(input_shapes: dict[str, tuple[int, ...]], batch: int) -> dict[str, tuple[int, ...]]:
+    """The graph's input shapes with every free (DYNAMIC) dimension set to `batch`."""
+    return {name: tuple(batch if d == DYNAMIC else d for d in shape) for name, shape in input_shapes.items()}
+
+
 class Backend(Protocol):
     """A compiled RaFD graph: thread-safe `run`, static input shapes, the export's metadata."""
 

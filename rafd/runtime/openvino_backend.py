@@ -22,7 +22,7 @@ from typing import Any
 import numpy as np
 
 from rafd.model_files import FLOAT32_ISLANDS_KEY, int8_model_path
-from rafd.runtime.backend import DYNAMIC
+from rafd.runtime.backend import DYNAMIC, shapes_at
 
 # The inference precision hint per precision: int8 is in the quantized graph itself, the rest of it runs in float32.
 OV_PRECISION = {"fp32": "f32", "bf16": "bf16", "int8": "f32"}
@@ -140,9 +140,7 @@ class OpenVinoBackend:
         self._compiled: dict[tuple[tuple[int, ...], ...], Any] = {}  # the free inputs' shapes -> compiled model
         self._idle: dict[tuple[tuple[int, ...], ...], queue.SimpleQueue[Any]] = {}  # idle InferRequests per compilation
         self._compiling = threading.Lock()
-        self.single = self.compiled(  # every free axis 1: a single run's compilation
-            {name: tuple(1 if d == DYNAMIC else d for d in shape) for name, shape in self.input_shapes.items()}
-        )
+        self.single = self.compiled(shapes_at(self.input_shapes, 1))  # every free axis 1: a single run's
         compiled = self.single.get_property("INFERENCE_PRECISION_HINT").get_type_name()  # "bf16" / "f32"
         self.precision = "int8" if precision == "int8" else {"f32": "fp32"}.get(compiled, compiled)
 

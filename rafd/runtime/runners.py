@@ -17,7 +17,7 @@ import numpy as np
 from rafd.cpu import usable_cpus
 from rafd.model_files import checkpoint_given_for_onnx, file_sha256, int8_model_path, islands_dir, islands_sha256
 from rafd.protocol import GATE_MIN_FRAMES, GATE_MIN_REFERENCE_DETECTIONS
-from rafd.runtime.backend import DYNAMIC, PRECISIONS, RUNTIMES
+from rafd.runtime.backend import DYNAMIC, PRECISIONS, RUNTIMES, shapes_at
 from rafd.runtime.ort_backend import OrtBackend
 from rafd.runtime.streaming import StreamRunner
 
@@ -320,8 +320,8 @@ def time_runner(runner: StreamRunner, repeats: int = 3, warmup: int = 1, seed: i
     rng = np.random.default_rng(seed)
     batch = views if runner.batch == DYNAMIC else 1
     feeds = {
-        name: rng.random(tuple(batch if d == DYNAMIC else d for d in shape), dtype=np.float32)
-        for name, shape in runner.backend.input_shapes.items()
+        name: rng.random(shape, dtype=np.float32)
+        for name, shape in shapes_at(runner.backend.input_shapes, batch).items()
     }
     for _ in range(warmup):
         runner.run(feeds)

@@ -27,7 +27,7 @@ import numpy as np
 
 from rafd.config import RaFDConfig
 from rafd.geometry import relative_pose
-from rafd.runtime.backend import DYNAMIC, Backend
+from rafd.runtime.backend import DYNAMIC, Backend, shapes_at
 from rafd.runtime.contract import cache_names, carried, check_step_graph
 
 
@@ -182,10 +182,12 @@ class StreamRunner:
         batches = sorted({view if self.batch == DYNAMIC else 1 for view in views})
         for backend in (self.backend,) if self.crowd is None else (self.backend, self.crowd):
             for batch in batches:
-                shapes = {
-                    name: tuple(batch if d == DYNAMIC else d for d in s) for name, s in backend.input_shapes.items()
-                }
-                backend.run({name: np.zeros(shape, np.float32) for name, shape in shapes.items()})
+                backend.run(
+                    {
+                        name: np.zeros(shape, np.float32)
+                        for name, shape in shapes_at(backend.input_shapes, batch).items()
+                    }
+                )
 
     def run(self, feeds: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
         """One raw graph run -> {output name: array}; a graph of static batch 1 runs a batch view by view."""

@@ -13,11 +13,7 @@ import torch
 from torch import Tensor, nn
 from torch.nn import functional as F
 
-from rafd.config import RaFDConfig
-
-# What the student and the teacher must share for the teacher's heatmap to be a target of the student's cells: the
-# pixels they read and the cells and classes they predict (the width and the parts inside may differ).
-SHARED_FIELDS = ("input_size", "resolution", "output_stride", "input", "class_names", "targets")
+from rafd.config import SAME_INPUT_AND_TARGETS, RaFDConfig
 
 
 def heatmap_distillation(student_logits: Tensor, teacher_logits: Tensor, num_positive: Tensor) -> Tensor:
@@ -58,7 +54,7 @@ def load_teacher(path: Path, student: RaFDConfig) -> Teacher:
     from rafd.model.checkpoint import read_checkpoint
 
     state, cfg, _meta = read_checkpoint(path, map_location="cpu")
-    for name in SHARED_FIELDS:
+    for name in SAME_INPUT_AND_TARGETS:
         if getattr(cfg, name) != getattr(student, name):
             theirs, ours = getattr(cfg, name), getattr(student, name)
             raise ValueError(f"teacher {path}: its {name} {theirs!r} differs from the student's {ours!r}")

@@ -31,7 +31,7 @@ import torch
 from torch import nn
 from torch.utils.data import DataLoader, Dataset
 
-from rafd.config import RaFDConfig
+from rafd.config import SAME_INPUT_AND_TARGETS, RaFDConfig
 from rafd.cpu import usable_cpus
 from rafd.data.collate import Batch, Collator
 from rafd.model.precision import autocast, check_precision, grad_scaler
@@ -394,7 +394,7 @@ class Trainer:
         from rafd.model.checkpoint import read_checkpoint
 
         state, source_cfg, _meta = read_checkpoint(Path(path), map_location="cpu")
-        for field in ("input_size", "resolution", "output_stride", "input", "class_names", "targets"):
+        for field in SAME_INPUT_AND_TARGETS:
             if getattr(source_cfg, field) != getattr(self.model_cfg, field):
                 raise ValueError(
                     f"cannot initialise from {path}: its {field} {getattr(source_cfg, field)!r} differs "

@@ -11,7 +11,7 @@ import pytest
 from rafd.runtime import OnnxRunner, OpenVinoRunner
 
 pytest.importorskip("openvino", reason="the serve extra installs openvino")
-from rafd.runtime.backend import DYNAMIC  # noqa: E402
+from rafd.runtime.backend import DYNAMIC, shapes_at  # noqa: E402
 from rafd.runtime.openvino_backend import openvino_supports_bf16  # noqa: E402
 
 
@@ -81,9 +81,7 @@ def test_bf16_refused_where_the_cpu_lacks_it(shipped_onnx, monkeypatch):
 def test_concurrent_runs_give_the_serial_results(shipped_onnx):
     runner = OpenVinoRunner(shipped_onnx, "fp32", threads=1, concurrent_runs=2)
     rng = np.random.default_rng(3)
-    shapes = {  # a free axis (the shipped model's dynamic batch: -1) fed as one stream
-        name: tuple(1 if d == DYNAMIC else d for d in shape) for name, shape in runner.backend.input_shapes.items()
-    }
+    shapes = shapes_at(runner.backend.input_shapes, 1)  # the free batch axis fed as one stream
     feeds = [{name: rng.random(shape, dtype=np.float32) for name, shape in shapes.items()} for _ in range(6)]
     serial = [runner.run(f) for f in feeds]
     with concurrent.futures.ThreadPoolExecutor(4) as pool:
@@ -99,7 +97,7 @@ def test_a_batched_run_compiles_its_batch_size_on_first_use_and_agrees_with_sing
     runner = OpenVinoRunner(shipped_onnx, "fp32", threads=1)
     backend = runner.backend
     rng = np.random.default_rng(5)
-    shapes = {name: tuple(1 if d == DYNAMIC else d for d in s) for name, s in backend.input_shapes.items()}
+    shapes = shapes_at(backend.input_shapes, 1)
     assert any(DYNAMIC in s for s in backend.input_shapes.values()), "the shipped step has a free batch axis"
     singles = [{name: rng.random(shape, dtype=np.float32) for name, shape in shapes.items()} for _ in range(2)]
     outputs = [runner.run(feeds) for feeds in singles]
